@@ -1,0 +1,343 @@
+"""Typed, frozen configuration of the rig, validated before anything runs.
+
+A config file is YAML with top-level sections; ``include:`` lists further files (relative
+to the including file) whose sections are merged in. Each section is validated against
+the dataclasses below; every error names the file, the key path and what was expected.
+
+Units are SI (m, rad, s, A) unless a key says otherwise (``*_mm``, ``*_hz``, ``*_ms``).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Optional
+
+import yaml
+
+from . import schema
+from .errors import ConfigError
+from .schema import check, nonneg, positive, unit_interval
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+DEFAULT_CONFIG = CONFIG_DIR / "sim.yaml"
+
+LASER_ROLES = ("b_f", "b_r", "s_fl", "s_fr", "s_rl", "s_rr")
+WHEELS = ("fl", "fr", "rl", "rr")
+
+
+# --------------------------------------------------------------------------- geometry
+@dataclass(frozen=True, kw_only=True)
+class Geometry:
+    """Sensor geometry of Sec. 2 (Fig. 2). Lengths in m."""
+
+    b0: float = check(positive)       # nominal laser-to-plate distance when centred
+    l_L: float = check(positive)      # spacing of the two lateral lasers along the track
+    l0: float = check(positive)       # frame centre to front/rear wheel carrier
+    d0: float = check(positive)       # spacing of the left/right yaw lasers
+
+
+# --------------------------------------------------------------------------- plant
+@dataclass(frozen=True, kw_only=True)
+class BoucWen:
+    a: float = check(unit_interval)   # a_Bouc, ratio of post- to pre-yield stiffness
+    A: float = 1.0
+    beta: float = check(positive)
+    gamma: float = 0.0
+    n: int = check(positive, default=1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Plant:
+    """Plant parameters (Sec. 4; Table 3, Table 1 quantities as estimates)."""
+
+    v: float                                  # roller surface speed, m/s (sign = direction)
+    b: float = check(positive)                # track width (contact-point spacing), m
+    r0: float = check(positive)               # wheel radius, m
+    delta0: float = check(positive)           # equivalent conicity angle, rad
+    l0: float = check(positive)               # frame centre to wheel carrier, m
+    y_off: float = 0.0                        # lateral offset, m (Sec. 4.1.2)
+    c11: float = check(positive)              # extended Kalker coefficient c̄11, N
+    J_x: float = check(positive)              # wheel rolling inertia, kg m^2
+    k_tau: float = check(positive)            # motor constant, N m / A
+    omega0: float = check(positive)           # yaw natural frequency, rad/s
+    K: float = check(positive)                # yaw static gain, rad / A
+    D_min: float = check(positive)            # damping for fast input changes
+    D_max: float = check(positive)            # damping for slow input changes
+    c_udot_max: float = check(positive)       # |du/dt| at which D reaches D_min, A/s
+    u_filter_hz: float = check(positive, default=10.0)  # low pass used for du/dt in (7)
+    psi_off: float = 0.0                      # yaw offset, rad
+    bouc_wen: Optional[BoucWen] = None        # hysteresis (8)/(9); None = linear
+    front_contact: bool = False               # front carrier on the rollers (else lifted, y_f = 0)
+
+    def __post_init__(self) -> None:
+        if self.D_max < self.D_min:
+            raise ConfigError(None, "D_max", f"a damping >= D_min ({self.D_min})", self.D_max)
+        if not self.delta0 < math.pi / 4:
+            raise ConfigError(None, "delta0", "a conicity angle below pi/4 rad", self.delta0)
+
+    @property
+    def c_y(self) -> float:
+        """c̄_y of Sec. 4.1.1 (wheel non-flatness factor)."""
+        d, r0, b = self.delta0, self.r0, self.b
+        return (2 * r0 * math.cos(d) ** 3 - 2 * r0 * math.cos(d) + b * math.cos(d) ** 2 * math.sin(d)) / (b * math.sin(d))
+
+    @property
+    def Gamma(self) -> float:
+        """Γ of Sec. 4.2 (geometric parameter of the rolling-radius difference)."""
+        t = math.tan(self.delta0)
+        return t / (self.b / 2 - self.r0 * t)
+
+    @property
+    def a_lat(self) -> float:
+        """Lateral pole c̄_y v / (2 l0) of (2b)/(10), 1/s."""
+        return self.c_y * self.v / (2 * self.l0)
+
+
+# --------------------------------------------------------------------------- controller
+@dataclass(frozen=True, kw_only=True)
+class PIPDGains:
+    K_P_y: float          # outer PI, rad/m
+    K_I_y: float          # rad/(m s)
+    K_P_psi: float        # inner PD, A/rad
+    K_D_psi: float        # A s/rad
+    T_f_psi: float = check(positive)   # differentiator time constant, s
+
+
+@dataclass(frozen=True, kw_only=True)
+class Controller:
+    h: float = check(positive)                      # sample time, s
+    law: Literal["pipd", "p"] = "pipd"
+    pipd: PIPDGains = field(default=None)  # type: ignore[assignment]
+    K_P: float = 500.0                              # P baseline (Sec. 5.1), A/m
+    discretization: Literal["tustin", "zoh"] = "tustin"
+
+    def __post_init__(self) -> None:
+        if self.pipd is None:
+            raise ConfigError(None, "pipd", "a mapping (missing key)")
+
+
+# --------------------------------------------------------------------------- limits / safety
+@dataclass(frozen=True, kw_only=True)
+class Limits:
+    """Table 2 as far as the text gives it, plus the supervisor's own bounds."""
+
+    u_max: float = check(positive)                  # |Δu| and |current on the wire|, A
+    psi_max: float = check(positive)                # |ψ|, rad
+    y_max: float = check(positive)                  # |y|, m
+    psi_rate_max: Optional[float] = check(positive, default=None)   # |ψ̇|, rad/s
+    du_max: float = check(positive, default=200.0)  # command rate limit, A/s
+    stale_periods: int = check(positive, default=4)     # sample older than this many h -> stale
+    overrun_burst: int = check(positive, default=5)     # consecutive deadline misses -> fault
+    stop_ramp_s: float = check(nonneg, default=0.5)     # STOPPING ramp to zero
+
+
+@dataclass(frozen=True, kw_only=True)
+class TuningCriteria:
+    """Design checks of Sec. 5.2.3."""
+
+    psi_design: float = 0.05          # rad
+    psi_rate_design: float = 0.4      # rad/s
+    u_design_max: float = 2.0         # A
+    y_design: float = 0.008           # m
+    psi_ref_design_max: float = 0.06  # rad
+    slowest_eig_min: float = -1.5     # 1/s
+    outer_lateral_form: Literal["eq17", "eq10"] = "eq17"
+    D_values: tuple[float, ...] = (0.0, 0.1, 0.5, 1.0, 2.2, 6.0, 20.0, 100.0)
+
+
+# --------------------------------------------------------------------------- devices
+@dataclass(frozen=True, kw_only=True)
+class LaserDevice:
+    role: Literal["b_f", "b_r", "s_fl", "s_fr", "s_rl", "s_rr"]
+    port: str                                       # serial port, or "sim" for the virtual device
+    measuring_range_mm: float = check(positive)
+    offset_mm: float = 0.0                          # distance from the reference to the start of range
+    baudrate: int = check(positive, default=921600)
+    output_rate_hz: float = check(positive, default=4000.0)
+    average: bool = False                           # mean of this cycle's values instead of latest
+
+
+@dataclass(frozen=True, kw_only=True)
+class Drive:
+    wheel: Literal["fl", "fr", "rl", "rr"]
+    node_id: int = check(("a CANopen node id 1..127", lambda v: 1 <= v <= 127))
+    rated_current_A: float = check(positive)
+    velocity_factor: float = check(positive)        # rad/s per unit of 0x606C
+    heartbeat_ms: int = check(positive, default=50)  # producer time of the drive
+
+
+@dataclass(frozen=True, kw_only=True)
+class CanBus:
+    interface: str = "virtual"                      # python-can interface name
+    channel: str = "rig"
+    bitrate: int = check(positive, default=1_000_000)
+    eds: str = "irdw-drive.eds"                     # relative to configs/
+    heartbeat_ms: int = check(positive, default=100)  # runtime's own producer time
+    heartbeat_timeout_factor: float = check(positive, default=2.5)
+    tpdo_timeout_periods: int = check(positive, default=4)
+    watchdog_ms: int = check(positive, default=50)  # drive cuts current without SYNC/RPDO
+    drives: tuple[Drive, ...] = ()
+
+
+@dataclass(frozen=True, kw_only=True)
+class FTSensor:
+    name: str
+    transport: Literal["tcp", "rtu"] = "tcp"
+    host: str = "127.0.0.1"
+    port: int = 502                                 # TCP port
+    serial_port: str = ""                           # RTU
+    baudrate: int = check(positive, default=19200)
+    unit_id: int = check(positive, default=9)
+
+
+@dataclass(frozen=True, kw_only=True)
+class FTBus:
+    poll_hz: float = check(positive, default=50.0)
+    timeout_s: float = check(positive, default=0.1)
+    stale_s: float = check(positive, default=0.5)
+    sensors: tuple[FTSensor, ...] = ()
+
+
+@dataclass(frozen=True, kw_only=True)
+class Devices:
+    lasers: tuple[LaserDevice, ...] = ()
+    can: CanBus = field(default_factory=CanBus)
+    ft: FTBus = field(default_factory=FTBus)
+
+    def __post_init__(self) -> None:
+        roles = [l.role for l in self.lasers]
+        for r in set(roles):
+            if roles.count(r) > 1:
+                raise ConfigError(None, "lasers", f"each laser role once (duplicate {r})")
+        wheels = [d.wheel for d in self.can.drives]
+        ids = [d.node_id for d in self.can.drives]
+        if len(set(wheels)) != len(wheels) or len(set(ids)) != len(ids):
+            raise ConfigError(None, "can.drives", "distinct wheels and node ids")
+
+
+# --------------------------------------------------------------------------- runtime
+@dataclass(frozen=True, kw_only=True)
+class Realtime:
+    sched_fifo_priority: Optional[int] = None
+    cpu_affinity: Optional[tuple[int, ...]] = None
+    mlockall: bool = False
+    spin_us: float = check(nonneg, default=200.0)   # sleep until this long before the deadline, then spin
+
+
+@dataclass(frozen=True, kw_only=True)
+class Recorder:
+    buffer_cycles: int = check(positive, default=4096)
+    flush_s: float = check(positive, default=0.5)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RigConfig:
+    geometry: Geometry
+    plant: Plant
+    controller: Controller
+    limits: Limits
+    controlled: tuple[Literal["front", "rear"], ...] = ("rear",)
+    tuning: TuningCriteria = field(default_factory=TuningCriteria)
+    devices: Devices = field(default_factory=Devices)
+    realtime: Realtime = field(default_factory=Realtime)
+    recorder: Recorder = field(default_factory=Recorder)
+    sim: Optional[dict[str, Any]] = None            # validated by sim_backend
+    source: str = ""                                # file it was loaded from (not a YAML key)
+
+    def __post_init__(self) -> None:
+        if not self.controlled:
+            raise ConfigError(None, "controlled", "at least one of 'front', 'rear'")
+
+
+_SECTION_FILES = ("geometry", "plant", "controller", "limits", "controlled", "tuning",
+                  "devices", "realtime", "recorder", "sim")
+
+
+class _Loader(yaml.SafeLoader):
+    """safe_load, but ``1.0e5`` is a float (YAML 1.2 style), as engineers write it."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+    |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+    |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+    |[-+]?\.(?:inf|Inf|INF)
+    |\.(?:nan|NaN|NAN))$""", re.X),
+    list("-+0123456789."),
+)
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ConfigError(str(path), "", "an existing config file") from None
+    except OSError as e:
+        raise ConfigError(str(path), "", f"a readable file ({e.strerror})") from e
+    try:
+        data = yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "?"
+        raise ConfigError(str(path), "", f"valid YAML (syntax error at {where}: {getattr(e, 'problem', e)})") from e
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(str(path), "", "a mapping of sections at the top level", type(data).__name__)
+    return data
+
+
+def load_sections(path: Path, _seen: tuple[Path, ...] = ()) -> dict[str, tuple[Any, str]]:
+    """Read a config file and its includes into ``{section: (value, file)}``."""
+    path = path.resolve()
+    if path in _seen:
+        raise ConfigError(str(path), "include", "no include cycle")
+    data = _read_yaml(path)
+    out: dict[str, tuple[Any, str]] = {}
+    inc = data.pop("include", [])
+    if isinstance(inc, str):
+        inc = [inc]
+    if not isinstance(inc, list) or not all(isinstance(i, str) for i in inc):
+        raise ConfigError(str(path), "include", "a list of file names", inc)
+    for name in inc:
+        for k, v in load_sections(path.parent / name, _seen + (path,)).items():
+            if k in out:
+                raise ConfigError(v[1], k, f"a section defined once (also in {out[k][1]})")
+            out[k] = v
+    for k, v in data.items():
+        if k not in _SECTION_FILES:
+            raise ConfigError(str(path), str(k), "no such section (known: include, " + ", ".join(_SECTION_FILES) + ")")
+        out[k] = (v, str(path))  # the including file overrides an included section
+    return out
+
+
+def load(path: str | Path | None = None) -> RigConfig:
+    """Load and validate a rig configuration (default: the shipped simulated rig)."""
+    p = Path(path) if path is not None else DEFAULT_CONFIG
+    sections = load_sections(p)
+    kwargs: dict[str, Any] = {}
+    import typing
+    hints = typing.get_type_hints(RigConfig)
+    for name in _SECTION_FILES:
+        if name not in sections:
+            continue
+        value, file = sections[name]
+        kwargs[name] = schema._convert(hints[name], value, name, file)
+    for required in ("geometry", "plant", "controller", "limits"):
+        if required not in kwargs:
+            raise ConfigError(str(p.resolve()), required, "a section (missing; add it or include a file that has it)")
+    try:
+        return RigConfig(source=str(p.resolve()), **kwargs)
+    except ConfigError as e:
+        file = sections.get(e.key_path.split(".")[0], (None, str(p)))[1]
+        raise ConfigError(file, e.key_path, e.expected, e.got) from None
+
+
+def resolve_config_path(name: str) -> Path:
+    """Resolve a file relative to the shipped configs directory."""
+    p = Path(name)
+    return p if p.is_absolute() else CONFIG_DIR / p

@@ -1,0 +1,44 @@
+"""The project's error hierarchy.
+
+Every error names what it is about (a config key path, a device) so that a one-line
+message tells the operator the cause. Library errors are wrapped with ``raise … from``.
+"""
+
+from __future__ import annotations
+
+
+class RigError(Exception):
+    """Base of every error rig-runtime raises on purpose."""
+
+
+class ConfigError(RigError):
+    """A configuration file is malformed, incomplete or non-physical."""
+
+    def __init__(self, file: str | None, key_path: str, expected: str, got: object = None):
+        self.file = file
+        self.key_path = key_path
+        self.expected = expected
+        self.got = got
+        where = f"{file}: " if file else ""
+        got_txt = "" if got is None else f", got {got!r}"
+        super().__init__(f"{where}{key_path or '<top level>'}: expected {expected}{got_txt}")
+
+
+class DeviceError(RigError):
+    """A device could not be used; names the device."""
+
+    def __init__(self, device: str, message: str):
+        self.device = device
+        super().__init__(f"{device}: {message}")
+
+
+class DeviceInitError(DeviceError):
+    """Opening or configuring a device failed (port missing, node not answering, …)."""
+
+
+class DeviceIOError(DeviceError):
+    """Reading or writing a device failed after it was opened."""
+
+
+class DeviceTimeoutError(DeviceIOError):
+    """A device did not answer within its configured time."""
