@@ -19,9 +19,9 @@ class ConfigError(RigError):
         self.key_path = key_path
         self.expected = expected
         self.got = got
-        where = f"{file}: " if file else ""
         got_txt = "" if got is None else f", got {got!r}"
-        super().__init__(f"{where}{key_path or '<top level>'}: expected {expected}{got_txt}")
+        parts = [p for p in (file, key_path) if p]
+        super().__init__(": ".join(parts + [f"expected {expected}{got_txt}"]))
 
 
 class DeviceError(RigError):

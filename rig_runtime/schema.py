@@ -54,14 +54,14 @@ def _convert(tp: Any, value: Any, path: str, file: str | None) -> Any:
         args = get_args(tp)
         if value is None and type(None) in args:
             return None
-        errors = []
-        for a in args:
-            if a is type(None):
-                continue
+        options = [a for a in args if a is not type(None)]
+        if len(options) == 1:  # Optional[X]: X's own error is the most precise
+            return _convert(options[0], value, path, file)
+        for a in options:
             try:
                 return _convert(a, value, path, file)
-            except ConfigError as e:
-                errors.append(e)
+            except ConfigError:
+                continue
         raise ConfigError(file, path, _type_name(tp), value)
     if origin is Literal:
         if value not in get_args(tp):

@@ -1,0 +1,1 @@
+"""Subcommands beyond ``tune`` (registered on import by ``cli.build_parser``)."""

@@ -1,0 +1,184 @@
+"""Controllers of Sec. 5: the cascaded PI-PD law (11)–(14) and the P baseline of Sec. 5.1,
+plus open-loop input generators for identification experiments.
+
+Discretisation (h = 5 ms): Tustin (bilinear) for the outer integrator (14) and for the
+differentiator G(s) = s/(T_f s + 1) of (12). Tustin maps the stable left half plane onto
+the unit disc for any h, so the filter stays stable and well damped even for T_f close to
+h, and it matches the continuous frequency response best up to a few Hz where the loop's
+eigenvalues (< 70 1/s ≈ 11 Hz) live. The derivative acts on the error e_ψ = ψ_ref − ψ, so
+the D term sees ψ̇_ref as in (11) without measuring ẏ.
+
+The step is pure-Python scalar arithmetic: it runs every 5 ms inside the loop.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+from .config import Controller as ControllerConfig
+
+
+@dataclass(slots=True)
+class PIPDInternals:
+    """What one step computed, for the recorder."""
+
+    e_y: float = 0.0
+    x_I: float = 0.0
+    psi_ref: float = 0.0
+    e_psi: float = 0.0
+    de_psi: float = 0.0      # filtered derivative of e_ψ
+    u_unsat: float = 0.0
+    u: float = 0.0
+
+
+class PIPDController:
+    """Cascaded PI (outer, y → ψ_ref) and PD (inner, ψ → u) control law.
+
+    ``step(y_ref, y, psi)`` returns the saturated current command; ``limit_feedback(u)``
+    tells the controller what was actually applied after the safety limits, so that the
+    outer integrator does not wind up against a limit it did not impose itself.
+    """
+
+    def __init__(self, cfg: ControllerConfig, u_max: float, psi_ref_max: float | None = None):
+        g = cfg.pipd
+        self.h = cfg.h
+        self.kpy, self.kiy, self.kpp, self.kdp, self.tf = g.K_P_y, g.K_I_y, g.K_P_psi, g.K_D_psi, g.T_f_psi
+        self.u_max = u_max
+        self.psi_ref_max = psi_ref_max
+        den = 2.0 * self.tf + self.h
+        self._a = (2.0 * self.tf - self.h) / den   # Tustin of s/(T s + 1)
+        self._b = 2.0 / den
+        self.st = PIPDInternals()
+        self._e_y_prev = 0.0
+        self._e_psi_prev = 0.0
+        self._dI = 0.0          # integration done in the last step (undone on limit feedback)
+        self._started = False
+
+    def reset(self) -> None:
+        """Forget all history; the next step starts bumplessly."""
+        self.st = PIPDInternals()
+        self._e_y_prev = self._e_psi_prev = self._dI = 0.0
+        self._started = False
+
+    def start(self, y_ref: float, y: float, psi: float, u0: float = 0.0) -> None:
+        """Bumpless start: choose x_I so that ψ_ref = ψ (no proportional jump) and seed the
+        differentiator with the current error (no derivative kick)."""
+        e_y = y_ref - y
+        x_I = (psi + u0 / self.kpp - self.kpy * e_y) / self.kiy if self.kiy else 0.0
+        self.st = PIPDInternals(e_y=e_y, x_I=x_I, psi_ref=psi + u0 / self.kpp, u=u0, u_unsat=u0)
+        self._e_y_prev = e_y
+        self._e_psi_prev = u0 / self.kpp
+        self._started = True
+
+    def step(self, y_ref: float, y: float, psi: float) -> float:
+        if not self._started:
+            self.start(y_ref, y, psi)
+        st = self.st
+        e_y = y_ref - y
+        dI = 0.5 * self.h * (e_y + self._e_y_prev)
+        x_I = st.x_I + dI
+        psi_ref = self.kpy * e_y + self.kiy * x_I
+        lim = self.psi_ref_max
+        if lim is not None and (psi_ref > lim or psi_ref < -lim):
+            clipped = lim if psi_ref > 0 else -lim
+            if (dI > 0) == (psi_ref > 0):   # clamp: integrate only out of the limit
+                x_I -= dI
+                dI = 0.0
+            psi_ref = clipped
+        e_psi = psi_ref - psi
+        de = self._a * st.de_psi + self._b * (e_psi - self._e_psi_prev)
+        u_unsat = self.kpp * e_psi + self.kdp * de
+        u = u_unsat
+        if u > self.u_max:
+            u = self.u_max
+        elif u < -self.u_max:
+            u = -self.u_max
+        if u != u_unsat and (dI > 0) == (u_unsat > 0) and dI != 0.0:
+            x_I -= dI   # conditional integration: do not integrate further into saturation
+            dI = 0.0
+        st.e_y, st.x_I, st.psi_ref, st.e_psi, st.de_psi, st.u_unsat, st.u = e_y, x_I, psi_ref, e_psi, de, u_unsat, u
+        self._dI = dI
+        self._e_y_prev = e_y
+        self._e_psi_prev = e_psi
+        return u
+
+    def limit_feedback(self, u_applied: float) -> None:
+        """The safety layer applied ``u_applied`` instead of the last output: undo this
+        cycle's integration if it pushed toward the limit."""
+        st = self.st
+        if u_applied != st.u and self._dI != 0.0 and (self._dI > 0) == (st.u > u_applied):
+            st.x_I -= self._dI
+            self._dI = 0.0
+
+
+class PController:
+    """The P baseline of Sec. 5.1: u = K_P (y_ref − y), saturated."""
+
+    def __init__(self, cfg: ControllerConfig, u_max: float):
+        self.kp = cfg.K_P
+        self.u_max = u_max
+        self.st = PIPDInternals()
+
+    def reset(self) -> None:
+        self.st = PIPDInternals()
+
+    def start(self, y_ref: float, y: float, psi: float, u0: float = 0.0) -> None:
+        self.reset()
+
+    def step(self, y_ref: float, y: float, psi: float) -> float:
+        e = y_ref - y
+        u = self.kp * e
+        u_sat = min(self.u_max, max(-self.u_max, u))
+        st = self.st
+        st.e_y, st.u_unsat, st.u = e, u, u_sat
+        return u_sat
+
+    def limit_feedback(self, u_applied: float) -> None:
+        pass
+
+
+def make_controller(cfg: ControllerConfig, u_max: float, psi_ref_max: float | None = None):
+    """The configured control law."""
+    if cfg.law == "p":
+        return PController(cfg, u_max)
+    return PIPDController(cfg, u_max, psi_ref_max)
+
+
+# --------------------------------------------------------------------------- open loop
+class StepSequence:
+    """Piecewise-constant input: ``[(t0, u0), (t1, u1), …]`` (Fig. 3 style)."""
+
+    def __init__(self, steps: Sequence[tuple[float, float]]):
+        pts = sorted((float(t), float(u)) for t, u in steps)
+        self.times = [t for t, _ in pts]
+        self.values = [u for _, u in pts]
+
+    def __call__(self, t: float) -> float:
+        u = 0.0
+        for ti, ui in zip(self.times, self.values):
+            if t >= ti:
+                u = ui
+            else:
+                break
+        return u
+
+
+class Sinusoid:
+    """``amplitude · sin(2π f t) + bias`` with f in mHz, as in Sec. 4.3.4 (4.8 / 2.4 mHz)."""
+
+    def __init__(self, amplitude: float, freq_mhz: float, bias: float = 0.0, t0: float = 0.0):
+        self.amplitude, self.w, self.bias, self.t0 = amplitude, 2 * math.pi * freq_mhz * 1e-3, bias, t0
+
+    def __call__(self, t: float) -> float:
+        if t < self.t0:
+            return self.bias
+        return self.bias + self.amplitude * math.sin(self.w * (t - self.t0))
+
+
+class ZeroInput:
+    """Δu = 0: free response."""
+
+    def __call__(self, t: float) -> float:
+        return 0.0
