@@ -1,0 +1,99 @@
+"""Clocks: the loop owns time through one interface with two implementations.
+
+- ``RealtimeClock``: monotonic clock, absolute deadlines; sleeps until ``spin_s`` before
+  the deadline, then spins, so the wake-up does not depend on the sleep's granularity.
+- ``LockstepClock``: simulated time; ``wait_until(t)`` lets the simulated plant and its
+  virtual devices advance to ``t`` (a callback) and returns at once — deterministic, as
+  fast as the machine allows.
+"""
+
+from __future__ import annotations
+
+import abc
+import os
+import time
+from typing import Callable
+
+from .config import Realtime
+
+
+class Clock(abc.ABC):
+    @abc.abstractmethod
+    def now(self) -> float:
+        """Current time, s."""
+
+    @abc.abstractmethod
+    def wait_until(self, t: float) -> float:
+        """Return at (or as soon as possible after) ``t``; returns the release time."""
+
+
+class RealtimeClock(Clock):
+    def __init__(self, spin_s: float = 200e-6):
+        self.spin_s = spin_s
+        self._mono = time.monotonic
+        self._sleep = time.sleep
+
+    def now(self) -> float:
+        return self._mono()
+
+    def wait_until(self, t: float) -> float:
+        mono = self._mono
+        remaining = t - mono() - self.spin_s
+        if remaining > 0:
+            self._sleep(remaining)
+        now = mono()
+        while now < t:
+            now = mono()
+        return now
+
+
+class LockstepClock(Clock):
+    """Simulated time; ``advance(t)`` is called before each release."""
+
+    def __init__(self, advance: Callable[[float], None] | None = None, t0: float = 0.0):
+        self._t = t0
+        self._advance = advance
+
+    def now(self) -> float:
+        return self._t
+
+    def wait_until(self, t: float) -> float:
+        if t > self._t:
+            if self._advance is not None:
+                self._advance(t)
+            self._t = t
+        return self._t
+
+    def spend(self, dt: float) -> None:
+        """Let simulated time pass inside a cycle (used to inject a stalled runtime)."""
+        self._t += dt
+
+
+def apply_realtime(rt: Realtime) -> list[str]:
+    """Apply SCHED_FIFO, CPU affinity and mlockall as configured; return one line per
+    setting saying whether it took effect (each is used when the OS permits)."""
+    report = []
+    if rt.cpu_affinity:
+        try:
+            os.sched_setaffinity(0, set(rt.cpu_affinity))
+            report.append(f"cpu affinity {sorted(rt.cpu_affinity)}: applied")
+        except (OSError, AttributeError) as e:
+            report.append(f"cpu affinity {sorted(rt.cpu_affinity)}: not applied ({e})")
+    if rt.sched_fifo_priority is not None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt.sched_fifo_priority))
+            report.append(f"SCHED_FIFO priority {rt.sched_fifo_priority}: applied")
+        except (OSError, AttributeError) as e:
+            report.append(f"SCHED_FIFO priority {rt.sched_fifo_priority}: not applied ({e})")
+    if rt.mlockall:
+        try:
+            import ctypes
+            libc = ctypes.CDLL(None, use_errno=True)
+            MCL_CURRENT, MCL_FUTURE = 1, 2
+            if libc.mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
+                err = ctypes.get_errno()
+                raise OSError(err, os.strerror(err))
+            report.append("mlockall: applied")
+        except OSError as e:
+            report.append(f"mlockall: not applied ({e})")
+    return report

@@ -1,0 +1,139 @@
+"""Scenarios: the reference profile for y_ref, open-loop inputs, disturbances and timed
+fault injections, from YAML files in ``configs/scenarios/``.
+
+``rig run`` uses the reference (or the open-loop input) and the duration; the simulated
+plant also applies the disturbances and fault injections. The profile is mm at the edge
+(``y_mm``) and metres inside.
+"""
+
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional
+
+from . import schema
+from .config import CONFIG_DIR, _read_yaml
+from .errors import ConfigError
+from .schema import check, nonneg, positive, probability
+
+SCENARIO_DIR = CONFIG_DIR / "scenarios"
+FAULT_KINDS = ("dropout", "corrupt", "stuck", "offset", "out_of_range", "no_heartbeat", "bus_error", "stall")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RefPoint:
+    t: float = check(nonneg)
+    y_mm: float
+    ramp_s: float = check(nonneg, default=0.0)   # 0 = step at t; else a ramp from the previous value
+
+
+@dataclass(frozen=True, kw_only=True)
+class SineInput:
+    amplitude_A: float
+    freq_mhz: float = check(positive)
+    bias_A: float = 0.0
+    t0: float = check(nonneg, default=0.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class OpenLoop:
+    carrier: Literal["front", "rear"] = "rear"
+    steps: tuple[tuple[float, float], ...] = ()      # [[t, u_A], ...]
+    sine: Optional[tuple[SineInput, ...]] = None      # consecutive sines (e.g. 4.8 then 2.4 mHz)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Disturbance:
+    kind: Literal["pulse", "constant"]
+    carrier: Literal["front", "rear"] = "rear"
+    t: float = check(nonneg)
+    duration_s: float = check(positive)
+    F_y: float = 0.0      # lateral force, N
+    M_z: float = 0.0      # yaw moment, N m
+
+
+@dataclass(frozen=True, kw_only=True)
+class FaultInjection:
+    kind: Literal["dropout", "corrupt", "stuck", "offset", "out_of_range", "no_heartbeat", "bus_error", "stall"]
+    t: float = check(nonneg)
+    duration_s: float = check(positive, default=1e9)
+    device: str = ""                 # laser role, wheel (fl…rr) or F/T name; "" for stall
+    fraction: float = check(probability, default=0.5)   # corrupt / bus_error
+    amount: float = 0.0              # offset: m for lasers, rad/s for wheels, N for F/T
+
+
+@dataclass(frozen=True, kw_only=True)
+class Scenario:
+    name: str
+    description: str = ""
+    duration_s: float = check(positive)
+    reference: tuple[RefPoint, ...] = (RefPoint(t=0.0, y_mm=0.0),)
+    open_loop: Optional[OpenLoop] = None
+    disturbances: tuple[Disturbance, ...] = ()
+    faults: tuple[FaultInjection, ...] = ()
+    expect_fault: Optional[str] = None   # for fault scenarios: the check expected to trip
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        ts = [p.t for p in self.reference]
+        if ts != sorted(ts):
+            raise ConfigError(None, "reference", "points in increasing time order")
+
+
+def load_scenario(name_or_path: str | Path) -> Scenario:
+    """A scenario by name (``configs/scenarios/NAME.yaml``) or by path."""
+    p = Path(name_or_path)
+    if not p.suffix:
+        p = SCENARIO_DIR / f"{name_or_path}.yaml"
+    if not p.exists():
+        known = ", ".join(sorted(q.stem for q in SCENARIO_DIR.glob("*.yaml")))
+        raise ConfigError(str(p), "", f"an existing scenario file (known scenarios: {known})")
+    data = _read_yaml(p)
+    try:
+        sc = schema.build(Scenario, data, "", str(p.resolve()))
+    except ConfigError as e:
+        raise ConfigError(str(p.resolve()), e.key_path, e.expected, e.got) from None
+    return Scenario(**{**{f: getattr(sc, f) for f in sc.__dataclass_fields__}, "source": str(p.resolve())})
+
+
+class Reference:
+    """y_ref(t) in metres from the scenario's points (steps and ramps)."""
+
+    def __init__(self, points: tuple[RefPoint, ...]):
+        self.t = [p.t for p in points]
+        self.y = [p.y_mm * 1e-3 for p in points]
+        self.ramp = [p.ramp_s for p in points]
+
+    def __call__(self, t: float) -> float:
+        i = bisect.bisect_right(self.t, t) - 1
+        if i < 0:
+            return self.y[0]
+        r = self.ramp[i]
+        if r > 0 and i > 0 and t < self.t[i] + r:
+            y0 = self.y[i - 1]
+            return y0 + (self.y[i] - y0) * (t - self.t[i]) / r
+        return self.y[i]
+
+    def steps(self) -> list[tuple[float, float, float]]:
+        """(t0, from_m, to_m) for every change of the reference (step or ramp start)."""
+        out = []
+        for i in range(1, len(self.t)):
+            if self.y[i] != self.y[i - 1]:
+                out.append((self.t[i], self.y[i - 1], self.y[i]))
+        return out
+
+
+def open_loop_input(ol: OpenLoop):
+    """The open-loop input u(t) (A) of a scenario."""
+    from .control import Sinusoid, StepSequence
+    if ol.sine:
+        sines = [Sinusoid(s.amplitude_A, s.freq_mhz, s.bias_A, s.t0) for s in ol.sine]
+        starts = [s.t0 for s in ol.sine]
+
+        def u(t: float) -> float:
+            i = bisect.bisect_right(starts, t) - 1
+            return sines[max(i, 0)](t)
+        return u
+    return StepSequence(ol.steps)

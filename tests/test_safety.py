@@ -1,0 +1,119 @@
+"""Supervisor unit tests: transitions, latched faults, each check, the output limit."""
+
+import math
+
+import pytest
+
+from drivers.base import Freshness
+from rig_runtime.safety import Channel, State, Supervisor
+
+H = 0.005
+
+
+def chans(t=0.0):
+    cs = [Channel("b_f", "laser", 0.045, 0.095, 0.02), Channel("rl", "wheel", -100, 100, 0.02)]
+    for c in cs:
+        c.value, c.t, c.state, c.cause = 0.07 if c.kind == "laser" else 13.0, t, Freshness.FRESH, ""
+    return cs
+
+
+def running(cfg, t=0.0):
+    events = []
+    s = Supervisor(cfg.limits, H, on_event=lambda *a: events.append(a))
+    assert s.arm(chans(t), True, t) == []
+    s.start(t)
+    assert s.state is State.RUNNING
+    return s, events
+
+
+def ok_check(s, t, cs=None, **kw):
+    args = dict(converters_ok=True, converter_cause="", y=0.0, psi=0.0, consecutive_misses=0,
+                recorder_ok=True, recorder_cause="")
+    args.update(kw)
+    s.check(t, cs if cs is not None else chans(t), **args)
+
+
+def test_arming_requires_fresh_in_range_and_ready(cfg):
+    s = Supervisor(cfg.limits, H)
+    cs = chans(0.0)
+    cs[0].state, cs[0].cause = Freshness.STALE, "no data for 30 ms"
+    assert s.arm(cs, True, 0.0) == ["b_f: no data for 30 ms"]
+    cs = chans(0.0)
+    cs[0].value = 0.2
+    assert "outside" in s.arm(cs, True, 0.0)[0]
+    assert s.arm(chans(0.0), False, 0.0) == ["converters not ready"]
+    assert s.state is State.IDLE
+    assert s.arm(chans(0.0), True, 0.0) == [] and s.state is State.ARMED
+
+
+@pytest.mark.parametrize("mutate, check", [
+    (lambda cs: setattr(cs[0], "state", Freshness.INVALID), "invalid"),
+    (lambda cs: setattr(cs[0], "t", -1.0), "stale"),
+    (lambda cs: setattr(cs[0], "value", math.nan), "nan"),
+    (lambda cs: setattr(cs[0], "value", 0.2), "range"),
+])
+def test_channel_checks_latch(cfg, mutate, check):
+    s, events = running(cfg)
+    cs = chans(0.1)
+    mutate(cs)
+    ok_check(s, 0.1, cs)
+    assert s.state is State.FAULT and s.fault.check == check and s.fault.device == "b_f"
+    assert s.limit(3.0, 0.1) == 0.0                # zero in the detecting cycle
+    ok_check(s, 0.2)                                # healthy again: still latched
+    assert s.state is State.FAULT
+    assert any(e[1] == "fault" for e in events)
+    s.reset(0.3)
+    assert s.state is State.IDLE
+
+
+@pytest.mark.parametrize("kw, check", [
+    (dict(psi=0.06), "psi_limit"), (dict(y=-0.009), "y_limit"),
+    (dict(converters_ok=False, converter_cause="rl: EMCY 0x2310"), "converter"),
+    (dict(recorder_ok=False, recorder_cause="disk full"), "recorder"),
+    (dict(consecutive_misses=5), "overrun"),
+])
+def test_state_and_system_checks(cfg, kw, check):
+    s, _ = running(cfg)
+    ok_check(s, 0.005, **kw)
+    assert s.state is State.FAULT and s.fault.check == check
+
+
+def test_yaw_rate_limit(cfg):
+    s, _ = running(cfg)
+    ok_check(s, 0.005, psi=0.0)
+    ok_check(s, 0.010, psi=0.01)     # 2 rad/s > 1 rad/s
+    assert s.state is State.FAULT and s.fault.check == "psi_rate_limit"
+
+
+def test_output_saturation_and_rate_limit(cfg):
+    s, _ = running(cfg)
+    lim = cfg.limits
+    step = lim.du_max * H
+    seq = [s.limit(100.0, 0.0) for _ in range(200)]
+    assert max(seq) == lim.u_max
+    assert all(abs(b - a) <= step + 1e-12 for a, b in zip([0.0] + seq, seq))
+    assert s.limit(math.nan, 1.0) == 0.0 and s.state is State.FAULT
+
+
+def test_stopping_ramps_to_zero_then_idle(cfg):
+    s, _ = running(cfg)
+    for _ in range(100):
+        s.limit(2.0, 0.0)
+    s.request_stop(0.5)
+    assert s.state is State.STOPPING
+    n, u = 0, 2.0
+    while s.state is State.STOPPING:
+        u_new = s.limit(2.0, 0.5 + n * H)
+        assert abs(u_new) <= abs(u)
+        u = u_new
+        s.end_cycle(0.5 + n * H)
+        n += 1
+    assert s.state is State.IDLE and u == 0.0
+    ramp_cycles = cfg.limits.stop_ramp_s / H * 2.0 / cfg.limits.u_max
+    assert n == pytest.approx(ramp_cycles, abs=2)
+
+
+def test_limits_cannot_be_loosened(cfg):
+    s, _ = running(cfg)
+    with pytest.raises(Exception):
+        s.limits.u_max = 100.0
