@@ -132,6 +132,8 @@ class Limits:
     stale_periods: int = check(positive, default=4)     # sample older than this many h -> stale
     overrun_burst: int = check(positive, default=5)     # consecutive deadline misses -> fault
     stop_ramp_s: float = check(nonneg, default=0.5)     # STOPPING ramp to zero
+    stuck_periods: Optional[int] = check(positive, default=200)  # bit-identical samples -> stuck
+    laser_step_max: Optional[float] = check(positive, default=0.002)  # m per period -> implausible jump
 
 
 @dataclass(frozen=True, kw_only=True)

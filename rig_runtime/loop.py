@@ -176,7 +176,7 @@ class ControlLoop:
                 # ---- safety check (main bus position: the carriers the controller uses)
                 ci = carriers[-1]
                 sup.check(t, channels, dev.converters_ok, dev.converter_cause, ys[ci], psis[ci],
-                          stats.consecutive_misses, rec.healthy if rec is not None else True,
+                          stats.overrun_periods, rec.healthy if rec is not None else True,
                           rec.error if rec is not None else "")
                 # ---- control
                 tr = t - self.t_start if self.t_start == self.t_start else 0.0

@@ -45,14 +45,21 @@ class Fault:
 class Channel:
     """One sensor channel as the supervisor sees it (updated in place every cycle)."""
 
-    __slots__ = ("name", "kind", "value", "t", "state", "cause", "lo", "hi", "stale_s")
+    __slots__ = ("name", "kind", "value", "t", "state", "cause", "lo", "hi", "stale_s",
+                 "step_max", "stuck_check", "prev", "same", "delta")
 
-    def __init__(self, name: str, kind: str, lo: float, hi: float, stale_s: float):
+    def __init__(self, name: str, kind: str, lo: float, hi: float, stale_s: float,
+                 step_max: float = math.inf, stuck_check: bool = False):
         self.name, self.kind, self.lo, self.hi, self.stale_s = name, kind, lo, hi, stale_s
+        self.step_max = step_max          # largest plausible change between two cycles
+        self.stuck_check = stuck_check    # a sensor with noise never repeats bit-identically for long
         self.value = math.nan
         self.t = -math.inf
         self.state = Freshness.STALE
         self.cause = "no sample yet"
+        self.prev = math.nan
+        self.same = 0
+        self.delta = 0.0
 
 
 class Supervisor:
@@ -141,6 +148,13 @@ class Supervisor:
         if self._psi_prev == self._psi_prev:  # not NaN
             self._psi_rate = (psi - self._psi_prev) / self.h
         self._psi_prev = psi
+        stuck_n = self.limits.stuck_periods or 0
+        for c in channels:
+            v, p = c.value, c.prev
+            c.prev = v
+            c.delta = v - p
+            if c.stuck_check:
+                c.same = c.same + 1 if v == p else 0
         if not self.active:
             return
         for c in channels:
@@ -154,6 +168,12 @@ class Supervisor:
                 return self.trip(t, c.name, "nan", v, math.nan, "value is not finite")
             if v < c.lo or v > c.hi:
                 return self.trip(t, c.name, "range", v, c.hi if v > c.hi else c.lo, "raw value outside the sensor range")
+            if stuck_n and c.same >= stuck_n:
+                return self.trip(t, c.name, "stuck", c.same, stuck_n, f"value repeated bit-identically for {c.same} cycles")
+        for c in channels:
+            if abs(c.delta) > c.step_max:
+                return self.trip(t, c.name, "jump", c.delta, c.step_max,
+                                 "implausible change between two cycles")
         lim = self.limits
         if not converters_ok:
             return self.trip(t, "converters", "converter", math.nan, math.nan, converter_cause)
@@ -161,7 +181,7 @@ class Supervisor:
             return self.trip(t, "recorder", "recorder", math.nan, math.nan, recorder_cause)
         if consecutive_misses >= lim.overrun_burst:
             return self.trip(t, "loop", "overrun", consecutive_misses, lim.overrun_burst,
-                             f"{consecutive_misses} consecutive deadline misses")
+                             f"{consecutive_misses} control periods lost to deadline misses")
         if psi != psi or y != y:
             return self.trip(t, "geometry", "nan", math.nan, math.nan, "y or psi is not finite")
         if abs(psi) > lim.psi_max:

@@ -16,6 +16,7 @@ class CycleStats:
         self.deadline_misses = 0
         self.skipped_periods = 0
         self.consecutive_misses = 0
+        self.overrun_periods = 0      # periods lost in the current burst of misses (missed + skipped)
 
     def update(self, lateness_s: float, work_s: float, missed: bool, skipped: int) -> None:
         self.lateness.append(lateness_s)
@@ -24,8 +25,10 @@ class CycleStats:
             self.deadline_misses += 1
             self.consecutive_misses += 1
             self.skipped_periods += skipped
+            self.overrun_periods += 1 + skipped
         else:
             self.consecutive_misses = 0
+            self.overrun_periods = 0
 
     @staticmethod
     def distribution_us(values) -> dict:

@@ -117,3 +117,27 @@ def test_limits_cannot_be_loosened(cfg):
     s, _ = running(cfg)
     with pytest.raises(Exception):
         s.limits.u_max = 100.0
+
+
+def test_stuck_and_jump(cfg):
+    s, _ = running(cfg)
+    cs = chans(0.0)
+    cs[0].stuck_check = True
+    n = cfg.limits.stuck_periods
+    for k in range(n + 2):
+        for c in cs:
+            c.t = k * H
+        ok_check(s, k * H, cs)
+        if s.state is State.FAULT:
+            break
+    assert s.fault.check == "stuck" and s.fault.device == "b_f" and k >= n
+    s2, _ = running(cfg)
+    cs = chans(0.0)
+    cs[0].step_max = cfg.limits.laser_step_max
+    ok_check(s2, 0.0, cs)
+    cs[0].value += 0.001
+    ok_check(s2, 0.0, cs)
+    assert s2.state is State.RUNNING        # 1 mm in one cycle: plausible
+    cs[0].value += 0.005
+    ok_check(s2, 0.0, cs)
+    assert s2.state is State.FAULT and s2.fault.check == "jump"

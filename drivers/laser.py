@@ -1,0 +1,333 @@
+"""Micro-Epsilon optoNCDT 1420-class laser triangulation sensors on RS-422.
+
+Wire format (optoNCDT 1420 manual, Chap. 8.2 and 7.5.2.1; see docs/protocols-laser.md):
+every output value is three bytes sent L, M, H. The two top bits of each byte are a
+flag (``00`` L, ``01`` M, ``10`` H), the low six bits are data, so a value carries 18
+bits ``x = L6 | M6 << 6 | H6 << 12``. Distances are 16-bit values 0..65520 with
+
+    d_mm = (102/65520 · x − 1) · MR/100        (MR = measuring range in mm)
+
+and values above 65520 are the device's 18-bit error codes (262076 "no peak", …).
+There is no checksum: a damaged byte is only detected if its flag breaks the L, M, H
+pattern; a byte replaced by one with the *same* flag is undetectable by any decoder.
+
+The codec (module-level functions and :class:`FrameDecoder`) does no I/O; the virtual
+device in ``sim_backend.virtual_laser`` reuses it. :class:`LaserDriver` reads a serial
+port without blocking and turns the values into SI metres with health.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from typing import Iterable
+
+import numpy as np
+import serial
+
+from rig_runtime.config import LaserDevice
+
+from .base import DeviceInitError, Driver, Freshness, Health
+
+__all__ = [
+    "MAX_DISTANCE_X", "MAX_X", "ERROR_CODES",
+    "encode_value", "encode_values", "x_from_distance_mm", "xs_from_distance_mm",
+    "distance_mm_from_x", "error_reason", "FrameDecoder", "LaserReading", "LaserDriver",
+]
+
+# --------------------------------------------------------------------------- codec
+MAX_DISTANCE_X = 65520          # largest 16-bit distance value (d = 1.01·MR)
+MAX_X = (1 << 18) - 1           # 18 data bits per value: 262143
+_X_PER_PERCENT = 65520 / 102    # d_mm = (x/_X_PER_PERCENT − 1)·MR/100
+
+ERROR_CODES: dict[int, str] = {
+    262075: "too much data for the baud rate",
+    262076: "no peak",
+    262077: "peak before range",
+    262078: "peak after range",
+    262080: "cannot calculate",
+    262081: "peak too large",
+    262082: "laser off",
+}
+
+_FLAG_L, _FLAG_M, _FLAG_H = 0x00, 0x40, 0x80
+# x = L + (M << 6) + (H << 12) − _FLAG_SUM when M and H carry their flags 01 and 10.
+_FLAG_SUM = (_FLAG_M << 6) + (_FLAG_H << 12)
+# Each byte -> one flag letter, so frame search runs on bytes in C (X = flag 11, never valid).
+_FLAG_TABLE = bytes(b"LMHX"[b >> 6] for b in range(256))
+_FRAME_RUN = re.compile(rb"(?:LMH)+")
+_CLEAN = b"LMH" * 1024          # flags of a gap-free stream of up to 1024 frames
+_LDISC_FULL = 4095              # Linux n_tty holds this many unread bytes; more wait behind
+
+
+def encode_value(x: int) -> bytes:
+    """The three wire bytes (L, M, H) of one 18-bit value."""
+    if not 0 <= x <= MAX_X:
+        raise ValueError(f"laser value {x} outside 0..{MAX_X}")
+    return bytes((x & 0x3F, _FLAG_M | (x >> 6) & 0x3F, _FLAG_H | (x >> 12) & 0x3F))
+
+
+def encode_values(xs: Iterable[int] | np.ndarray) -> bytes:
+    """Wire bytes of many values at once (vectorised; the virtual device's hot path)."""
+    a = np.asarray(xs, dtype=np.int64).reshape(-1)
+    if a.size and (a.min() < 0 or a.max() > MAX_X):
+        raise ValueError(f"laser values outside 0..{MAX_X}")
+    out = np.empty((a.size, 3), dtype=np.uint8)
+    out[:, 0] = a & 0x3F
+    out[:, 1] = _FLAG_M | ((a >> 6) & 0x3F)
+    out[:, 2] = _FLAG_H | ((a >> 12) & 0x3F)
+    return out.tobytes()
+
+
+def distance_mm_from_x(x: int, mr_mm: float) -> float:
+    """Distance from the start of the measuring range, mm, of a valid value x (0..65520)."""
+    return (x / _X_PER_PERCENT - 1.0) * mr_mm / 100.0
+
+
+def x_from_distance_mm(d_mm: float, mr_mm: float) -> int:
+    """Inverse of :func:`distance_mm_from_x`: rounded to the nearest value, clipped to 0..65520."""
+    if math.isnan(d_mm):
+        raise ValueError("distance is NaN")
+    x = round((d_mm * 100.0 / mr_mm + 1.0) * _X_PER_PERCENT)
+    return min(max(x, 0), MAX_DISTANCE_X)
+
+
+def xs_from_distance_mm(d_mm: np.ndarray, mr_mm: float) -> np.ndarray:
+    """Vector form of :func:`x_from_distance_mm` (same rounding: half to even)."""
+    x = np.rint((np.asarray(d_mm, dtype=float) * 100.0 / mr_mm + 1.0) * _X_PER_PERCENT)
+    return np.clip(x, 0, MAX_DISTANCE_X).astype(np.int64)
+
+
+def error_reason(x: int) -> str | None:
+    """None for a distance value (0..65520), else why the value is not a measurement."""
+    if 0 <= x <= MAX_DISTANCE_X:
+        return None
+    text = ERROR_CODES.get(x)
+    return f"{text} ({x})" if text else f"unknown code {x}"
+
+
+class FrameDecoder:
+    """Incremental decoder: bytes in, 18-bit values out.
+
+    A frame is three consecutive bytes flagged L, M, H. Partial frames at the end of a
+    chunk are kept for the next :meth:`feed`; every other byte that is not part of such
+    a triple (garbage, a frame with a lost or damaged byte) is dropped and counted in
+    ``discarded``, and decoding resynchronises on the next L, M, H. The search runs on a
+    flag string made with ``bytes.translate``, so the per-byte work happens in C.
+    """
+
+    __slots__ = ("discarded", "frames", "_pending")
+
+    def __init__(self) -> None:
+        self.discarded = 0      # bytes thrown away as not part of a frame
+        self.frames = 0         # values decoded
+        self._pending = b""     # an L or L, M waiting for the rest of its frame
+
+    @property
+    def pending(self) -> int:
+        """Bytes of an incomplete frame held for the next call."""
+        return len(self._pending)
+
+    def reset(self) -> None:
+        """Forget a partial frame (after a read error); its bytes count as discarded."""
+        self.discarded += len(self._pending)
+        self._pending = b""
+
+    def feed(self, data: bytes) -> list[int]:
+        """Decode what ``data`` (plus the held partial frame) completes, in order."""
+        buf = self._pending + data if self._pending else bytes(data)
+        n = len(buf)
+        if n == 0:
+            return []
+        flags = buf.translate(_FLAG_TABLE)
+        if n % 3 == 0 and _CLEAN.startswith(flags):   # the usual case: whole clean frames
+            self._pending = b""
+            self.frames += n // 3
+            return _values(buf, 0, n)
+        out: list[int] = []
+        pos = 0
+        for m in _FRAME_RUN.finditer(flags):
+            start, end = m.span()
+            self.discarded += start - pos
+            out += _values(buf, start, end)
+            pos = end
+        keep = 2 if flags.endswith(b"LM") else 1 if flags.endswith(b"L") else 0
+        self.discarded += n - keep - pos
+        self._pending = buf[n - keep:] if keep else b""
+        self.frames += len(out)
+        return out
+
+
+def _values(buf: bytes, start: int, end: int) -> list[int]:
+    """Values of the clean frames buf[start:end] (flags known to be L, M, H)."""
+    return [lo + (mid << 6) + (hi << 12) - _FLAG_SUM
+            for lo, mid, hi in zip(buf[start:end:3], buf[start + 1:end:3], buf[start + 2:end:3])]
+
+
+# --------------------------------------------------------------------------- driver
+@dataclass(frozen=True, slots=True)
+class LaserReading:
+    """One laser channel after a poll.
+
+    ``value_m`` is the physical distance ``offset_mm + d_mm`` in metres of the latest valid
+    value (or this cycle's mean with ``average``); NaN if the latest value was an error
+    code, the port failed, or nothing valid has arrived yet. ``t`` is the ``now`` of the
+    poll in which the latest valid value arrived (NaN before the first) — it is kept when
+    ``value_m`` is NaN, so its age still tells how long the channel has been without a
+    measurement; decide on ``health.state``, not on NaN checks. ``n_values`` counts the
+    valid distance values decoded in this poll; ``raw_x`` is the latest value received
+    (incl. error codes), -1 before the first. ``health`` is a snapshot, not the driver's
+    live object.
+    """
+
+    role: str
+    value_m: float
+    t: float
+    health: Health
+    n_values: int
+    raw_x: int
+
+
+class LaserDriver(Driver):
+    """One optoNCDT 1420 on a serial port (pyserial, non-blocking).
+
+    ``port`` overrides ``cfg.port`` (the simulated backend passes a pty path). Health:
+    FRESH while the latest value is a distance and some value arrived within
+    ``stale_after_s``; INVALID when the latest value is an error code (cause names it) or
+    the read failed; STALE when nothing arrived for longer than ``stale_after_s`` (or
+    nothing yet). ``poll`` never raises. ``last_values`` holds the raw values (distances
+    and error codes) decoded by the latest poll, for a recorder that wants every sample.
+    """
+
+    def __init__(self, cfg: LaserDevice, port: str | None = None, stale_after_s: float = 0.02):
+        super().__init__()
+        self.cfg = cfg
+        self.port = port if port is not None else cfg.port
+        self.stale_after_s = stale_after_s
+        self.name = f"laser {cfg.role}"
+        # value_m = _gain·x + _bias  ==  (offset_mm + distance_mm_from_x(x, MR)) / 1000
+        mr = cfg.measuring_range_mm
+        self._gain = mr / (100.0 * _X_PER_PERCENT * 1000.0)
+        self._bias = (cfg.offset_mm - mr / 100.0) / 1000.0
+        self._ser: serial.Serial | None = None
+        self._reset_state()
+
+    def _reset_state(self) -> None:
+        """Fresh decoder, counters and latest-value memory (each open starts a session)."""
+        self._decoder = FrameDecoder()
+        self.last_values: list[int] = []        # raw values of the latest poll (recorder, tests)
+        self._health = Health(cause="no data yet",
+                              counters={"values": 0, "error_frames": 0, "read_errors": 0, "bytes": 0})
+        self._value = math.nan          # latest valid value (or cycle mean), m; reported only
+                                        # while the latest value is not an error code
+        self._value_t = math.nan        # poll time at which it arrived
+        self._last_rx_t: float | None = None   # poll time of the latest value of any kind
+        self._first_poll_t: float | None = None
+        self._latest_error: str | None = None  # reason if the latest value was an error code
+        self._raw_x = -1
+
+    # ------------------------------------------------------------------ transport
+    def _do_open(self) -> None:
+        """Open the port 8N1 with ``timeout=0`` and drop bytes buffered before now."""
+        self._reset_state()
+        try:
+            ser = serial.Serial(port=self.port, baudrate=self.cfg.baudrate,
+                                bytesize=serial.EIGHTBITS, parity=serial.PARITY_NONE,
+                                stopbits=serial.STOPBITS_ONE, timeout=0, write_timeout=0)
+            ser.reset_input_buffer()
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise DeviceInitError(self.name, f"cannot open serial port {self.port!r}: {exc}") from exc
+        self._ser = ser
+
+    def _do_close(self) -> None:
+        ser, self._ser = self._ser, None
+        if ser is not None:
+            try:
+                ser.close()
+            except Exception:  # noqa: BLE001 - a vanished device must not stop shutdown
+                pass
+
+    def _read_available(self) -> bytes:
+        """Everything the OS has buffered for us, without waiting."""
+        ser = self._ser
+        n = ser.in_waiting
+        if not n:
+            return b""
+        data = ser.read(n)
+        if n < _LDISC_FULL:
+            return data
+        n = ser.in_waiting      # the line discipline was full: more waits behind it
+        return data + ser.read(n) if n else data
+
+    # ------------------------------------------------------------------ cycle
+    def poll(self, now: float) -> LaserReading:
+        """Drain the port, decode, and report the latest value with its health."""
+        h = self._health
+        if self._first_poll_t is None:
+            self._first_poll_t = now
+        if self._ser is None:
+            return self._reading(Freshness.INVALID, "port not open", math.nan, 0)
+        try:
+            data = self._read_available()
+        except Exception as exc:  # noqa: BLE001 - poll must not raise inside the loop
+            h.errors += 1
+            h.counters["read_errors"] += 1
+            self.last_values = []
+            self._decoder.reset()
+            h.bad_frames = self._decoder.discarded
+            return self._reading(Freshness.INVALID, f"read error: {type(exc).__name__}: {exc}", math.nan, 0)
+        n_valid = 0
+        self.last_values = []
+        if data:
+            h.counters["bytes"] += len(data)
+            values = self.last_values = self._decoder.feed(data)
+            h.bad_frames = self._decoder.discarded
+            if values:
+                n_valid = self._take(values, now)
+        return self._classify(now, n_valid)
+
+    def _take(self, values: list[int], now: float) -> int:
+        """Update the latest value/error from this cycle's values; return how many are valid."""
+        h = self._health
+        last = values[-1]
+        self._raw_x = last
+        self._last_rx_t = now
+        if max(values) <= MAX_DISTANCE_X:       # the usual case: all distances
+            valid = values
+        else:
+            valid = [x for x in values if x <= MAX_DISTANCE_X]
+            n_err = len(values) - len(valid)
+            h.errors += n_err
+            h.counters["error_frames"] += n_err
+        h.counters["values"] += len(valid)
+        if last > MAX_DISTANCE_X:
+            self._latest_error = error_reason(last)    # _value keeps the last valid value
+        else:
+            self._latest_error = None
+            x = sum(valid) / len(valid) if self.cfg.average else last
+            self._value = self._gain * x + self._bias
+            self._value_t = now
+        return len(valid)
+
+    def _classify(self, now: float, n_valid: int) -> LaserReading:
+        """Freshness from the age of the latest value and whether it was an error code."""
+        ref = self._last_rx_t if self._last_rx_t is not None else self._first_poll_t
+        age = now - ref
+        if age > self.stale_after_s:
+            return self._reading(Freshness.STALE, f"no data for {age * 1e3:.0f} ms", self._current(), n_valid)
+        if self._last_rx_t is None:
+            return self._reading(Freshness.STALE, "no data yet", math.nan, n_valid)
+        if self._latest_error is not None:
+            return self._reading(Freshness.INVALID, self._latest_error, math.nan, n_valid)
+        return self._reading(Freshness.FRESH, "", self._value, n_valid)
+
+    def _current(self) -> float:
+        """The latest value if the latest frame was a distance, else NaN."""
+        return math.nan if self._latest_error is not None else self._value
+
+    def _reading(self, state: Freshness, cause: str, value: float, n_valid: int) -> LaserReading:
+        h = self._health
+        h.state, h.cause = state, cause
+        snap = Health(state, cause, h.bad_frames, h.timeouts, h.errors, dict(h.counters))
+        return LaserReading(self.cfg.role, value, self._value_t, snap, n_valid, self._raw_x)

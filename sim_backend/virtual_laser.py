@@ -1,0 +1,321 @@
+"""The other end of a laser's RS-422 wire: an optoNCDT 1420 simulated on a pty pair.
+
+The plant gives the physical distance (``offset_mm`` included, metres); the device samples
+it at ``output_rate_hz``, adds noise, turns it into 16-bit wire values with the codec of
+``drivers.laser`` (the one source of truth for the frame layout) and writes the frames to
+the pty master. The driver opens ``port_name`` (the slave) with pyserial like a real port.
+
+Time: frame k (k = 1, 2, …) is sampled at k/rate and written at k/rate + latency, so after
+``emit_until(t)`` exactly ``floor((t − latency)·rate)`` frames have been produced —
+independent of how the calls are spaced. Lockstep backends call ``emit_until`` each step;
+``start_realtime`` runs the same on a thread against the monotonic clock.
+
+Faults (``inject(kind, **params)``, ``clear(kind)``):
+  dropout                      no bytes on the wire (the sample clock keeps running)
+  corrupt  p=0.1, detectable=True
+                               a fraction p of frames damaged: one byte dropped, one byte
+                               replaced or 1–3 bytes inserted. ``detectable`` damage uses
+                               bytes flagged ``11`` (never part of a frame), which a decoder
+                               can always reject; ``detectable=False`` uses any byte value,
+                               which can forge values no decoder can tell from real ones
+                               (the protocol has no checksum)
+  stuck                        repeat the last value sent
+  offset   amount_m            add amount_m to the distance
+  out_of_range  code=262076    send an error code instead of the distance
+A distance outside the device's span (−1 % … 101 % of MR) is sent as 262077/262078, as the
+real sensor does. A full pty buffer never blocks: the bytes that do not fit are dropped
+and counted in ``bytes_dropped``.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import math
+import os
+import struct
+import termios
+import threading
+import time
+import tty
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from drivers.laser import MAX_X, encode_values, xs_from_distance_mm
+from rig_runtime.config import LaserDevice
+
+__all__ = ["VirtualLaser", "FAULT_KINDS"]
+
+FAULT_KINDS = ("dropout", "corrupt", "stuck", "offset", "out_of_range")
+PEAK_BEFORE_RANGE = 262077
+PEAK_AFTER_RANGE = 262078
+NO_PEAK = 262076
+_EPS = 1e-9     # k/rate computed in floats: 0.005·4000 may land just below 20
+_LDISC_CAP = 4095   # bytes the Linux n_tty line discipline holds; more waits in the flip buffer
+
+
+class VirtualLaser:
+    """A simulated optoNCDT 1420 writing binary frames into a pty.
+
+    Sensor model: ``noise_std_m`` Gaussian noise per sample, optional extra
+    ``quantization_m`` (the 16-bit wire value quantizes to MR·102/65520/100 anyway),
+    ``latency_s`` from sampling to the wire, ``seed`` (int, SeedSequence or numpy
+    Generator) for reproducible noise and faults.
+    """
+
+    def __init__(self, cfg: LaserDevice, *, noise_std_m: float = 0.0, quantization_m: float = 0.0,
+                 latency_s: float = 0.0, seed: Any = None, output_rate_hz: float | None = None):
+        if noise_std_m < 0 or quantization_m < 0 or latency_s < 0:
+            raise ValueError("noise_std_m, quantization_m and latency_s must be >= 0")
+        self.cfg = cfg
+        self.rate_hz = float(output_rate_hz if output_rate_hz is not None else cfg.output_rate_hz)
+        self.noise_std_m = noise_std_m
+        self.quantization_m = quantization_m
+        self.latency_frames = round(latency_s * self.rate_hz)
+        self._noise_rng, self._fault_rng = _rngs(seed)
+        self._distance_m = cfg.offset_mm / 1000.0 + cfg.measuring_range_mm / 2000.0  # mid-range
+        self._faults: dict[str, dict[str, Any]] = {}
+        self._last_x: int | None = None
+        self._queue: deque[int] = deque()     # sampled, not yet released (latency)
+        self._sampled = 0                     # frames sampled so far (the sample clock)
+        self._released = 0
+        # statistics
+        self.frames_sent = 0          # frames handed to the wire (before write errors)
+        self.frames_suppressed = 0    # frames not sent because of a dropout
+        self.frames_corrupted = 0
+        self.bytes_written = 0
+        self.bytes_dropped = 0        # did not fit into the pty buffer
+        self.delivery_timeouts = 0    # emit_until(wait=True) gave up waiting for the kernel
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._stop_evt = threading.Event()
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        os.set_blocking(self._master, False)
+        self.port_name = os.ttyname(self._slave)
+
+    # ------------------------------------------------------------------ plant side
+    @property
+    def distance_m(self) -> float:
+        return self._distance_m
+
+    def set_distance(self, d_m: float) -> None:
+        """The physical distance (offset included) the sensor sees from now on, m."""
+        self._distance_m = float(d_m)
+
+    @property
+    def t(self) -> float:
+        """Sample time of the last frame produced, s."""
+        return self._sampled / self.rate_hz
+
+    def emit_until(self, t: float, wait: bool = True) -> int:
+        """Produce and write every frame due up to simulated time t; return bytes written.
+
+        The kernel hands pty bytes to the reading side asynchronously (a worker thread,
+        typically 10–30 µs, ms under load), so with ``wait`` (lockstep) this returns only
+        once the bytes are readable at the slave — a poll right after sees all of them.
+        """
+        with self._lock:
+            q0 = self._slave_queued() if wait else 0
+            n = self._emit(t)
+            if wait and n:
+                self._wait_delivered(min(q0 + n, _LDISC_CAP))
+            return n
+
+    def _emit(self, t: float) -> int:
+        """Sample and release the frames due at t (lock held)."""
+        k = math.floor(t * self.rate_hz + _EPS)
+        if k > self._sampled:
+            self._queue.extend(self._measure(k - self._sampled))
+            self._sampled = k
+        n = k - self.latency_frames - self._released
+        if n <= 0:
+            return 0
+        xs = [self._queue.popleft() for _ in range(n)]
+        self._released += n
+        return self._output(xs)
+
+    # ------------------------------------------------------------------ real time
+    def start_realtime(self, period_s: float = 0.001) -> None:
+        """Emit at wall-clock rate on a daemon thread, continuing from the current sample time."""
+        if self._thread is not None and self._thread.is_alive():
+            return
+        self._stop_evt.clear()
+        t_sim0, t_wall0 = self.t, time.monotonic()
+
+        def run() -> None:
+            while not self._stop_evt.wait(period_s):
+                self.emit_until(t_sim0 + time.monotonic() - t_wall0, wait=False)
+
+        self._thread = threading.Thread(target=run, name=f"virtual laser {self.cfg.role}", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop the real-time thread (no-op if it is not running)."""
+        self._stop_evt.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+
+    # ------------------------------------------------------------------ faults
+    def inject(self, kind: str, **params: Any) -> None:
+        """Start a fault (see the module docstring); replaces one of the same kind."""
+        if kind not in FAULT_KINDS:
+            raise ValueError(f"unknown laser fault {kind!r} (known: {', '.join(FAULT_KINDS)})")
+        if kind == "corrupt" and not 0.0 <= params.get("p", 0.1) <= 1.0:
+            raise ValueError("corrupt: p must be in [0, 1]")
+        if kind == "out_of_range" and not 0 <= params.get("code", NO_PEAK) <= MAX_X:
+            raise ValueError(f"out_of_range: code must be in 0..{MAX_X}")
+        with self._lock:
+            if kind == "stuck":
+                params.setdefault("x", self._last_x if self._last_x is not None else self._clean_x())
+            self._faults[kind] = params
+
+    def clear(self, kind: str | None = None) -> None:
+        """End one fault, or all with ``kind=None``."""
+        with self._lock:
+            if kind is None:
+                self._faults.clear()
+            else:
+                self._faults.pop(kind, None)
+
+    @property
+    def faults(self) -> dict[str, dict[str, Any]]:
+        return {k: dict(v) for k, v in self._faults.items()}
+
+    # ------------------------------------------------------------------ model
+    def _clean_x(self) -> int:
+        """Wire value of the current distance without noise or faults."""
+        return int(self._to_x(np.array([self._distance_m]))[0])
+
+    def _measure(self, n: int) -> list[int]:
+        """Sample n frames: distance (+offset fault, noise) -> wire values, or a fault code."""
+        f = self._faults
+        if "out_of_range" in f:
+            xs = [int(f["out_of_range"].get("code", NO_PEAK))] * n
+        elif "stuck" in f:
+            xs = [int(f["stuck"]["x"])] * n
+        else:
+            d = np.full(n, self._distance_m + float(f.get("offset", {}).get("amount_m", 0.0)))
+            if self.noise_std_m > 0:
+                d += self._noise_rng.normal(0.0, self.noise_std_m, n)
+            xs = self._to_x(d).tolist()
+        self._last_x = xs[-1]
+        return xs
+
+    def _to_x(self, d_m: np.ndarray) -> np.ndarray:
+        """Physical distances (m) -> wire values, with the device's out-of-span codes."""
+        if self.quantization_m > 0:
+            d_m = np.round(d_m / self.quantization_m) * self.quantization_m
+        mr = self.cfg.measuring_range_mm
+        rel_mm = d_m * 1000.0 - self.cfg.offset_mm
+        x = xs_from_distance_mm(rel_mm, mr)
+        x = np.where(rel_mm < -0.01 * mr, PEAK_BEFORE_RANGE, x)
+        return np.where(rel_mm > 1.01 * mr, PEAK_AFTER_RANGE, x)
+
+    def _output(self, xs: list[int]) -> int:
+        """Encode, damage and write released frames; return bytes written."""
+        if "dropout" in self._faults:
+            self.frames_suppressed += len(xs)
+            return 0
+        data = encode_values(xs)
+        corrupt = self._faults.get("corrupt")
+        if corrupt is not None:
+            data = self._corrupt(data, len(xs), float(corrupt.get("p", 0.1)),
+                                 bool(corrupt.get("detectable", True)))
+        self.frames_sent += len(xs)
+        return self._write(data)
+
+    def _corrupt(self, data: bytes, n: int, p: float, detectable: bool) -> bytes:
+        """Damage a fraction p of the n frames in data (one damage per frame)."""
+        rng = self._fault_rng
+        hit = np.flatnonzero(rng.random(n) < p)
+        if hit.size == 0:
+            return data
+        buf = bytearray(data)
+        for i in hit[::-1]:                     # back to front: earlier offsets stay valid
+            pos = 3 * int(i) + int(rng.integers(3))
+            mode = int(rng.integers(3))
+            if mode == 0:                       # drop a byte
+                del buf[pos]
+            elif mode == 1:                     # replace a byte
+                buf[pos] = self._garbage_byte(buf[pos], detectable)
+            else:                               # insert 1..3 bytes
+                buf[pos:pos] = bytes(self._garbage_byte(None, detectable)
+                                     for _ in range(int(rng.integers(1, 4))))
+        self.frames_corrupted += int(hit.size)
+        return bytes(buf)
+
+    def _garbage_byte(self, old: int | None, detectable: bool) -> int:
+        """A random byte: flagged 11 if it must be detectable, and never equal to ``old``."""
+        rng = self._fault_rng
+        while True:
+            b = int(rng.integers(0xC0, 0x100)) if detectable else int(rng.integers(0, 0x100))
+            if b != old:
+                return b
+
+    def _write(self, data: bytes) -> int:
+        """Non-blocking write to the master; what does not fit is dropped and counted."""
+        try:
+            n = os.write(self._master, data)
+        except (BlockingIOError, OSError):
+            n = 0
+        self.bytes_written += n
+        self.bytes_dropped += len(data) - n
+        return n
+
+    def _slave_queued(self) -> int:
+        """Bytes readable at the slave end now (FIONREAD)."""
+        try:
+            raw = fcntl.ioctl(self._slave, termios.FIONREAD, b"\0\0\0\0")
+        except OSError:
+            return 0
+        return struct.unpack("i", raw)[0]
+
+    def _wait_delivered(self, target: int, timeout_s: float = 0.05) -> None:
+        """Spin (then nap) until ``target`` bytes are readable at the slave, or time out."""
+        deadline = time.perf_counter() + timeout_s
+        spins = 0
+        while self._slave_queued() < target:
+            if time.perf_counter() > deadline:
+                self.delivery_timeouts += 1
+                return
+            spins += 1
+            if spins > 50:
+                time.sleep(20e-6)   # let the kernel worker run on a single CPU
+
+    # ------------------------------------------------------------------ lifetime
+    def close(self) -> None:
+        """Stop the thread and close both pty ends. Idempotent."""
+        self.stop()
+        with self._lock:
+            for name in ("_master", "_slave"):
+                fd = getattr(self, name)
+                if fd >= 0:
+                    try:
+                        os.close(fd)
+                    except OSError:
+                        pass
+                    setattr(self, name, -1)
+
+    def __enter__(self) -> VirtualLaser:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __del__(self) -> None:  # pragma: no cover - safety net for forgotten fds
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001
+            pass
+
+
+def _rngs(seed: Any) -> tuple[np.random.Generator, np.random.Generator]:
+    """Independent generators for noise and faults, so a fault never shifts the noise."""
+    if isinstance(seed, np.random.Generator):
+        return seed, seed.spawn(1)[0]
+    ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
+    a, b = ss.spawn(2)
+    return np.random.default_rng(a), np.random.default_rng(b)

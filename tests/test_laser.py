@@ -1,0 +1,549 @@
+"""optoNCDT 1420 laser: codec (hand-worked values, properties) and driver against the
+virtual device over a real pty."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import pytest
+import serial
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from drivers.base import DeviceInitError, Freshness
+from drivers.laser import (
+    ERROR_CODES,
+    MAX_DISTANCE_X,
+    MAX_X,
+    FrameDecoder,
+    LaserDriver,
+    distance_mm_from_x,
+    encode_value,
+    encode_values,
+    error_reason,
+    x_from_distance_mm,
+)
+from rig_runtime.config import LaserDevice
+from sim_backend.virtual_laser import VirtualLaser
+
+MR = 50.0                    # measuring range of the b_f/b_r lasers in configs/, mm
+OFFSET = 45.0                # their offset_mm
+STEP_M = MR * 102 / 65520 / 100 / 1000   # one x step in metres (≈ 0.78 µm for MR 50)
+H = 0.005                    # control period, s
+
+
+# =========================================================================== codec
+@pytest.mark.parametrize("x, mr, d_mm", [
+    (0, 50, -0.5),              # (102/65520·0 − 1)·50/100 = −1·0.5 = −0.5 = −MR/100
+    (65520, 50, 50.5),          # (102 − 1)·0.5 = 50.5 = 1.01·MR
+    (32760, 50, 25.0),          # (102·32760/65520 − 1)·0.5 = (51 − 1)·0.5 = 25 = MR/2
+    (32760, 25, 12.5),          # (51 − 1)·0.25 = 12.5
+    # start of the measuring range: 102·643 = 65586 = 65520 + 66 -> (66/65520)·0.5 ≈ 0.0005
+    (643, 50, 66 / 65520 * 0.5),
+    # end of the measuring range: 102·64877 = 6617454 = 101·65520 − 66 -> (100 − 66/65520)·0.5 ≈ 49.9995
+    (64877, 50, (100 - 66 / 65520) * 0.5),
+    (6552, 10, 0.92),           # 102·6552/65520 = 10.2 -> (10.2 − 1)·0.1 = 0.92
+])
+def test_distance_formula_hand_values(x, mr, d_mm):
+    assert distance_mm_from_x(x, mr) == pytest.approx(d_mm, abs=1e-12)
+
+
+def test_distance_inverse_rounds_and_clips():
+    assert x_from_distance_mm(25.0, 50) == 32760
+    assert x_from_distance_mm(-0.5, 50) == 0
+    assert x_from_distance_mm(50.5, 50) == MAX_DISTANCE_X
+    assert x_from_distance_mm(-3.0, 50) == 0            # clipped below
+    assert x_from_distance_mm(80.0, 50) == MAX_DISTANCE_X  # clipped above
+    # one step is 50·102/65520/100 mm ≈ 0.000778 mm; 0.4 step above 25 mm rounds down, 0.6 up
+    step_mm = 50 * 102 / 65520 / 100
+    assert x_from_distance_mm(25.0 + 0.4 * step_mm, 50) == 32760
+    assert x_from_distance_mm(25.0 + 0.6 * step_mm, 50) == 32761
+    with pytest.raises(ValueError):
+        x_from_distance_mm(math.nan, 50)
+
+
+def test_byte_layout_of_known_values():
+    # 32760 = 0x7FF8: L6 = 0x38, M6 = (0x7FF8 >> 6) & 63 = 0x3F, H6 = 0x7FF8 >> 12 = 7
+    # check: 56 + 63·64 + 7·4096 = 56 + 4032 + 28672 = 32760
+    assert encode_value(32760) == bytes([0b00_111000, 0b01_111111, 0b10_000111])
+    # 262076 = 0x3FFBC: L6 = 60, M6 = 62, H6 = 63; 60 + 62·64 + 63·4096 = 262076
+    assert encode_value(262076) == bytes([0x3C, 0x7E, 0xBF])
+    assert encode_value(0) == b"\x00\x40\x80"
+    assert encode_value(MAX_X) == b"\x3f\x7f\xbf"
+    for b, flag in zip(encode_value(12345), (0b00, 0b01, 0b10)):
+        assert b >> 6 == flag
+    with pytest.raises(ValueError):
+        encode_value(MAX_X + 1)
+    with pytest.raises(ValueError):
+        encode_value(-1)
+    assert encode_values([0, 32760, 262076]) == encode_value(0) + encode_value(32760) + encode_value(262076)
+    assert encode_values([]) == b""
+    with pytest.raises(ValueError):
+        encode_values([1, MAX_X + 1])
+
+
+def test_error_codes_decode_with_reason():
+    assert error_reason(0) is None
+    assert error_reason(MAX_DISTANCE_X) is None
+    assert error_reason(262076) == "no peak (262076)"
+    assert error_reason(262082) == "laser off (262082)"
+    assert error_reason(262075) == "too much data for the baud rate (262075)"
+    assert error_reason(MAX_DISTANCE_X + 1) == "unknown code 65521"
+    assert error_reason(262079) == "unknown code 262079"   # a gap in the manual's table
+    assert set(ERROR_CODES) == {262075, 262076, 262077, 262078, 262080, 262081, 262082}
+    dec = FrameDecoder()
+    assert dec.feed(encode_value(262078)) == [262078]
+    assert error_reason(262078) == "peak after range (262078)"
+
+
+def test_decoder_keeps_partial_frames_across_calls():
+    data = encode_values([100, 200, 300])
+    dec = FrameDecoder()
+    out = []
+    for i in range(len(data)):              # one byte at a time
+        out += dec.feed(data[i:i + 1])
+    assert out == [100, 200, 300]
+    assert dec.discarded == 0 and dec.pending == 0 and dec.frames == 3
+    assert dec.feed(b"") == []
+
+
+def test_decoder_resynchronises_after_a_lost_byte():
+    a, b, c = encode_value(100), encode_value(200), encode_value(300)
+    dec = FrameDecoder()
+    # frame b lost its M byte: L_b H_b cannot be a frame -> 2 bytes discarded
+    assert dec.feed(a + b[0:1] + b[2:3] + c) == [100, 300]
+    assert dec.discarded == 2
+    # lost H at the end of one call, next call starts a new frame: L M discarded
+    assert dec.feed(a[:2]) == []
+    assert dec.pending == 2
+    assert dec.feed(c) == [300]
+    assert dec.discarded == 4
+    # a byte flagged 11 is never part of a frame
+    assert dec.feed(b"\xff" + a + b"\xc0") == [100]
+    assert dec.discarded == 6
+    dec.feed(a[:1])
+    dec.reset()
+    assert dec.pending == 0 and dec.discarded == 7
+
+
+# --------------------------------------------------------------------------- properties
+values = st.integers(0, MAX_X)
+
+
+@given(values)
+def test_value_bytes_value_round_trip(x):
+    assert FrameDecoder().feed(encode_value(x)) == [x]
+
+
+@given(st.integers(0, MAX_DISTANCE_X), st.sampled_from([10.0, 25.0, 50.0, 100.0, 200.0, 500.0]))
+def test_distance_round_trip(x, mr):
+    assert x_from_distance_mm(distance_mm_from_x(x, mr), mr) == x
+
+
+def _chunked(data: bytes, cuts: list[int]) -> list[bytes]:
+    """Split data at the given (sorted, deduplicated) offsets."""
+    edges = [0] + sorted({c % (len(data) + 1) for c in cuts}) + [len(data)]
+    return [data[a:b] for a, b in zip(edges, edges[1:])]
+
+
+def _feed_all(dec: FrameDecoder, chunks: list[bytes]) -> list[int]:
+    out: list[int] = []
+    for c in chunks:
+        out += dec.feed(c)
+    return out
+
+
+# garbage flagged 11 can never be part of a frame, so it must always be detected
+flag11 = st.binary(min_size=1, max_size=4).map(lambda b: bytes(0xC0 | (v & 0x3F) for v in b))
+
+
+@settings(max_examples=300)
+@given(st.lists(values, max_size=40), st.data(), st.lists(st.integers(0, 10_000), max_size=8))
+def test_garbage_inside_and_between_frames(xs, data, cuts):
+    """Garbage anywhere (inside frames too): every untouched frame comes back, in order,
+    nothing else does, and every byte of garbage and of damaged frames is counted."""
+    stream = b""
+    expected, touched, garbage = [], 0, 0
+    for x in xs:
+        frame = encode_value(x)
+        # 0..3 insertion points in this frame, at offsets 0 (before it), 1 or 2 (inside it)
+        where = data.draw(st.lists(st.integers(0, 2), max_size=3, unique=True))
+        pieces = bytearray()
+        for i in range(3):
+            if i in where:
+                g = data.draw(flag11)
+                pieces += g
+                garbage += len(g)
+            pieces.append(frame[i])
+        stream += bytes(pieces)
+        inside = any(w in (1, 2) for w in where)
+        touched += inside
+        if not inside:
+            expected.append(x)
+    dec = FrameDecoder()
+    assert _feed_all(dec, _chunked(stream, cuts)) == expected
+    assert dec.discarded == garbage + 3 * touched
+    assert dec.pending == 0
+
+
+def _has_frame(chunk: bytes) -> bool:
+    flags = [b >> 6 for b in chunk]
+    return any(flags[i:i + 3] == [0, 1, 2] for i in range(len(flags) - 2))
+
+
+any_garbage = st.binary(min_size=1, max_size=6).filter(lambda g: not _has_frame(g))
+
+
+@settings(max_examples=300)
+@given(st.lists(st.tuples(values, st.one_of(st.just(b""), any_garbage)), max_size=40),
+       st.lists(st.integers(0, 10_000), max_size=8))
+def test_arbitrary_garbage_between_frames(pairs, cuts):
+    """Arbitrary bytes (any flags, but not themselves a complete frame) between frames:
+    every frame is recovered and no value is made up; all garbage is counted."""
+    stream = b"".join(g + encode_value(x) for x, g in pairs)
+    dec = FrameDecoder()
+    assert _feed_all(dec, _chunked(stream, cuts)) == [x for x, _ in pairs]
+    assert dec.discarded == sum(len(g) for _, g in pairs)
+
+
+@settings(max_examples=300)
+@given(st.binary(max_size=300), st.lists(st.integers(0, 10_000), max_size=8))
+def test_any_bytes_are_accounted_and_chunking_does_not_matter(data, cuts):
+    """Every byte ends up in a frame, discarded or pending; chunk boundaries change nothing."""
+    whole = FrameDecoder()
+    ref = whole.feed(data)
+    dec = FrameDecoder()
+    assert _feed_all(dec, _chunked(data, cuts)) == ref
+    assert 3 * dec.frames + dec.discarded + dec.pending == len(data)
+    assert (dec.discarded, dec.pending) == (whole.discarded, whole.pending)
+    assert all(0 <= x <= MAX_X for x in ref)
+
+
+# =========================================================================== driver + virtual device
+def _cfg(**kw) -> LaserDevice:
+    return LaserDevice(role="b_f", port="sim", measuring_range_mm=MR, offset_mm=OFFSET, **kw)
+
+
+@pytest.fixture
+def rig(request):
+    """(virtual laser, open driver); parametrize indirectly with dicts for cfg/virtual kwargs."""
+    opts = getattr(request, "param", {})
+    cfg = _cfg(**opts.get("cfg", {}))
+    vl = VirtualLaser(cfg, seed=7, **opts.get("virtual", {}))
+    drv = LaserDriver(cfg, port=vl.port_name)
+    drv.open()
+    yield vl, drv
+    drv.close()
+    vl.close()
+
+
+def _cycle(vl: VirtualLaser, drv: LaserDriver, k: int):
+    """One lockstep control period ending at k·h: the device emits, then the driver polls."""
+    vl.emit_until(k * H)
+    return drv.poll(k * H)
+
+
+def test_fresh_readings_equal_the_distance(rig):
+    vl, drv = rig
+    for k, d in enumerate([0.0452, 0.0600, 0.0700, 0.0949], start=1):
+        vl.set_distance(d)
+        r = _cycle(vl, drv, k)
+        assert r.health.state is Freshness.FRESH, r.health.cause
+        assert abs(r.value_m - d) <= STEP_M / 2 + 1e-12
+        assert r.n_values == 20                      # 4 kHz · 5 ms
+        assert r.t == k * H
+        assert r.role == "b_f"
+        assert r.raw_x == x_from_distance_mm(d * 1000 - OFFSET, MR)
+    assert r.health.bad_frames == 0 and r.health.errors == 0
+    assert r.health.counters["values"] == 80
+
+
+def test_reading_is_an_immutable_snapshot(rig):
+    vl, drv = rig
+    r1 = _cycle(vl, drv, 1)
+    vl.inject("out_of_range")
+    r2 = _cycle(vl, drv, 2)
+    assert r1.health.state is Freshness.FRESH and r2.health.state is Freshness.INVALID
+    with pytest.raises(AttributeError):
+        r1.value_m = 0.0  # type: ignore[misc]
+
+
+@pytest.mark.parametrize("average", [False, True])
+def test_average_is_the_mean_of_the_cycle(average):
+    cfg = _cfg(average=average)
+    with VirtualLaser(cfg) as vl, LaserDriver(cfg, port=vl.port_name) as drv:
+        d1, d2 = 0.0500, 0.0600
+        vl.set_distance(d1)
+        vl.emit_until(0.0025)                        # 10 frames at d1
+        vl.set_distance(d2)
+        r = _cycle(vl, drv, 1)                       # 10 more at d2, one poll
+        assert r.n_values == 20
+        expected = (d1 + d2) / 2 if average else d2
+        assert abs(r.value_m - expected) <= STEP_M / 2 + 1e-12
+
+
+def test_arrival_time_and_staleness_bound(rig):
+    vl, drv = rig
+    vl.set_distance(0.06)
+    r = _cycle(vl, drv, 1)
+    assert r.t == 0.005
+    # the device goes quiet without a fault: nothing emitted, the driver keeps polling
+    for now, state in [(0.010, Freshness.FRESH), (0.025, Freshness.FRESH), (0.0251, Freshness.STALE)]:
+        r = drv.poll(now)
+        assert r.health.state is state
+        assert r.t == 0.005 and r.n_values == 0
+    assert r.health.cause == "no data for 20 ms"
+    assert abs(r.value_m - 0.06) <= STEP_M          # the last value is kept, with its old t
+
+
+def test_stale_before_first_data():
+    cfg = _cfg()
+    with VirtualLaser(cfg) as vl, LaserDriver(cfg, port=vl.port_name) as drv:
+        r = drv.poll(1.0)
+        assert r.health.state is Freshness.STALE and r.health.cause == "no data yet"
+        assert math.isnan(r.value_m) and math.isnan(r.t) and r.raw_x == -1
+        r = drv.poll(1.1)
+        assert r.health.state is Freshness.STALE and r.health.cause == "no data for 100 ms"
+
+
+def test_dropout_goes_stale_and_recovers(rig):
+    vl, drv = rig
+    vl.set_distance(0.07)
+    _cycle(vl, drv, 1)
+    vl.inject("dropout")
+    states = [_cycle(vl, drv, k).health for k in range(2, 8)]
+    assert [h.state for h in states[:4]] == [Freshness.FRESH] * 4    # ages 5, 10, 15, 20 ms
+    assert states[-1].state is Freshness.STALE
+    assert states[-1].cause == "no data for 30 ms"
+    assert vl.frames_suppressed == 6 * 20
+    vl.clear("dropout")
+    r = _cycle(vl, drv, 8)
+    assert r.health.fresh and r.t == 8 * H and r.n_values == 20
+
+
+def test_out_of_range_is_invalid_with_reason(rig):
+    vl, drv = rig
+    vl.set_distance(0.06)
+    _cycle(vl, drv, 1)
+    vl.inject("out_of_range")
+    r = _cycle(vl, drv, 2)
+    assert r.health.state is Freshness.INVALID
+    assert r.health.cause == "no peak (262076)"
+    assert math.isnan(r.value_m) and r.raw_x == 262076 and r.n_values == 0
+    assert r.health.errors == 20 and r.health.counters["error_frames"] == 20
+    assert r.t == 1 * H                              # the last valid value's arrival, still
+    r = drv.poll(2 * H + 0.001)                      # no new frames: stays INVALID, not FRESH
+    assert r.health.state is Freshness.INVALID and math.isnan(r.value_m)
+    vl.inject("out_of_range", code=262082)
+    assert _cycle(vl, drv, 3).health.cause == "laser off (262082)"
+    vl.inject("out_of_range", code=100_000)
+    assert _cycle(vl, drv, 4).health.cause == "unknown code 100000"
+    vl.clear("out_of_range")
+    r = _cycle(vl, drv, 5)
+    assert r.health.fresh and abs(r.value_m - 0.06) <= STEP_M
+
+
+def test_distance_outside_the_span_is_reported_by_the_device(rig):
+    vl, drv = rig
+    vl.set_distance((OFFSET + 1.02 * MR) / 1000)     # beyond 101 % of MR
+    assert _cycle(vl, drv, 1).health.cause == "peak after range (262078)"
+    vl.set_distance((OFFSET - 0.02 * MR) / 1000)     # before −1 % of MR
+    assert _cycle(vl, drv, 2).health.cause == "peak before range (262077)"
+
+
+def test_errors_in_the_middle_of_a_cycle_count_but_latest_decides(rig):
+    vl, drv = rig
+    vl.set_distance(0.06)
+    vl.inject("out_of_range")
+    vl.emit_until(0.002)                             # 8 error frames
+    vl.clear("out_of_range")
+    r = _cycle(vl, drv, 1)                           # then 12 distances
+    assert r.health.fresh and r.n_values == 12 and r.health.errors == 8
+
+
+@pytest.mark.parametrize("rig", [{"virtual": {"noise_std_m": 20e-6}}], indirect=True)
+def test_corrupt_frames_are_dropped_never_made_up(rig):
+    vl, drv = rig
+    vl.inject("corrupt", p=0.3)
+    got = sent = 0
+    for k in range(1, 41):
+        vl.set_distance(0.06 + 1e-5 * k)             # a new distance each cycle
+        sent_x = _sent_x(vl, k)
+        r = drv.poll(k * H)
+        assert set(drv.last_values) <= set(sent_x)   # nothing that was not sent
+        assert _is_subsequence(drv.last_values, sent_x)
+        got += r.n_values
+        sent += len(sent_x)
+    assert vl.frames_corrupted > 0.2 * sent
+    assert got < sent - 0.2 * sent and got > 0.5 * sent
+    assert r.health.bad_frames > 0 and r.health.bad_frames == drv._decoder.discarded
+
+
+def _sent_x(vl: VirtualLaser, k: int) -> list[int]:
+    """Emit cycle k while capturing the values the device measured (before corruption)."""
+    captured: list[int] = []
+    orig = vl._output
+    vl._output = lambda xs: (captured.extend(xs), orig(xs))[1]  # type: ignore[method-assign]
+    try:
+        vl.emit_until(k * H)
+    finally:
+        del vl._output
+    return captured
+
+
+def _is_subsequence(sub: list[int], seq: list[int]) -> bool:
+    it = iter(seq)
+    return all(any(x == y for y in it) for x in sub)
+
+
+def test_corrupt_off_means_no_bad_frames(rig):
+    vl, drv = rig
+    vl.inject("corrupt", p=0.0)
+    for k in range(1, 5):
+        assert _cycle(vl, drv, k).health.bad_frames == 0
+
+
+def test_stuck_repeats_the_last_value(rig):
+    vl, drv = rig
+    vl.set_distance(0.06)
+    r0 = _cycle(vl, drv, 1)
+    vl.inject("stuck")
+    vl.set_distance(0.08)
+    r = _cycle(vl, drv, 2)
+    assert r.health.fresh and r.value_m == r0.value_m and set(drv.last_values) == {r0.raw_x}
+    vl.clear("stuck")
+    assert abs(_cycle(vl, drv, 3).value_m - 0.08) <= STEP_M
+
+
+def test_offset_fault_shifts_the_distance(rig):
+    vl, drv = rig
+    vl.set_distance(0.06)
+    vl.inject("offset", amount_m=0.002)
+    assert abs(_cycle(vl, drv, 1).value_m - 0.062) <= STEP_M
+    vl.clear()
+    assert abs(_cycle(vl, drv, 2).value_m - 0.060) <= STEP_M
+
+
+def test_unknown_fault_kind_is_refused(rig):
+    vl, _ = rig
+    with pytest.raises(ValueError, match="unknown laser fault"):
+        vl.inject("smoke")
+    with pytest.raises(ValueError):
+        vl.inject("corrupt", p=2.0)
+
+
+def test_frame_count_follows_the_sample_clock(rig):
+    vl, drv = rig
+    total, t = 0, 0.0
+    for k in range(1, 201):
+        t += H          # accumulated like a loop clock: t·4000 falls just below 20·k from k = 10 on
+        vl.emit_until(t)
+        drv.poll(t)
+        total += len(drv.last_values)
+        assert total == 20 * k
+    vl.emit_until(t)                                 # same time again: nothing new
+    assert drv.poll(t).n_values == 0
+
+
+@pytest.mark.parametrize("rig", [{"virtual": {"latency_s": 0.0025}}], indirect=True)
+def test_latency_delays_frames(rig):
+    vl, drv = rig
+    assert _cycle(vl, drv, 1).n_values == 10         # the last 10 samples are still "in flight"
+    assert _cycle(vl, drv, 2).n_values == 20
+
+
+def test_noise_is_deterministic_for_a_seed():
+    cfg = _cfg()
+    runs = []
+    for _ in range(2):
+        with VirtualLaser(cfg, noise_std_m=5e-6, seed=42) as vl, LaserDriver(cfg, port=vl.port_name) as drv:
+            vl.set_distance(0.06)
+            _cycle(vl, drv, 1)
+            runs.append(list(drv.last_values))
+    assert runs[0] == runs[1] and len(set(runs[0])) > 3
+
+
+def test_full_pty_buffer_drops_instead_of_blocking(rig):
+    vl, drv = rig
+    t0 = time.monotonic()
+    vl.emit_until(3.0)                               # 12000 frames = 36 kB, far more than a pty holds
+    assert time.monotonic() - t0 < 1.0
+    assert vl.bytes_dropped > 0
+    assert vl.bytes_written + vl.bytes_dropped == 36_000
+    got: list[int] = []
+    for i in range(30):                              # drain it all
+        drv.poll(3.0 + i * H)
+        got += drv.last_values
+    sent_x = x_from_distance_mm(vl.distance_m * 1000 - OFFSET, MR)
+    assert got and set(got) == {sent_x}
+    assert 3 * len(got) <= vl.bytes_written
+
+
+def test_realtime_mode_emits_at_wall_clock_rate(rig):
+    vl, drv = rig
+    vl.set_distance(0.065)
+    vl.start_realtime()
+    vl.start_realtime()                              # second start is a no-op
+    time.sleep(0.05)
+    r = drv.poll(time.monotonic())
+    vl.stop()
+    vl.stop()
+    assert r.health.fresh and abs(r.value_m - 0.065) <= STEP_M
+    assert 100 <= r.n_values <= 400                  # ≈ 200 at 4 kHz for 50 ms, generous bounds
+
+
+def test_open_missing_port_names_the_port():
+    drv = LaserDriver(_cfg(), port="/dev/does-not-exist-laser")
+    with pytest.raises(DeviceInitError) as ei:
+        drv.open()
+    assert "/dev/does-not-exist-laser" in str(ei.value)
+    assert ei.value.device == "laser b_f"
+    assert isinstance(ei.value.__cause__, serial.SerialException)
+    assert not drv.is_open
+    drv.close()                                       # closing a never-opened driver is fine
+
+
+def test_port_defaults_to_the_config():
+    drv = LaserDriver(LaserDevice(role="s_fl", port="/dev/ttyNOPE9", measuring_range_mm=25))
+    with pytest.raises(DeviceInitError, match="ttyNOPE9"):
+        drv.open()
+
+
+def test_close_is_idempotent_and_context_manager(rig):
+    vl, _ = rig
+    with LaserDriver(_cfg(), port=vl.port_name) as drv:
+        assert drv.is_open
+    assert not drv.is_open
+    drv.close()
+    r = drv.poll(1.0)                                 # never raises
+    assert r.health.state is Freshness.INVALID and r.health.cause == "port not open"
+    vl.close()
+    vl.close()
+
+
+def test_serial_exception_in_poll_is_reported_not_raised(rig, monkeypatch):
+    vl, drv = rig
+    vl.set_distance(0.06)
+    _cycle(vl, drv, 1)
+
+    def boom(*_a):
+        raise serial.SerialException("device reports readiness to read but returned no data")
+
+    vl.emit_until(2 * H)
+    monkeypatch.setattr(drv._ser, "read", boom)
+    r = drv.poll(2 * H)
+    assert r.health.state is Freshness.INVALID
+    assert "SerialException" in r.health.cause and "returned no data" in r.health.cause
+    assert r.health.errors == 1 and r.health.counters["read_errors"] == 1
+    assert math.isnan(r.value_m)
+    monkeypatch.undo()
+    assert _cycle(vl, drv, 3).health.fresh
+
+
+def test_device_gone_is_invalid(rig):
+    vl, drv = rig
+    _cycle(vl, drv, 1)
+    vl.close()                                        # the far end disappears (cable pulled)
+    r = drv.poll(2 * H)
+    assert r.health.state is Freshness.INVALID and "read error" in r.health.cause
