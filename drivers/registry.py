@@ -1,0 +1,25 @@
+"""Drivers by name, as configs name them. A driver module (and the vendor library it
+needs) is imported only when a config uses it."""
+
+from __future__ import annotations
+
+import importlib
+
+from rig_runtime.errors import ConfigError
+
+DRIVERS = {
+    "laser": {"optoncdt1420": "drivers.laser:LaserDriver"},
+    "can": {"cia402": "drivers.canopen402:DriveBus"},
+    "ft": {"robotiq_ft300": "drivers.ft300:FTSensorSet"},
+}
+
+
+def driver_class(family: str, name: str, key_path: str = ""):
+    """The class registered as ``name`` for a device family ("laser", "can", "ft")."""
+    try:
+        target = DRIVERS[family][name]
+    except KeyError:
+        known = ", ".join(sorted(DRIVERS.get(family, {})))
+        raise ConfigError(None, key_path or f"devices.{family}.driver", f"one of {known}", name) from None
+    module, cls = target.split(":")
+    return getattr(importlib.import_module(module), cls)

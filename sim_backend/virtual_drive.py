@@ -1,0 +1,623 @@
+"""Virtual CiA 402 motor converters on a python-can bus — the other end of
+``drivers.canopen402``.
+
+Each drive is a ``canopen.LocalNode`` built from the same EDS as the runtime's
+``RemoteNode``: canopen serves SDO (expedited and segmented) and NMT commands from that
+object dictionary. Everything cyclic is done here, with the frame layouts of
+``drivers.canopen402`` (one source of truth): RPDO1 drives the 402 state machine and the
+target torque, SYNC triggers TPDO1 (statusword, velocity actual, torque actual), the
+heartbeat producer (0x1017) and consumer (0x1016) run on the set's clock, and a watchdog
+cuts the current when SYNC or RPDO1 stop.
+
+Behaviour a real converter has and this one models (docs/protocols-can.md):
+
+* RPDO1 transmission type 0xFF acts on reception; 0..240 latches the target at the next SYNC.
+* TPDO1 transmission type n in 1..240 is sent on every n-th SYNC; other types send nothing.
+* PDO mappings are honoured: a mapping other than the codec's is packed/unpacked generically
+  from the object dictionary, so a runtime that forgets to map gets short frames.
+* Torque only in OPERATION ENABLED with NMT OPERATIONAL and mode 10, clipped to 0x6072;
+  amperes from per-mille via the *drive's* 0x6075 (the value the runtime wrote).
+* Watchdog: once armed by the first SYNC/RPDO in OPERATIONAL, no SYNC or no RPDO1 for longer
+  than ``cfg.watchdog_ms`` while the power stage is on -> FAULT, EMCY 0x8250, zero current.
+* Heartbeat consumer: armed by the first heartbeat of the configured producer; silence for
+  longer than the consumer time -> FAULT, EMCY 0x8130, zero current (CiA 301 heartbeat consumer).
+* Leaving NMT OPERATIONAL with the power stage on -> disable voltage (0x6007 = 2).
+* Fault reset (rising edge of controlword bit 7) -> SWITCH ON DISABLED and EMCY 0x0000,
+  unless an injected fault persists.
+
+Two ways to run: lockstep, ``service(t)`` handles every pending frame and the timers at
+simulated time ``t``; realtime, ``start_realtime()`` runs a thread on wall time (or on a
+``time_fn`` you give — a constant one serves the runtime's blocking start-up in lockstep).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import random
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import can
+import canopen
+from canopen.nmt import NmtSlave
+
+from drivers.canopen402 import (
+    COB_HEARTBEAT, COB_NMT, COB_SDO_RX, COB_SDO_TX, COB_SYNC, CW_DISABLE_VOLTAGE, EMCY_HEARTBEAT,
+    EMCY_OVERCURRENT, EMCY_PDO_LENGTH, EMCY_RPDO_TIMEOUT, FAULT, INT32_MAX, MODE_CST,
+    NMT_INITIALISING, NMT_OPERATIONAL, NMT_PRE_OPERATIONAL, NMT_STATE_NAMES, OPERATION_ENABLED,
+    PDO_COB_ID_INVALID, QUICK_STOP_ACTIVE, RPDO1, RPDO1_MAPPING, STATUSWORD_OF_STATE, SWITCH_ON_DISABLED,
+    SWITCHED_ON, TPDO1, TPDO1_MAPPING, drive_transition, emcy_frame, heartbeat_frame, mapping_entry,
+    node_cob_id, velocity_to_raw,
+)
+from rig_runtime.config import CanBus, Drive, resolve_config_path
+
+__all__ = ["FAULT_KINDS", "VirtualDrive", "VirtualDriveSet"]
+
+# kind -> default parameters (see inject())
+FAULT_KINDS: dict[str, dict[str, Any]] = {
+    "dropout": {},                                  # no TPDO1 at all
+    "no_heartbeat": {},                             # heartbeat producer silent
+    "bus_error": {"fraction": 0.5, "error_frames": True},  # frames lost both ways
+    "out_of_range": {"mode": "overcurrent"},        # or mode="saturate": velocity = INT32_MAX
+    "stuck": {},                                    # TPDO1 repeats its last payload
+    "offset": {"omega_rad_s": 1.0},                 # velocity actual off by this much (alias: amount)
+    "corrupt": {"dlc": 5, "fraction": 1.0},         # this fraction of TPDO1s truncated to dlc bytes
+}
+_ALIASES = {("offset", "amount"): "omega_rad_s"}
+
+_POWER_ON = (SWITCHED_ON, OPERATION_ENABLED, QUICK_STOP_ACTIVE)
+_CODEC_RPDO_MAP = tuple(mapping_entry(*m) for m in RPDO1_MAPPING)
+_CODEC_TPDO_MAP = tuple(mapping_entry(*m) for m in TPDO1_MAPPING)
+# error register 0x1001 bits per EMCY class (CiA 301 object 0x1001): generic | current / communication
+_ERROR_REGISTER = {0x23: 0x03, 0x81: 0x11, 0x82: 0x11}
+
+
+class _SimNmtSlave(NmtSlave):
+    """NMT slave whose heartbeat is produced on the set's clock, not python-can's timer thread."""
+
+    def __init__(self, node_id: int, local_node, on_period: Callable[[int], None]) -> None:
+        super().__init__(node_id, local_node)
+        self._on_period = on_period
+
+    def start_heartbeat(self, heartbeat_time_ms: int) -> None:
+        self._heartbeat_time_ms = heartbeat_time_ms
+        self._on_period(heartbeat_time_ms)
+
+    def stop_heartbeat(self) -> None:
+        self._on_period(0)
+
+    def update_heartbeat(self) -> None:
+        """The producer reads the state when it sends; nothing to update."""
+
+
+class _SimNetwork(canopen.Network):
+    """A canopen Network that is never connected: frames in are fed by the set, frames out
+    (SDO responses, boot-up) go through the set so fault injection sees them."""
+
+    def __init__(self, owner: "VirtualDriveSet", bus: can.BusABC) -> None:
+        super().__init__(bus)
+        self._owner = owner
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        self._owner._tx(can_id, bytes(data), self._owner._by_sdo_tx.get(can_id))
+
+
+class VirtualDrive:
+    """One simulated converter (use it through :class:`VirtualDriveSet`)."""
+
+    def __init__(self, owner: "VirtualDriveSet", cfg: Drive, od_path: Path) -> None:
+        self.owner = owner
+        self.cfg = cfg
+        self.wheel = cfg.wheel
+        self.node_id = cfg.node_id
+        self.node = canopen.LocalNode(cfg.node_id, canopen.import_od(str(od_path), cfg.node_id))
+        old = self.node.nmt
+        self.node.nmt = _SimNmtSlave(cfg.node_id, self.node, self._set_heartbeat_period)
+        self.node._write_callbacks.remove(old.on_write)
+        self.node.add_write_callback(self.node.nmt.on_write)
+        self.node.add_write_callback(self._on_od_write)
+        self.node.add_read_callback(self._on_od_read)
+        self.faults: dict[str, dict[str, Any]] = {}
+        self.omega = 0.0
+        self._in_pdo = False
+        self._reset_application()
+
+    # ------------------------------------------------------------------ state
+    def _reset_application(self) -> None:
+        """Power-on state of the drive (also after NMT reset node)."""
+        self.state = SWITCH_ON_DISABLED     # NOT READY -> SWITCH ON DISABLED is automatic
+        self.cw = CW_DISABLE_VOLTAGE
+        self.target = 0                     # per mille, acting
+        self.pending = 0                    # per mille, waiting for SYNC (synchronous RPDO)
+        self.error_code = 0
+        self.hb_period_s = 0.0
+        self.hb_next = math.inf
+        self.consumer_last: float | None = None
+        self.wd_armed = False
+        self.wd_sync = self.wd_rpdo = 0.0
+        self.sync_count = 0
+        self.last_tpdo: bytes | None = None
+        self.counters = {"rpdo": 0, "sync": 0, "tpdo": 0, "emcy": 0, "rx_dropped": 0, "tx_dropped": 0,
+                         "pdo_length_errors": 0, "watchdog_trips": 0, "heartbeat_events": 0}
+        self._cfg_dirty = True
+        self._load_config()
+
+    def _od(self, index: int, sub: int = 0) -> int:
+        var = self.node.object_dictionary.get_variable(index, sub)
+        return var.decode_raw(self.node.get_data(index, sub))
+
+    def _load_config(self) -> None:
+        """Cache the object-dictionary values the cyclic path needs (after any SDO write)."""
+        if not self._cfg_dirty:
+            return
+        self._cfg_dirty = False
+        self.mode = self._od(0x6060)
+        self.rated_A = self._od(0x6075) / 1000.0
+        self.max_permille = self._od(0x6072)
+        rc, tc = self._od(0x1400, 1), self._od(0x1800, 1)
+        self.rpdo_cob = None if rc & PDO_COB_ID_INVALID else rc & 0x7FF
+        self.tpdo_cob = None if tc & PDO_COB_ID_INVALID else tc & 0x7FF
+        self.rpdo_type, self.tpdo_type = self._od(0x1400, 2), self._od(0x1800, 2)
+        self.rpdo_map = tuple(self._od(0x1600, i) for i in range(1, self._od(0x1600, 0) + 1))
+        self.tpdo_map = tuple(self._od(0x1A00, i) for i in range(1, self._od(0x1A00, 0) + 1))
+        entry = self._od(0x1016, 1)
+        self.consumer_node = (entry >> 16) & 0x7F
+        self.consumer_s = (entry & 0xFFFF) / 1000.0
+        self.owner._routes_dirty = True
+
+    @property
+    def nmt(self) -> int:
+        return self.node.nmt._state
+
+    def current_A(self) -> float:
+        """Current the power stage applies now."""
+        self._load_config()
+        if self.state != OPERATION_ENABLED or self.nmt != NMT_OPERATIONAL or self.mode != MODE_CST:
+            return 0.0
+        return self._effective_permille() * self.rated_A / 1000.0
+
+    def _effective_permille(self) -> int:
+        m = self.max_permille
+        t = self.target
+        return m if t > m else -m if t < -m else t
+
+    def statusword(self) -> int:
+        self._load_config()
+        sw = STATUSWORD_OF_STATE[self.state]
+        if self.state == OPERATION_ENABLED and self.mode == MODE_CST:
+            sw |= 0x1000                    # bit 12 in CST: drive follows the target
+        return sw
+
+    def torque_actual(self) -> int:
+        return self._effective_permille() if self.current_A() != 0.0 else 0
+
+    # ------------------------------------------------------------------ object dictionary hooks
+    def _on_od_read(self, index: int, subindex: int, od) -> int | None:
+        """Live values for SDO uploads (and the generic TPDO packer)."""
+        if index == 0x6041:
+            return self.statusword()
+        if index == 0x6061:
+            self._load_config()
+            return self.mode
+        if index == 0x606C:
+            return self._velocity_raw()
+        if index == 0x6077:
+            return self.torque_actual()
+        if index == 0x603F:
+            return self.error_code
+        if index == 0x1001:
+            return _ERROR_REGISTER.get(self.error_code >> 8, 0x01) if self.error_code else 0
+        return None
+
+    def _on_od_write(self, index: int, subindex: int, od, data: bytes) -> None:
+        """Controlword/target torque act at once; anything else refreshes the config cache."""
+        if index == 0x6040:
+            self.apply_controlword(int.from_bytes(data, "little"))
+        elif index == 0x6071:
+            self.pending = int.from_bytes(data, "little", signed=True)
+            if not (self._in_pdo and self.rpdo_type <= 240):    # SDO, or asynchronous RPDO
+                self.target = self.pending
+        else:
+            self._cfg_dirty = True
+
+    def _set_heartbeat_period(self, ms: int) -> None:
+        self.hb_period_s = ms / 1000.0
+        self.hb_next = self.owner._now if ms > 0 else math.inf
+
+    # ------------------------------------------------------------------ 402 state machine
+    def apply_controlword(self, cw: int) -> None:
+        new = drive_transition(self.state, cw, self.cw)
+        self.cw = cw
+        if self.state == FAULT and new != FAULT:
+            if self._persistent_fault():
+                return
+            self.error_code = 0
+            self._emcy(0x0000, 0)                       # error reset
+        self.state = new
+
+    def _persistent_fault(self) -> bool:
+        f = self.faults.get("out_of_range")
+        return f is not None and f["mode"] == "overcurrent"
+
+    def fault(self, code: int) -> None:
+        """Fault reaction (instantaneous here): FAULT, zero current, EMCY."""
+        if self.state == FAULT:
+            return
+        self.state = FAULT
+        self.error_code = code
+        self._emcy(code, _ERROR_REGISTER.get(code >> 8, 0x01))
+
+    def _emcy(self, code: int, register: int) -> None:
+        self.counters["emcy"] += 1
+        cob, data = emcy_frame(self.node_id, code, register)
+        self.owner._tx(cob, data, self)
+
+    # ------------------------------------------------------------------ frames in
+    def on_sync(self, t: float) -> None:
+        if self.nmt != NMT_OPERATIONAL:
+            return
+        self._load_config()
+        self.counters["sync"] += 1
+        self._arm(t)
+        self.wd_sync = t
+        if self.rpdo_type <= 240:
+            self.target = self.pending
+        if self.tpdo_cob is None or not 1 <= self.tpdo_type <= 240:
+            return
+        self.sync_count += 1
+        if self.sync_count % self.tpdo_type == 0:
+            self._send_tpdo()
+
+    def on_rpdo(self, data: bytearray, t: float) -> None:
+        if self.nmt != NMT_OPERATIONAL:
+            return
+        self._load_config()
+        if self.rpdo_map == _CODEC_RPDO_MAP and len(data) == RPDO1.size:
+            cw, tq = RPDO1.unpack_from(data)
+            self.pending = tq
+            if self.rpdo_type > 240:
+                self.target = tq
+            self.apply_controlword(cw)
+        elif not self._unpack_generic(data):
+            self.counters["pdo_length_errors"] += 1
+            self._emcy(EMCY_PDO_LENGTH, 0x11)
+            return
+        self.counters["rpdo"] += 1
+        self._arm(t)
+        self.wd_rpdo = t
+
+    def _unpack_generic(self, data: bytearray) -> bool:
+        """Write each mapped object from its slice of the RPDO (False on a length mismatch)."""
+        entries = [(e >> 16, (e >> 8) & 0xFF, (e & 0xFF) // 8) for e in self.rpdo_map]
+        if sum(n for _, _, n in entries) != len(data):
+            return False
+        pos = 0
+        self._in_pdo = True
+        try:
+            for index, sub, n in entries:
+                self.node.set_data(index, sub, bytes(data[pos:pos + n]))
+                pos += n
+        finally:
+            self._in_pdo = False
+        return True
+
+    def on_consumer_heartbeat(self, t: float) -> None:
+        if self.consumer_s > 0:
+            self.consumer_last = t
+
+    def on_nmt(self, data: bytearray, t: float) -> None:
+        before = self.nmt
+        self.node.nmt.on_command(COB_NMT, data, t)
+        after = self.nmt
+        if after == before:
+            return
+        if after == NMT_OPERATIONAL:
+            self.wd_armed = False               # armed again by the first SYNC/RPDO
+            self.sync_count = 0
+        elif before == NMT_OPERATIONAL and self.state in _POWER_ON:
+            self.state = SWITCH_ON_DISABLED     # abort connection option 2: disable voltage
+        if after == NMT_INITIALISING:
+            self._reset(data[0])
+
+    def _reset(self, command: int) -> None:
+        """NMT reset node (0x81: all objects) or communication (0x82: 0x1000-0x1FFF)."""
+        store = self.node.data_store
+        for index in list(store):
+            if command == 0x81 or 0x1000 <= index <= 0x1FFF:
+                del store[index]
+        if command == 0x81:
+            self._reset_application()
+        else:
+            self.hb_period_s, self.hb_next = 0.0, math.inf
+            self.consumer_last = None
+            self._cfg_dirty = True
+            self._load_config()
+        cob, data = heartbeat_frame(self.node_id, NMT_INITIALISING)   # boot-up
+        self.owner._tx(cob, data, self)
+        self.node.nmt._state = NMT_PRE_OPERATIONAL
+        ms = self._od(0x1017)
+        self._set_heartbeat_period(ms)
+
+    def _arm(self, t: float) -> None:
+        if not self.wd_armed:
+            self.wd_armed = True
+            self.wd_sync = self.wd_rpdo = t
+
+    # ------------------------------------------------------------------ frames out
+    def _velocity_raw(self) -> int:
+        f = self.faults
+        if "out_of_range" in f and f["out_of_range"]["mode"] == "saturate":
+            return INT32_MAX
+        omega = self.omega + f["offset"]["omega_rad_s"] if "offset" in f else self.omega
+        return velocity_to_raw(omega, self.cfg.velocity_factor)
+
+    def _send_tpdo(self) -> None:
+        f = self.faults
+        if "dropout" in f:
+            return
+        if "stuck" in f and self.last_tpdo is not None:
+            payload = self.last_tpdo
+        elif self.tpdo_map == _CODEC_TPDO_MAP:
+            payload = TPDO1.pack(self.statusword(), self._velocity_raw(), self.torque_actual())
+        else:
+            payload = b"".join(self.node.get_data(e >> 16, (e >> 8) & 0xFF) for e in self.tpdo_map)
+        self.last_tpdo = payload
+        c = f.get("corrupt")
+        if c is not None and (c["fraction"] >= 1.0 or self.owner._rng.random() < c["fraction"]):
+            payload = payload[:c["dlc"]]
+        self.counters["tpdo"] += 1
+        self.owner._tx(self.tpdo_cob, payload, self)
+
+    # ------------------------------------------------------------------ timers
+    def timers(self, t: float) -> None:
+        """Injected overcurrent, heartbeat consumer, watchdog, heartbeat producer at time t."""
+        self._load_config()
+        if self._persistent_fault() and self.state in _POWER_ON:
+            self.fault(EMCY_OVERCURRENT)
+        if self.consumer_last is not None and t - self.consumer_last > self.consumer_s:
+            self.consumer_last = None                   # re-armed by the next heartbeat
+            self.counters["heartbeat_events"] += 1
+            self.fault(EMCY_HEARTBEAT)
+        if (self.wd_armed and self.nmt == NMT_OPERATIONAL and self.state in _POWER_ON
+                and t - min(self.wd_sync, self.wd_rpdo) > self.owner.watchdog_s):
+            self.counters["watchdog_trips"] += 1
+            self.wd_armed = False
+            self.fault(EMCY_RPDO_TIMEOUT)
+        self._heartbeat(t)
+
+    def _heartbeat(self, t: float) -> None:
+        """Producer: one heartbeat when due (after a long gap, one — missed ones are not replayed)."""
+        if self.hb_next > t:
+            return
+        if "no_heartbeat" not in self.faults:
+            cob, data = heartbeat_frame(self.node_id, self.nmt)
+            self.owner._tx(cob, data, self)
+        nxt = self.hb_next + self.hb_period_s
+        self.hb_next = nxt if nxt > t else t + self.hb_period_s
+
+
+class VirtualDriveSet:
+    """One virtual CiA 402 drive per configured drive, on one python-can bus.
+
+    The plant feeds ``set_wheel_speed(wheel, omega)`` and reads ``current_A(wheel)``. Call
+    ``service(t)`` (lockstep) after the runtime wrote and before it polls, or run
+    ``start_realtime()``. Faults: ``inject(kind, wheel=None, **params)`` / ``clear(kind)``,
+    kinds and default parameters in :data:`FAULT_KINDS`.
+    """
+
+    def __init__(self, cfg: CanBus, bus: can.BusABC, eds_path: str | Path | None = None, seed: int = 0) -> None:
+        self.cfg = cfg
+        self.bus = bus
+        self.watchdog_s = cfg.watchdog_ms / 1000.0
+        self._rng = random.Random(seed)
+        self._now = 0.0
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._routes: dict[int, tuple[int, VirtualDrive]] = {}
+        self._routes_dirty = True
+        self.tx_errors = 0
+        path = Path(eds_path) if eds_path is not None else resolve_config_path(cfg.eds)
+        self._network = _SimNetwork(self, bus)
+        self._by_sdo_tx: dict[int, VirtualDrive] = {}
+        self.drives: dict[str, VirtualDrive] = {}
+        for dcfg in cfg.drives:
+            d = VirtualDrive(self, dcfg, path)
+            self._network.add_node(d.node)
+            self._by_sdo_tx[node_cob_id(COB_SDO_TX, d.node_id)] = d
+            self.drives[d.wheel] = d
+        for d in self.drives.values():          # power on: boot-up, then PRE-OPERATIONAL
+            cob, data = heartbeat_frame(d.node_id, NMT_INITIALISING)
+            self._tx(cob, data, d)
+            d.node.nmt._state = NMT_PRE_OPERATIONAL
+
+    # ------------------------------------------------------------------ plant interface
+    def set_wheel_speed(self, wheel: str, omega_rad_s: float) -> None:
+        """Wheel angular velocity (rad/s) the drive measures from now on."""
+        if not math.isfinite(omega_rad_s):
+            raise ValueError(f"wheel speed of {wheel} is {omega_rad_s!r}")
+        self.drives[wheel].omega = float(omega_rad_s)
+
+    def current_A(self, wheel: str) -> float:
+        """Current the converter of ``wheel`` applies (0 unless OPERATION ENABLED and commanded)."""
+        return self.drives[wheel].current_A()
+
+    def state(self, wheel: str) -> str:
+        """402 state of the drive of ``wheel``."""
+        return self.drives[wheel].state
+
+    def nmt_state(self, wheel: str) -> str:
+        """NMT state name of the drive of ``wheel``."""
+        n = self.drives[wheel].nmt
+        return NMT_STATE_NAMES.get(n, hex(n))
+
+    def od_value(self, wheel: str, index: int, subindex: int = 0) -> int:
+        """An object of the drive's dictionary as the runtime would read it over SDO."""
+        return self.drives[wheel]._od(index, subindex)
+
+    # ------------------------------------------------------------------ faults
+    def inject(self, kind: str, wheel: str | None = None, **params: Any) -> None:
+        """Start fault ``kind`` on one drive (all if ``wheel`` is None); see FAULT_KINDS."""
+        if kind not in FAULT_KINDS:
+            raise ValueError(f"unknown fault kind {kind!r} (known: {', '.join(FAULT_KINDS)})")
+        params = {_ALIASES.get((kind, k), k): v for k, v in params.items()}
+        unknown = set(params) - set(FAULT_KINDS[kind])
+        if unknown:
+            raise ValueError(f"fault {kind!r} takes {sorted(FAULT_KINDS[kind]) or 'no parameters'}, got {sorted(unknown)}")
+        p = {**FAULT_KINDS[kind], **params}
+        if kind == "out_of_range" and p["mode"] not in ("overcurrent", "saturate"):
+            raise ValueError("out_of_range mode is 'overcurrent' or 'saturate'")
+        if kind == "corrupt" and not 0 <= p["dlc"] <= 7:
+            raise ValueError("corrupt dlc must be 0..7 (8 is the valid length)")
+        if "fraction" in p and not 0.0 <= p["fraction"] <= 1.0:
+            raise ValueError(f"{kind} fraction must be within 0..1")
+        for d in self._targets(wheel):
+            d.faults[kind] = p
+
+    def clear(self, kind: str | None = None, wheel: str | None = None) -> None:
+        """End fault ``kind`` (every kind if None) on one drive or all."""
+        for d in self._targets(wheel):
+            if kind is None:
+                d.faults.clear()
+            else:
+                d.faults.pop(kind, None)
+
+    def _targets(self, wheel: str | None) -> list[VirtualDrive]:
+        if wheel is None:
+            return list(self.drives.values())
+        if wheel not in self.drives:
+            raise KeyError(f"no virtual drive for wheel {wheel!r}")
+        return [self.drives[wheel]]
+
+    def _dropped(self, d: VirtualDrive | None, direction: str) -> bool:
+        """Whether a frame to/from ``d`` is lost to an injected bus error (error frame sent)."""
+        if d is None:
+            return False
+        f = d.faults.get("bus_error")
+        if f is None or self._rng.random() >= f["fraction"]:
+            return False
+        d.counters[direction] += 1
+        if f["error_frames"]:
+            try:
+                self.bus.send(can.Message(is_error_frame=True, arbitration_id=0, dlc=0))
+            except can.CanError:
+                self.tx_errors += 1
+        return True
+
+    # ------------------------------------------------------------------ frames
+    def _tx(self, cob: int, data: bytes, d: VirtualDrive | None) -> None:
+        if self._dropped(d, "tx_dropped"):
+            return
+        try:
+            self.bus.send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+        except can.CanError:
+            self.tx_errors += 1
+
+    def _route_table(self) -> dict[int, tuple[int, VirtualDrive]]:
+        """COB-ID -> (kind, drive) for the frames a single drive consumes."""
+        if self._routes_dirty:
+            self._routes_dirty = False
+            routes: dict[int, tuple[int, VirtualDrive]] = {}
+            for d in self.drives.values():
+                routes[node_cob_id(COB_SDO_RX, d.node_id)] = (0, d)
+                if d.rpdo_cob is not None:
+                    routes[d.rpdo_cob] = (1, d)
+            self._routes = routes
+        return self._routes
+
+    def _handle(self, msg: can.Message, t: float) -> None:
+        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+            return
+        cob, data = msg.arbitration_id, msg.data
+        if cob == COB_SYNC:
+            for d in self.drives.values():
+                if not self._dropped(d, "rx_dropped"):
+                    d.on_sync(t)
+            return
+        if cob == COB_NMT:
+            if len(data) == 2:
+                for d in self.drives.values():
+                    if not self._dropped(d, "rx_dropped"):
+                        d.on_nmt(data, t)
+            return
+        if COB_HEARTBEAT < cob <= COB_HEARTBEAT + 0x7F:
+            for d in self.drives.values():
+                d._load_config()
+                if cob - COB_HEARTBEAT == d.consumer_node and not self._dropped(d, "rx_dropped"):
+                    d.on_consumer_heartbeat(t)
+            return
+        entry = self._route_table().get(cob)
+        if entry is None:
+            return
+        kind, d = entry
+        if self._dropped(d, "rx_dropped"):
+            return
+        if kind == 0:
+            d.node.sdo.on_request(cob, data, t)
+        else:
+            d.on_rpdo(data, t)
+
+    def _drain_and_tick(self, t: float) -> None:
+        self._now = t
+        recv = self.bus.recv
+        while (msg := recv(0.0)) is not None:
+            self._handle(msg, t)
+        for d in self.drives.values():
+            d.timers(t)
+
+    # ------------------------------------------------------------------ running
+    def service(self, t: float) -> None:
+        """Lockstep: handle every pending frame, then heartbeats and watchdogs at time ``t``."""
+        if self._thread is not None:
+            raise RuntimeError("the virtual drives run in realtime; stop() before service()")
+        with self._lock:
+            self._drain_and_tick(t)
+
+    def start_realtime(self, time_fn: Callable[[], float] = time.monotonic, tick_s: float = 0.0005) -> None:
+        """Serve the bus from a thread; timers run on ``time_fn`` (checked every ``tick_s``)."""
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, args=(time_fn, tick_s),
+                                        name="virtual-drives", daemon=True)
+        self._thread.start()
+
+    def _run(self, time_fn: Callable[[], float], tick_s: float) -> None:
+        recv = self.bus.recv
+        while not self._stop.is_set():
+            msg = recv(tick_s)                  # blocks without the GIL until a frame or tick
+            with self._lock:
+                t = time_fn()
+                self._now = t
+                if msg is not None:
+                    self._handle(msg, t)
+                self._drain_and_tick(t)
+
+    def stop(self) -> None:
+        """Stop the realtime thread (no-op in lockstep). The bus stays open (it is the caller's)."""
+        th, self._thread = self._thread, None
+        if th is not None:
+            self._stop.set()
+            th.join(5.0)
+
+    close = stop
+
+    @contextlib.contextmanager
+    def serving(self, t: float | None = None) -> Iterator["VirtualDriveSet"]:
+        """Answer frames from a thread for the duration of a block — the runtime's blocking
+        ``DriveBus.open()`` in a lockstep run: ``with drives.serving(t0): driver.open()``.
+        Timers run at the frozen time ``t`` (wall time if None)."""
+        self.start_realtime(time.monotonic if t is None else (lambda: t))
+        try:
+            yield self
+        finally:
+            self.stop()
+
+    def __enter__(self) -> "VirtualDriveSet":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

@@ -1,0 +1,560 @@
+"""CiA 402 drives: codec, driver against the virtual drives and against canopen's own LocalNode."""
+
+from __future__ import annotations
+
+import math
+import random
+import time
+import uuid
+
+import can
+import canopen
+import pytest
+from canopen.profiles.p402 import State402
+from hypothesis import given
+from hypothesis import strategies as st
+
+from drivers import canopen402 as c4
+from drivers.base import ConfigError, DeviceInitError, Freshness
+from drivers.canopen402 import DriveBus
+from rig_runtime.config import WHEELS, CanBus, Drive, resolve_config_path
+from sim_backend.virtual_drive import VirtualDriveSet
+
+H = 0.005
+RATED = 8.0
+VF = 0.0001                       # velocity factor, rad/s per unit of 0x606C
+STEP_A = RATED / 1000.0           # one per-mille step of the target torque
+EDS = resolve_config_path("irdw-drive.eds")
+BASE_SPEEDS = {"fl": 30.0, "fr": 31.0, "rl": -29.0, "rr": 0.5}
+
+
+def drives(*ids: int) -> tuple[Drive, ...]:
+    return tuple(Drive(wheel=w, node_id=n, rated_current_A=RATED, velocity_factor=VF)
+                 for w, n in zip(WHEELS, ids))
+
+
+def can_cfg(channel: str, ids=(1, 2, 3, 4), **kw) -> CanBus:
+    return CanBus(interface="virtual", channel=channel, drives=drives(*ids), **kw)
+
+
+@pytest.fixture
+def channel() -> str:
+    return f"test-{uuid.uuid4().hex}"
+
+
+@pytest.fixture
+def buses(channel):
+    """Runtime side and device side of one python-can virtual bus."""
+    a = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    b = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    yield a, b
+    a.shutdown()
+    b.shutdown()
+
+
+class Rig:
+    """Driver and virtual drives in lockstep: poll, write, devices react, t += h."""
+
+    def __init__(self, drv: DriveBus, vds: VirtualDriveSet) -> None:
+        self.drv, self.vds, self.t = drv, vds, 0.0
+        self.seen_speeds: dict[str, set[float]] = {w: set() for w in WHEELS}
+
+    def speeds_at(self, t: float) -> dict[str, float]:
+        return {w: v + 0.3 * math.sin(7.0 * t + i) for i, (w, v) in enumerate(BASE_SPEEDS.items())}
+
+    def cycle(self, currents, n: int = 1):
+        for _ in range(n):
+            for w, v in self.speeds_at(self.t).items():
+                self.vds.set_wheel_speed(w, v)
+                self.seen_speeds[w].add(v)
+            self.drv.poll(self.t)
+            cmd = currents(self.t) if callable(currents) else currents
+            self.drv.write(cmd, self.t)
+            self.vds.service(self.t)
+            self.t += H
+        return self.drv.poll(self.t)
+
+    def measured(self, wheel: str, omega: float, offset: float = 0.0) -> bool:
+        """Whether ``omega`` is one of the speeds the plant really had (± quantisation)."""
+        return any(abs(omega - (v + offset)) <= VF / 2 + 1e-12 for v in self.seen_speeds[wheel])
+
+
+def open_lockstep(drv: DriveBus, vds: VirtualDriveSet) -> None:
+    """The blocking start-up needs answers: serve the bus from a thread at frozen time 0."""
+    with vds.serving(0.0):
+        drv.open()
+
+
+@pytest.fixture
+def rig(buses, channel):
+    cfg = can_cfg(channel)
+    vds = VirtualDriveSet(cfg, buses[1])
+    drv = DriveBus(cfg, buses[0], period_s=H)
+    open_lockstep(drv, vds)
+    yield Rig(drv, vds)
+    drv.close()
+
+
+# =========================================================================== codec
+def test_rpdo_hand_worked():
+    # node 3, enable operation, 2.0 A at 8 A rated -> 250 per mille = 0x00FA
+    assert c4.amps_to_permille(2.0, 8.0) == 250
+    assert c4.rpdo1_frame(3, 0x000F, 250) == (0x203, bytes.fromhex("0F 00 FA 00"))
+    # -2.0 A -> -250 = 0xFF06 (two's complement, little-endian)
+    assert c4.rpdo1_frame(3, 0x000F, c4.amps_to_permille(-2.0, 8.0)) == (0x203, bytes.fromhex("0F 00 06 FF"))
+    assert c4.decode_rpdo1(bytes.fromhex("06 00 06 FF")) == (c4.CW_SHUTDOWN, -250)
+
+
+def test_tpdo_hand_worked():
+    data = bytes.fromhex("37 12 18 FC FF FF 83 FF")   # 0x1237, -1000, -125
+    sw, vel, tq = c4.decode_tpdo1(data)
+    assert (sw, vel, tq) == (0x1237, -1000, -125)
+    assert c4.state_of(sw) == c4.OPERATION_ENABLED
+    assert c4.raw_to_velocity(vel, VF) == pytest.approx(-0.1)
+    assert c4.permille_to_amps(tq, 8.0) == pytest.approx(-1.0)
+    assert c4.tpdo1_frame(5, 0x1237, -1000, -125) == (0x185, data)
+
+
+def test_service_frames_hand_worked():
+    assert c4.sync_frame() == (0x080, b"")
+    assert c4.nmt_frame(c4.NMT_START, 3) == (0x000, b"\x01\x03")
+    assert c4.nmt_frame(c4.NMT_ENTER_PRE_OPERATIONAL, 0) == (0x000, b"\x80\x00")
+    assert c4.heartbeat_frame(3, c4.NMT_OPERATIONAL) == (0x703, b"\x05")
+    assert c4.decode_heartbeat(b"\x85") == c4.NMT_OPERATIONAL      # toggle bit ignored
+    assert c4.emcy_frame(3, 0x2310, 0x03) == (0x083, bytes.fromhex("10 23 03 00 00 00 00 00"))
+    assert c4.consumer_heartbeat_entry(0x7F, 250) == 0x007F00FA
+    assert c4.mapping_entry(0x606C, 0, 32) == 0x606C0020
+
+
+@pytest.mark.parametrize("sw, state", [
+    (0x0000, c4.NOT_READY_TO_SWITCH_ON), (0x0250, c4.SWITCH_ON_DISABLED), (0x0231, c4.READY_TO_SWITCH_ON),
+    (0x0233, c4.SWITCHED_ON), (0x1237, c4.OPERATION_ENABLED), (0x0218, c4.FAULT),
+    (0x020F, c4.FAULT_REACTION_ACTIVE), (0x0217, c4.QUICK_STOP_ACTIVE), (0x0001, c4.UNKNOWN),
+])
+def test_statusword_states(sw, state):
+    assert c4.state_of(sw) == state
+
+
+def test_statusword_table_matches_canopen_p402_exhaustively():
+    assert c4.SW_MASKS == tuple((s, m, v) for s, (m, v) in State402.SW_MASK.items())
+    for sw in range(0x10000):
+        expected = next((s for s, (m, v) in State402.SW_MASK.items() if sw & m == v), c4.UNKNOWN)
+        assert c4.state_of(sw) == expected, hex(sw)
+    for state, sw in c4.STATUSWORD_OF_STATE.items():
+        assert c4.state_of(sw) == state
+
+
+def test_controlwords_match_canopen_p402():
+    assert (c4.CW_SHUTDOWN, c4.CW_SWITCH_ON, c4.CW_ENABLE_OPERATION, c4.CW_DISABLE_VOLTAGE,
+            c4.CW_QUICK_STOP, c4.CW_FAULT_RESET) == (
+        State402.CW_SHUTDOWN, State402.CW_SWITCH_ON, State402.CW_OPERATION_ENABLED,
+        State402.CW_DISABLE_VOLTAGE, State402.CW_QUICK_STOP, State402.CW_SWITCH_ON_DISABLED)
+    automatic = {"START", c4.NOT_READY_TO_SWITCH_ON, c4.FAULT_REACTION_ACTIVE}
+    for (src, dst), cw in State402.TRANSITIONTABLE.items():
+        if src not in automatic:
+            assert c4.drive_transition(src, cw, 0x0000) == dst, (src, dst, hex(cw))
+    for src in (c4.SWITCH_ON_DISABLED, c4.READY_TO_SWITCH_ON, c4.SWITCHED_ON, c4.QUICK_STOP_ACTIVE, c4.FAULT):
+        nxt = State402.next_state_indirect(src)
+        assert c4.next_controlword(src) == State402.TRANSITIONTABLE[(src, nxt)]
+    # no fault reset without a rising edge of bit 7; enable does nothing in SWITCH ON DISABLED
+    assert c4.drive_transition(c4.FAULT, 0x80, 0x80) == c4.FAULT
+    assert c4.drive_transition(c4.SWITCH_ON_DISABLED, 0x0F, 0x00) == c4.SWITCH_ON_DISABLED
+
+
+@given(st.integers(0, 0xFFFF), st.integers(c4.INT16_MIN, c4.INT16_MAX), st.integers(1, 127))
+def test_rpdo_round_trip(cw, tq, node):
+    cob, data = c4.rpdo1_frame(node, cw, tq)
+    assert cob == 0x200 + node and len(data) == 4
+    assert c4.decode_rpdo1(data) == (cw, tq)
+
+
+@given(st.integers(0, 0xFFFF), st.integers(c4.INT32_MIN, c4.INT32_MAX), st.integers(c4.INT16_MIN, c4.INT16_MAX))
+def test_tpdo_round_trip(sw, vel, tq):
+    data = c4.encode_tpdo1(sw, vel, tq)
+    assert len(data) == 8 and c4.decode_tpdo1(data) == (sw, vel, tq)
+
+
+@given(st.floats(-300.0, 300.0), st.floats(0.5, 50.0))
+def test_current_round_trip_within_half_a_step(amps, rated):
+    p = c4.amps_to_permille(amps, rated)
+    if c4.INT16_MIN < p < c4.INT16_MAX:
+        assert abs(c4.permille_to_amps(p, rated) - amps) <= rated / 2000 * (1 + 1e-9)
+    else:
+        assert abs(amps * 1000 / rated) >= 32767.5 - 1e-6          # clipped, never wrapped
+
+
+@given(st.floats(-1e5, 1e5), st.sampled_from([1e-4, 1e-3, 0.0104719755]))
+def test_velocity_round_trip(omega, factor):
+    raw = c4.velocity_to_raw(omega, factor)
+    back = c4.raw_to_velocity(raw, factor)
+    if c4.INT32_MIN < raw < c4.INT32_MAX:
+        assert abs(back - omega) <= factor / 2 * (1 + 1e-9)
+    else:
+        assert math.isnan(back)                                   # saturated is no measurement
+
+
+@given(st.integers(0, 0xFFFF), st.integers(0, 0xFF), st.binary(max_size=5))
+def test_emcy_round_trip(code, reg, vendor):
+    cob, data = c4.emcy_frame(7, code, reg, vendor)
+    assert cob == 0x87 and len(data) == 8
+    assert c4.decode_emcy(data) == (code, reg, vendor.ljust(5, b"\0"))
+
+
+def test_codec_rejects_wrong_lengths_and_non_finite():
+    with pytest.raises(ValueError):
+        c4.decode_tpdo1(b"\0" * 5)
+    with pytest.raises(ValueError):
+        c4.decode_rpdo1(b"\0" * 8)
+    with pytest.raises(ValueError):
+        c4.amps_to_permille(math.nan, 8.0)
+    with pytest.raises(ValueError):
+        c4.rpdo1_frame(0, 0, 0)
+    assert c4.amps_to_permille(1e9, 8.0) == c4.INT16_MAX
+
+
+def test_startup_writes_reconfigure_pdos_the_cia301_way():
+    w = c4.startup_sdo_writes(drives(3)[0], 0x7F, 250)
+    idx = {(i, s): k for k, (i, s, _) in enumerate(w)}
+    assert w[idx[(0x6060, 0)]][2] == 10 and w[idx[(0x6075, 0)]][2] == 8000
+    # disable (bit 31), clear count, map, set count, enable
+    seq = [v for i, s, v in w if i in (0x1800, 0x1A00)]
+    assert seq == [0x80000183, 1, 0, 0x60410010, 0x606C0020, 0x60770010, 3, 0x183]
+    seq = [v for i, s, v in w if i in (0x1400, 0x1600)]
+    assert seq == [0x80000203, 0xFF, 0, 0x60400010, 0x60710010, 2, 0x203]
+    assert (0x1016, 1, 0x007F00FA) in w and (0x1017, 0, 50) in w
+
+
+def test_eds_loads_with_required_objects():
+    od = canopen.import_od(str(EDS), 3)
+    types = {0x6040: 0x6, 0x6041: 0x6, 0x6060: 0x2, 0x6061: 0x2, 0x6071: 0x3, 0x6077: 0x3,
+             0x606C: 0x4, 0x6075: 0x7, 0x6072: 0x6, 0x1017: 0x6, 0x1000: 0x7, 0x1001: 0x5}
+    for index, dtype in types.items():
+        assert od.get_variable(index).data_type == dtype, hex(index)
+    assert od.get_variable(0x1016, 1).data_type == 0x7
+    assert od.get_variable(0x1400, 1).default == 0x203 and od.get_variable(0x1800, 1).default == 0x183
+    for index in (0x1600, 0x1A00):
+        assert all(od.get_variable(index, s) is not None for s in range(9))
+
+
+# =========================================================================== driver <-> virtual drives
+def test_startup_configures_and_enables_every_drive(rig):
+    vds = rig.vds
+    for w in WHEELS:
+        assert vds.state(w) == c4.OPERATION_ENABLED and vds.nmt_state(w) == "OPERATIONAL"
+        assert vds.od_value(w, 0x6060) == 10 and vds.od_value(w, 0x6061) == 10
+        assert vds.od_value(w, 0x6075) == 8000
+        assert [vds.od_value(w, 0x1A00, s) for s in range(4)] == [3, 0x60410010, 0x606C0020, 0x60770010]
+        assert vds.od_value(w, 0x1800, 2) == 1
+        assert vds.od_value(w, 0x1016, 1) == (0x7F << 16) | 250
+        assert vds.od_value(w, 0x1017) == 50
+    r = rig.cycle({}, n=3)
+    assert r.ready and rig.drv.ready
+    assert all(x.health.state is Freshness.FRESH for x in r)
+
+
+def test_currents_arrive_and_speeds_come_back(rig):
+    cmd = {"fl": 2.0, "fr": -1.5, "rl": 0.3141, "rr": -3.9999}
+    r = rig.cycle(cmd, n=5)
+    for w, amps in cmd.items():
+        assert abs(rig.vds.current_A(w) - amps) <= STEP_A / 2 + 1e-12
+        assert abs(r[w].current_A - amps) <= STEP_A / 2 + 1e-12          # torque actual
+        # the TPDO polled at t was sampled at SYNC t - h
+        assert r[w].omega == pytest.approx(rig.speeds_at(rig.t - H)[w], abs=VF / 2 + 1e-12)
+        assert r[w].t == pytest.approx(rig.t) and r[w].health.fresh
+    # a sequence in wheel order works the same; NaN is sent as 0 A and counted
+    r = rig.cycle([1.0, math.nan, -1.0], n=2)
+    assert [rig.vds.current_A(w) for w in WHEELS] == pytest.approx([1.0, 0.0, -1.0, 0.0])
+    assert r.bus.counters["nan_commands"] == 2 and r.bus.counters["missing_commands"] == 2
+
+
+def test_watchdog_cuts_current_when_writes_stop(rig):
+    rig.cycle({w: 2.0 for w in WHEELS}, n=5)
+    t_last = rig.t - H
+    rig.vds.service(t_last + 0.045)
+    assert rig.vds.current_A("fl") == pytest.approx(2.0)                # within cfg.watchdog_ms
+    rig.vds.service(t_last + 0.055)
+    assert all(rig.vds.current_A(w) == 0.0 and rig.vds.state(w) == c4.FAULT for w in WHEELS)
+    r = rig.drv.poll(t_last + 0.06)
+    for x in r:
+        assert x.health.state is Freshness.INVALID
+        assert "EMCY 0x8250" in x.health.cause and x.health.errors == 1
+    # writes resume: a faulted drive is held off, not silently re-enabled
+    r = rig.cycle({w: 2.0 for w in WHEELS}, n=5)
+    assert not r.ready and all(rig.vds.current_A(w) == 0.0 for w in WHEELS)
+    assert "drive in FAULT" in r["fl"].health.cause
+
+
+def test_drive_stops_when_runtime_heartbeat_stops(rig, buses):
+    rig.cycle({w: 2.0 for w in WHEELS}, n=2)        # the runtime's heartbeat went out at t=0
+    # keep SYNC + RPDOs coming (no watchdog trip), but without the driver's heartbeat
+    for _ in range(60):
+        buses[0].send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))
+        for d in rig.vds.cfg.drives:
+            cob, data = c4.rpdo1_frame(d.node_id, c4.CW_ENABLE_OPERATION, 250)
+            buses[0].send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+        rig.vds.service(rig.t)
+        if rig.t < 0.24:
+            assert rig.vds.current_A("fl") == pytest.approx(2.0)
+        rig.t += H
+    assert all(rig.vds.current_A(w) == 0.0 and rig.vds.state(w) == c4.FAULT for w in WHEELS)
+    assert rig.vds.drives["fl"].error_code == c4.EMCY_HEARTBEAT
+
+
+FAULT_CASES = [
+    ("dropout", {}, Freshness.STALE, "TPDO missing"),
+    ("no_heartbeat", {}, Freshness.INVALID, "heartbeat missing"),
+    ("bus_error", {"fraction": 1.0}, Freshness.INVALID, "bus error"),
+    ("out_of_range", {}, Freshness.INVALID, "EMCY 0x2310"),
+    ("out_of_range", {"mode": "saturate"}, Freshness.INVALID, "INT32 limit"),
+    ("stuck", {}, Freshness.STALE, "frozen"),
+    ("corrupt", {}, Freshness.STALE, "garbled TPDO discarded (DLC 5 != 8"),
+    ("corrupt", {"fraction": 0.5, "dlc": 3}, Freshness.FRESH, "garbled TPDO discarded (DLC 3 != 8"),
+    ("offset", {"omega_rad_s": 1.0}, Freshness.FRESH, ""),
+]
+
+
+@pytest.mark.parametrize("kind, params, freshness, cause", FAULT_CASES, ids=lambda v: str(v)[:20])
+def test_fault_kinds_are_reported_and_never_invent_values(rig, kind, params, freshness, cause):
+    def varying(t):                                  # a changing command (needed to tell "stuck")
+        return {w: 1.0 + 0.5 * math.sin(20 * t) for w in WHEELS}
+
+    r0 = rig.cycle(varying, n=10)
+    assert r0.ready
+    t_inject = rig.t
+    rig.vds.inject(kind, "rl", **params)
+    r = rig.cycle(varying, n=40)
+    x = r["rl"]
+    assert x.health.state is freshness, x.health.cause
+    assert cause in x.health.cause
+    offset = params.get("omega_rad_s", 0.0)
+    if kind == "dropout" or kind == "corrupt" and not params:     # last real value, with its time
+        assert x.t <= t_inject
+    if kind == "out_of_range" and params.get("mode") == "saturate":
+        assert math.isnan(x.omega)
+    else:
+        assert rig.measured("rl", x.omega, offset), (x.omega, kind)
+    if kind == "out_of_range" and not params:
+        assert x.state == c4.FAULT and rig.vds.current_A("rl") == 0.0
+    if kind == "corrupt":
+        assert x.health.bad_frames >= (30 if "fraction" not in params else 5)
+    if kind == "bus_error":
+        assert rig.drv.error_frames > 0 and all(y.health.state is Freshness.INVALID for y in r)
+    else:
+        assert all(r[w].health.fresh for w in ("fl", "fr", "rr")), [r[w].health.cause for w in WHEELS]
+    # clear the fault, re-enable (fault reset where needed): everything comes back
+    rig.vds.clear(kind)
+    rig.drv.enable(rig.t)
+    for _ in range(60):
+        r = rig.cycle(varying)
+        if r.ready:
+            break
+    assert r.ready, [(y.state, y.health.cause) for y in r]
+    rig.cycle(varying)                               # ready: the next write carries torque
+    assert abs(rig.vds.current_A("rl") - varying(rig.t - H)["rl"]) <= STEP_A / 2 + 1e-12
+
+
+def test_disable_leaves_drives_off_until_enable(rig):
+    rig.cycle({w: 2.0 for w in WHEELS}, n=5)
+    rig.drv.disable(rig.t)
+    rig.vds.service(rig.t)
+    for w in WHEELS:
+        assert rig.vds.state(w) == c4.SWITCH_ON_DISABLED and rig.vds.current_A(w) == 0.0
+        assert rig.vds.nmt_state(w) == "PRE-OPERATIONAL"
+    r = rig.cycle({w: 2.0 for w in WHEELS}, n=40)                 # writes keep them off
+    assert not r.ready and all(rig.vds.current_A(w) == 0.0 for w in WHEELS)
+    assert "NMT state PRE-OPERATIONAL" in r["fl"].health.cause
+    rig.drv.enable(rig.t)
+    r = rig.cycle({w: 2.0 for w in WHEELS}, n=15)
+    assert r.ready and all(rig.vds.current_A(w) == pytest.approx(2.0) for w in WHEELS)
+
+
+def test_send_failures_are_counted_not_raised(rig, buses, monkeypatch):
+    rig.cycle({}, n=3)
+
+    def broken(msg, timeout=None):
+        raise can.CanOperationError("Transmit buffer full")
+
+    monkeypatch.setattr(buses[0], "send", broken)
+    rig.drv.write({w: 1.0 for w in WHEELS}, rig.t)
+    r = rig.drv.poll(rig.t)
+    assert rig.drv.send_errors == 5 and "Transmit buffer full" in rig.drv.last_bus_error
+    assert r.bus.state is Freshness.INVALID and not r.ready
+    assert all("bus error" in x.health.cause for x in r)
+
+
+def test_poll_survives_garbage_frames(rig, buses):
+    rng = random.Random(1)
+    rig.cycle({}, n=2)
+    for _ in range(2000):
+        cob = rng.choice([0x80 + 1, 0x180 + 2, 0x700 + 3, 0x580 + 4, rng.randrange(0x800)])
+        data = bytes(rng.randrange(256) for _ in range(rng.randrange(9)))
+        buses[1].send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+    r = rig.drv.poll(rig.t)
+    assert r.bus.counters["rx_frames"] >= 2000
+    assert all(r[w].health.bad_frames > 0 for w in ("fl", "fr", "rl"))
+
+
+def test_missing_drive_names_the_node(buses, channel):
+    vds = VirtualDriveSet(can_cfg(channel, ids=(1,)), buses[1])
+    drv = DriveBus(can_cfg(channel, ids=(1, 9)), buses[0], sdo_timeout_s=0.05)
+    t0 = time.monotonic()
+    with pytest.raises(DeviceInitError, match=r"node 9 \(fr\).*no SDO answer"):
+        open_lockstep(drv, vds)
+    assert time.monotonic() - t0 < 2.0 and not drv.is_open
+    buses[0].send(can.Message(arbitration_id=0x80, data=b""))      # a passed-in bus stays usable
+    drv.close()
+
+
+def test_drive_stuck_in_fault_names_node_and_state(buses, channel):
+    cfg = can_cfg(channel, ids=(5,))
+    vds = VirtualDriveSet(cfg, buses[1])
+    vds.inject("out_of_range")                                      # overcurrent as soon as powered
+    drv = DriveBus(cfg, buses[0], enable_timeout_s=0.2)
+    with pytest.raises(DeviceInitError, match=r"node 5 \(fl\).*stuck in FAULT"):
+        open_lockstep(drv, vds)
+
+
+def test_bus_open_failure_and_config_checks(channel):
+    cfg = CanBus(interface="no-such-interface", channel="x", drives=drives(1))
+    with pytest.raises(DeviceInitError, match="can no-such-interface:x"):
+        DriveBus(cfg).open()
+    with pytest.raises(ConfigError, match="heartbeat_timeout_factor"):
+        DriveBus(can_cfg(channel, heartbeat_timeout_factor=1.0))
+    with pytest.raises(ConfigError, match="runtime_node_id"):
+        DriveBus(can_cfg(channel), runtime_node_id=3)
+
+
+def test_owned_bus_open_close_idempotent(buses, channel):
+    vds = VirtualDriveSet(can_cfg(channel), buses[1])
+    drv = DriveBus(can_cfg(channel))            # creates its own virtual bus in open()
+    drv.close()                                 # never opened: fine
+    open_lockstep(drv, vds)
+    own = drv._bus
+    assert drv.is_open and own is not buses[0]
+    drv.close()
+    drv.close()
+    assert not drv.is_open and own._is_shutdown
+    vds.service(1.0)
+    assert all(vds.state(w) == c4.SWITCH_ON_DISABLED for w in WHEELS)   # close() disabled them
+    r = drv.poll(1.0)
+    drv.write([1.0] * 4, 1.0)                   # closed: nothing sent, nothing raised
+    assert all(x.health.state is Freshness.INVALID and x.health.cause == "driver not open" for x in r)
+
+
+def test_synchronous_rpdo_acts_at_next_sync(rig, buses):
+    rig.cycle({w: 1.0 for w in WHEELS}, n=3)
+    node = rig.vds.drives["fl"].node
+    node.sdo.download(0x1400, 2, b"\x01")                             # RPDO1 type 1 (synchronous)
+    cob, data = c4.rpdo1_frame(1, c4.CW_ENABLE_OPERATION, 500)
+    buses[0].send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+    rig.vds.service(rig.t)
+    assert rig.vds.current_A("fl") == pytest.approx(1.0)
+    buses[0].send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))
+    rig.vds.service(rig.t)
+    assert rig.vds.current_A("fl") == pytest.approx(4.0)
+
+
+def test_unconfigured_tpdo_mapping_shows_up_as_garbled(rig):
+    """A drive left with its default mapping (statusword only) sends 2-byte TPDOs."""
+    node = rig.vds.drives["rr"].node
+    node.sdo.download(0x1A00, 0, b"\x01")
+    r = rig.cycle({}, n=10)
+    assert r["rr"].health.state is Freshness.STALE
+    assert "DLC 2 != 8" in r["rr"].health.cause and r["fl"].health.fresh
+
+
+def test_realtime_mode(buses, channel):
+    cfg = can_cfg(channel)
+    vds = VirtualDriveSet(cfg, buses[1])
+    drv = DriveBus(cfg, buses[0], period_s=H)
+    vds.start_realtime()
+    try:
+        drv.open()
+        for w in WHEELS:
+            vds.set_wheel_speed(w, BASE_SPEEDS[w])
+        t_next = time.monotonic()
+        for k in range(200):                                  # up to 1 s on a loaded machine
+            now = time.monotonic()
+            r = drv.poll(now)
+            drv.write({w: -1.25 for w in WHEELS}, now)
+            if k >= 10 and r.ready:
+                break
+            t_next += H
+            time.sleep(max(0.0, t_next - time.monotonic()))
+        assert r.ready, [x.health.cause for x in r]
+        time.sleep(0.005)
+        assert all(vds.current_A(w) == pytest.approx(-1.25, abs=STEP_A / 2) for w in WHEELS)
+        assert r["rl"].omega == pytest.approx(BASE_SPEEDS["rl"], abs=VF)
+        time.sleep(cfg.watchdog_ms / 1000 + 0.05)             # writes stop: converters cut current
+        assert all(vds.current_A(w) == 0.0 for w in WHEELS)
+    finally:
+        vds.stop()
+        drv.close()
+
+
+# =========================================================================== independent peer
+def _peer_402(node: canopen.LocalNode) -> None:
+    """Minimal 402 behaviour for a plain canopen LocalNode, from canopen's own p402 tables."""
+    state = {"s": "SWITCH ON DISABLED"}
+
+    def put_sw() -> None:
+        node.data_store.setdefault(0x6041, {})[0] = State402.SW_MASK[state["s"]][1].to_bytes(2, "little")
+
+    def on_write(index, subindex, od, data):
+        if index == 0x6040:
+            cw = int.from_bytes(data, "little")
+            for (src, dst), code in State402.TRANSITIONTABLE.items():
+                if src == state["s"] and code == cw:
+                    state["s"] = dst
+                    break
+            put_sw()
+        elif index == 0x6060:
+            node.data_store.setdefault(0x6061, {})[0] = bytes(data)
+
+    node.add_write_callback(on_write)
+    put_sw()
+
+
+def test_startup_against_canopen_localnode(buses, channel):
+    cfg = can_cfg(channel, ids=(1, 2))
+    net = canopen.Network(buses[1])
+    net.NOTIFIER_CYCLE = 0.01
+    net.connect()
+    peers = []
+    try:
+        for d in cfg.drives:
+            node = canopen.LocalNode(d.node_id, canopen.import_od(str(EDS), d.node_id))
+            _peer_402(node)
+            net.add_node(node)
+            peers.append(node)
+        drv = DriveBus(cfg, buses[0], period_s=H)
+        drv.open()
+        try:
+            for node in peers:
+                assert node.nmt.state == "OPERATIONAL"
+                assert node.sdo[0x6060].raw == 10 and node.sdo[0x6075].raw == 8000
+                assert [node.sdo[0x1A00][s].raw for s in range(4)] == [3, 0x60410010, 0x606C0020, 0x60770010]
+                assert node.sdo[0x1800][1].raw == 0x180 + node.id and node.sdo[0x1800][2].raw == 1
+                assert node.sdo[0x1016][1].raw == 0x007F00FA and node.sdo[0x1017].raw == 50
+                assert c4.state_of(node.sdo[0x6041].raw) == c4.OPERATION_ENABLED
+            # canopen's LocalNode produces the heartbeat itself (python-can periodic task)
+            drv.poll(time.monotonic())
+            deadline = time.monotonic() + 1.0
+            while True:
+                time.sleep(0.01)
+                r = drv.poll(time.monotonic())
+                if all(x.health.counters["heartbeat"] >= 2 for x in r) or time.monotonic() > deadline:
+                    break
+            for x in r:
+                assert x.nmt_state == c4.NMT_OPERATIONAL and x.health.counters["heartbeat"] >= 2
+                assert x.health.state is Freshness.STALE and "no TPDO" in x.health.cause
+        finally:
+            drv.close()
+        deadline = time.monotonic() + 1.0          # the peer's notifier thread handles the NMT
+        while any(n.nmt.state != "PRE-OPERATIONAL" for n in peers) and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert all(node.nmt.state == "PRE-OPERATIONAL" for node in peers)
+    finally:
+        for node in peers:
+            node.nmt.stop_heartbeat()
+        net.notifier.stop(1.0)
