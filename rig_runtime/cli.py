@@ -111,4 +111,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    # run through the imported module so subcommands register in one registry
+    from rig_runtime.cli import main as _main
+    sys.exit(_main())

@@ -1,1 +1,142 @@
-"""Subcommands beyond ``tune`` (registered on import by ``cli.build_parser``)."""
+"""``rig run``, ``rig dry-run``, ``rig export`` (registered with the CLI on import)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+import time
+from pathlib import Path
+
+from .cli import arg, command
+from .metrics import clean, step_info
+from .runner import EXIT_OK, default_log_path, execute
+
+
+def _quiet_libraries() -> None:
+    for name in ("pymodbus", "can", "canopen"):
+        logging.getLogger(name).setLevel(logging.CRITICAL)
+
+
+def _print_summary(summary: dict, as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(clean(summary)))
+        return
+    t = summary["timing"]
+    print(f"final state: {summary['final_state']}   cycles: {summary['cycles']}   "
+          f"max |u|: {summary['max_abs_current_A']:.3f} A   log: {summary['log']}")
+    for f in summary["faults"]:
+        print(f"  fault at t={f['t']:.3f}s: {f['device']} {f['check']} value={f['value']} limit={f['limit']} {f['message']}")
+    lat, work = t["release_lateness_us"], t["cycle_work_us"]
+    print(f"timing: lateness p50/p99/max {lat['p50']:.1f}/{lat['p99']:.1f}/{lat['max']:.1f} us, "
+          f"work p50/p99/max {work['p50']:.1f}/{work['p99']:.1f}/{work['max']:.1f} us, "
+          f"deadline misses {t['deadline_misses']}")
+    if "steps" in summary:
+        print(f"simulated {summary['sim_time_s']:.1f} s in {summary['wall_time_s']:.1f} s wall")
+        for s in summary["steps"]:
+            def f(v, fmt):
+                return format(v, fmt) if v is not None else "-"
+            print(f"  step {s['from_mm']:+.2f} -> {s['to_mm']:+.2f} mm at {s['t0']:.1f}s: rise {f(s['rise_time_s'], '.2f')} s, "
+                  f"overshoot {f(s['overshoot_pct'], '.1f')} %, settling {f(s['settling_time_s'], '.2f')} s, "
+                  f"steady-state error {f(s['steady_state_error_mm'], '+.4f')} mm")
+
+
+def _steps_from_log(log: Path, scenario, h: float) -> list[dict]:
+    from .export import read_log
+    from .scenario import Reference
+    d = read_log(log)["columns"]
+    run = d["t_run"] > 0
+    t, y = d["t_run"][run], d["rear_e_y"][run] * 0 + d["y_r"][run]
+    if scenario is None or not len(t):
+        return []
+    steps = Reference(scenario.reference).steps()
+    return step_info(t, y, steps, t_end=float(t[-1]) + h, h=h)
+
+
+@command("dry-run", "run the controller against the simulated plant (lockstep by default)")
+@arg("--config", help="config file (default: configs/sim.yaml)")
+@arg("--scenario", default="single-step", help="scenario name in configs/scenarios or a path (default: single-step)")
+@arg("--realtime", action="store_true", help="real-time clock; the plant runs in a separate process")
+@arg("--duration", type=float, help="seconds of RUNNING (default: the scenario's)")
+@arg("--seed", type=int, help="random seed of the simulated sensors (default: sim.seed)")
+@arg("--log", help="HDF5 log path (default: logs/dry-run-<time>.h5)")
+@arg("--json", action="store_true", help="print one JSON summary object")
+@arg("--report", metavar="DIR", help="write PNG plots and a Markdown summary into DIR")
+def cmd_dry_run(args: argparse.Namespace) -> int:
+    from . import config
+    from .clock import LockstepClock
+    from .devices import RigDevices
+    from .scenario import load_scenario
+    _quiet_libraries()
+    cfg = config.load(args.config)
+    scenario = load_scenario(args.scenario)
+    log = Path(args.log) if args.log else default_log_path("dry-run")
+    if args.realtime:
+        from sim_backend.realtime import run_realtime_dry_run
+        summary, code = run_realtime_dry_run(cfg, scenario, args, log)
+    else:
+        from sim_backend.rig import SimulatedRig
+        sim = SimulatedRig(cfg, scenario, seed=args.seed)
+        try:
+            clock = LockstepClock(advance=sim.advance)
+            devices = RigDevices(cfg, laser_ports=sim.laser_ports, can_bus=sim.runtime_bus(),
+                                 ft_endpoints=sim.ft_endpoints, ft_clock=clock.now, ft_thread=False)
+            sim.attach_ft_driver(devices.ft)
+            summary, code, loop = execute(
+                cfg, devices, clock, scenario=scenario, duration_s=args.duration, log_path=log,
+                status=False, in_cycle=sim.in_cycle(clock), on_running=sim.on_running,
+                extra_attrs={"mode": "dry-run lockstep", "seed": sim.seed},
+                open_context=lambda: sim.drives.serving(0.0))
+            summary["sim_time_s"] = clock.now()
+        finally:
+            sim.close()
+    summary["steps"] = _steps_from_log(log, scenario, cfg.controller.h)
+    if args.report:
+        from .report import write_report
+        summary["report"] = [str(p) for p in write_report(log, args.report, scenario, summary)]
+    _print_summary(summary, args.json)
+    return code
+
+
+@command("run", "run the controller on the rig (hardware devices from the config)")
+@arg("--config", default=None, help="config file (default: configs/rig.yaml)")
+@arg("--scenario", help="reference profile: scenario name or path (default: hold y_ref = 0)")
+@arg("--duration", type=float, help="seconds of RUNNING (default: the scenario's, else until SIGINT/SIGTERM)")
+@arg("--log", help="HDF5 log path (default: logs/run-<time>.h5)")
+@arg("--json", action="store_true", help="print one JSON summary object at the end")
+def cmd_run(args: argparse.Namespace) -> int:
+    from . import config
+    from .clock import RealtimeClock, apply_realtime
+    from .devices import RigDevices
+    from .scenario import load_scenario
+    _quiet_libraries()
+    cfg = config.load(args.config or config.CONFIG_DIR / "rig.yaml")
+    scenario = load_scenario(args.scenario) if args.scenario else None
+    log = Path(args.log) if args.log else default_log_path("run")
+    devices = RigDevices(cfg)
+    rt_report = apply_realtime(cfg.realtime)
+    if not args.json:
+        for line in rt_report:
+            print(f"realtime: {line}", file=sys.stderr)
+    clock = RealtimeClock(cfg.realtime.spin_us * 1e-6)
+    summary, code, _ = execute(cfg, devices, clock, scenario=scenario, duration_s=args.duration, log_path=log,
+                               status=sys.stderr.isatty() and not args.json,
+                               extra_attrs={"mode": "run", "realtime": "; ".join(rt_report)})
+    summary["realtime"] = rt_report
+    _print_summary(summary, args.json)
+    return code
+
+
+@command("export", "export a log to CSV")
+@arg("log", help="HDF5 log written by rig run / rig dry-run")
+@arg("--csv", required=True, metavar="OUT", help="CSV file to write (events go to OUT.events.csv)")
+def cmd_export(args: argparse.Namespace) -> int:
+    from .errors import ConfigError
+    from .export import to_csv
+    if not Path(args.log).exists():
+        raise ConfigError(args.log, "", "an existing log file")
+    n = to_csv(args.log, args.csv)
+    print(f"{n} rows -> {args.csv}")
+    return EXIT_OK

@@ -154,6 +154,7 @@ class TuningCriteria:
 @dataclass(frozen=True, kw_only=True)
 class LaserDevice:
     role: Literal["b_f", "b_r", "s_fl", "s_fr", "s_rl", "s_rr"]
+    driver: str = "optoncdt1420"                    # drivers.registry name
     port: str                                       # serial port, or "sim" for the virtual device
     measuring_range_mm: float = check(positive)
     offset_mm: float = 0.0                          # distance from the reference to the start of range
@@ -173,6 +174,7 @@ class Drive:
 
 @dataclass(frozen=True, kw_only=True)
 class CanBus:
+    driver: str = "cia402"                          # drivers.registry name
     interface: str = "virtual"                      # python-can interface name
     channel: str = "rig"
     bitrate: int = check(positive, default=1_000_000)
@@ -197,6 +199,7 @@ class FTSensor:
 
 @dataclass(frozen=True, kw_only=True)
 class FTBus:
+    driver: str = "robotiq_ft300"                   # drivers.registry name
     poll_hz: float = check(positive, default=50.0)
     timeout_s: float = check(positive, default=0.1)
     stale_s: float = check(positive, default=0.5)

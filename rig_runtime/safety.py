@@ -157,6 +157,14 @@ class Supervisor:
                 c.same = c.same + 1 if v == p else 0
         if not self.active:
             return
+        lim = self.limits
+        if not converters_ok:
+            return self.trip(t, "converters", "converter", math.nan, math.nan, converter_cause)
+        if not recorder_ok:
+            return self.trip(t, "recorder", "recorder", math.nan, math.nan, recorder_cause)
+        if consecutive_misses >= lim.overrun_burst:
+            return self.trip(t, "loop", "overrun", consecutive_misses, lim.overrun_burst,
+                             f"{consecutive_misses} control periods lost to deadline misses")
         for c in channels:
             age = t - c.t
             if c.state is Freshness.INVALID:
@@ -174,14 +182,6 @@ class Supervisor:
             if abs(c.delta) > c.step_max:
                 return self.trip(t, c.name, "jump", c.delta, c.step_max,
                                  "implausible change between two cycles")
-        lim = self.limits
-        if not converters_ok:
-            return self.trip(t, "converters", "converter", math.nan, math.nan, converter_cause)
-        if not recorder_ok:
-            return self.trip(t, "recorder", "recorder", math.nan, math.nan, recorder_cause)
-        if consecutive_misses >= lim.overrun_burst:
-            return self.trip(t, "loop", "overrun", consecutive_misses, lim.overrun_burst,
-                             f"{consecutive_misses} control periods lost to deadline misses")
         if psi != psi or y != y:
             return self.trip(t, "geometry", "nan", math.nan, math.nan, "y or psi is not finite")
         if abs(psi) > lim.psi_max:

@@ -1,0 +1,230 @@
+"""The simulated rig: the plant with a virtual device on the other end of every wire.
+
+Lasers stream frames into pty pairs, the converters are CiA 402 drives on a python-can
+bus, the force–torque sensors sit behind real Modbus TCP servers on 127.0.0.1. In
+lockstep (``advance(t)``, called by the runtime's ``LockstepClock``) the plant is
+integrated to ``t`` with the currents the virtual drives actually apply, then every
+virtual device emits what it would have sent by ``t``. Scenario disturbances act on the
+plant; scenario faults are injected into the virtual devices (or, for ``stall``, into
+the runtime's clock).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import random
+from typing import Callable, Optional
+
+import can
+
+from drivers.ft300 import Wrench
+from rig_runtime.config import LASER_ROLES, WHEELS, RigConfig
+from rig_runtime.geometry import ideal_readings, pose_from_carriers
+from rig_runtime.scenario import Scenario
+
+from .plant import Plant
+from .simconfig import sim_config
+from .virtual_drive import VirtualDriveSet
+from .virtual_ft import VirtualFTServer
+from .virtual_laser import VirtualLaser, emit_all
+
+_channel_ids = itertools.count()
+
+
+class SimulatedRig:
+    def __init__(self, cfg: RigConfig, scenario: Optional[Scenario] = None, seed: Optional[int] = None):
+        self.cfg = cfg
+        self.sc = sim_config(cfg)
+        self.seed = self.sc.seed if seed is None else seed
+        self.scenario = scenario
+        self.h = cfg.controller.h
+        self._rng = random.Random(self.seed)
+        p = cfg.plant
+        self.plant = Plant(p, wheel_dynamics=self.sc.wheel_dynamics)
+        psi0 = p.psi_off
+        y0 = p.c_y * p.v * psi0 / p.a_lat + p.y_off / (2 * p.l0) * p.v / p.a_lat
+        if self.sc.initial_y_mm is not None:
+            y0 = self.sc.initial_y_mm * 1e-3
+        self.plant.reset(y_r=y0)   # psi at rest (K·0 + psi_off), z = psi
+        self.t = 0.0
+        self.ft_driver = None
+        self._next_ft = 0.0
+        self._closers: list[Callable[[], None]] = []
+        try:
+            self._open_devices()
+        except Exception:
+            self.close()
+            raise
+        self.t_run0 = math.nan
+        self._events = self._schedule()
+        self._stall_done: set[int] = set()
+
+    # ------------------------------------------------------------------ devices
+    def _open_devices(self) -> None:
+        cfg, sc = self.cfg, self.sc
+        self.lasers: dict[str, VirtualLaser] = {}
+        for i, lc in enumerate(cfg.devices.lasers):
+            vl = VirtualLaser(lc, noise_std_m=sc.laser_noise_m, latency_s=sc.laser_latency_s,
+                              seed=self.seed * 101 + i, output_rate_hz=sc.laser_rate_hz)
+            self._closers.append(vl.close)
+            self.lasers[lc.role] = vl
+        self._laser_list = list(self.lasers.values())
+        self.s0 = {}
+        for lc in cfg.devices.lasers:
+            self.s0[lc.role] = (lc.offset_mm + 0.5 * lc.measuring_range_mm) * 1e-3
+        self.can_channel = f"rig-sim-{next(_channel_ids)}-{id(self)}"
+        self.bus = can.Bus(interface="virtual", channel=self.can_channel, receive_own_messages=False)
+        self._closers.append(self.bus.shutdown)
+        self.drives = VirtualDriveSet(cfg.devices.can, self.bus, seed=self.seed)
+        self._closers.append(self.drives.close)
+        names = [s.name for s in cfg.devices.ft.sensors]
+        self.ft = VirtualFTServer(names).start() if names else None
+        if self.ft is not None:
+            self._closers.append(self.ft.close)
+        self.ft_period = 1.0 / (sc.ft_rate_hz or cfg.devices.ft.poll_hz)
+        self._publish(0.0)
+
+    @property
+    def laser_ports(self) -> dict[str, str]:
+        return {r: v.port_name for r, v in self.lasers.items()}
+
+    @property
+    def ft_endpoints(self) -> dict[str, tuple[str, int]]:
+        return dict(self.ft.endpoints) if self.ft is not None else {}
+
+    def runtime_bus(self) -> can.BusABC:
+        """A python-can bus for the runtime's side of the simulated CAN wire."""
+        return can.Bus(interface="virtual", channel=self.can_channel, receive_own_messages=False)
+
+    def attach_ft_driver(self, driver) -> None:
+        """Lockstep: the runtime's F/T driver is polled by the simulated clock at the
+        sensors' rate instead of by its own thread, so runs are deterministic."""
+        self.ft_driver = driver
+
+    # ------------------------------------------------------------------ scenario
+    def _schedule(self) -> list:
+        """(t_start, t_end, kind, item) for every disturbance and fault, scenario time."""
+        ev = []
+        if self.scenario is not None:
+            for d in self.scenario.disturbances:
+                ev.append((d.t, d.t + d.duration_s, "dist", d))
+            for f in self.scenario.faults:
+                ev.append((f.t, f.t + f.duration_s, "fault", f))
+        return ev
+
+    def on_running(self, t: float) -> None:
+        """The runtime entered RUNNING at ``t``: scenario time starts here."""
+        self.t_run0 = t
+        self._active_faults: set[int] = set()
+
+    def in_cycle(self, clock) -> Callable[[float, float], None]:
+        """A hook for the loop that starves the runtime (``stall`` faults) on ``clock``."""
+        def hook(t: float, tr: float) -> None:
+            if self.scenario is None or math.isnan(self.t_run0):
+                return
+            for i, f in enumerate(self.scenario.faults):
+                if f.kind == "stall" and i not in self._stall_done and tr >= f.t:
+                    self._stall_done.add(i)
+                    clock.spend(f.duration_s)
+        return hook
+
+    def _forces(self, tau: float) -> tuple[float, float, float, float]:
+        Ff = Fr = Mf = Mr = 0.0
+        for t0, t1, kind, d in self._events:
+            if kind == "dist" and t0 <= tau < t1:
+                if d.carrier == "front":
+                    Ff += d.F_y; Mf += d.M_z
+                else:
+                    Fr += d.F_y; Mr += d.M_z
+        return Ff, Fr, Mf, Mr
+
+    def _update_faults(self, tau: float) -> None:
+        for i, (t0, t1, kind, f) in enumerate(self._events):
+            if kind != "fault" or f.kind == "stall":
+                continue
+            on = t0 <= tau < t1
+            if on and i not in self._active_faults:
+                self._active_faults.add(i)
+                self._inject(f, True)
+            elif not on and i in self._active_faults:
+                self._active_faults.discard(i)
+                self._inject(f, False)
+
+    def _inject(self, f, on: bool) -> None:
+        dev = f.device
+        if dev in self.lasers:
+            vl = self.lasers[dev]
+            if not on:
+                return vl.clear(f.kind)
+            kw = {"corrupt": {"p": f.fraction}, "offset": {"amount_m": f.amount}}.get(f.kind, {})
+            return vl.inject(f.kind, **kw)
+        if dev in WHEELS:
+            if not on:
+                return self.drives.clear(f.kind)
+            kw = {"bus_error": {"fraction": f.fraction}, "corrupt": {"fraction": f.fraction},
+                  "offset": {"amount": f.amount}}.get(f.kind, {})
+            return self.drives.inject(f.kind, wheel=dev, **kw)
+        if self.ft is not None and dev in self.ft.endpoints:
+            if not on:
+                return self.ft.clear(dev, f.kind)
+            kw = {"offset": {"fy": f.amount}}.get(f.kind, {})
+            return self.ft.inject(dev, f.kind, **kw)
+        raise ValueError(f"scenario fault {f.kind!r}: unknown device {dev!r}")
+
+    # ------------------------------------------------------------------ lockstep
+    def advance(self, t: float) -> None:
+        """Integrate the plant to ``t`` and let every virtual device emit up to ``t``."""
+        h, plant, drives = self.h, self.plant, self.drives
+        drives.service(self.t)          # SYNC/RPDOs the runtime sent last cycle; TPDOs back
+        running = not math.isnan(self.t_run0)
+        while self.t < t - 1e-12:
+            dt = t - self.t
+            if dt >= h - 1e-9:       # float residue of t0 + k h must not change the step size
+                dt = h
+            tau = self.t - self.t_run0 if running else -1.0
+            if running:
+                self._update_faults(tau)
+            Ff, Fr, Mf, Mr = self._forces(tau) if running else (0.0, 0.0, 0.0, 0.0)
+            du_f = drives.current_A("fl") - drives.current_A("fr")
+            du_r = drives.current_A("rl") - drives.current_A("rr")
+            plant.step(dt, du_f, du_r, Ff, Fr, Mf, Mr)
+            self.t += dt
+            if self.t < t - 1e-12:
+                drives.service(self.t)   # watchdog and heartbeats keep time during a stall
+        self._publish(t)
+
+    def _publish(self, t: float) -> None:
+        """Physical values -> virtual devices (their own codecs), frames up to ``t``."""
+        p, geo = self.plant, self.cfg.geometry
+        pose = pose_from_carriers(p.y_f, p.y_r, p.psi_af, p.psi_ar, geo)
+        r = ideal_readings(pose, geo, s0=0.0)
+        vals = (r.b_f, r.b_r, r.s_fl, r.s_fr, r.s_rl, r.s_rr)
+        for role, v in zip(LASER_ROLES, vals):
+            vl = self.lasers.get(role)
+            if vl is not None:
+                vl.set_distance(v + (self.s0[role] if role.startswith("s") else 0.0))
+        emit_all(self._laser_list, t)
+        g = self._rng.gauss
+        en = self.sc.encoder_noise_rad_s
+        for w, om in zip(WHEELS, (p.omega_fl, p.omega_fr, p.omega_rl, p.omega_rr)):
+            self.drives.set_wheel_speed(w, om + (g(0.0, en) if en else 0.0))
+        if self.ft is not None and t >= self._next_ft - 1e-12:
+            self._next_ft = t + self.ft_period
+            fr = p.ft_readings()
+            n = self.sc.ft_noise_N
+            for s in self.cfg.devices.ft.sensors:
+                key = s.name[-2:]
+                vals6 = fr.get(key, (0.0,) * 6)
+                self.ft.set_wrench(s.name, Wrench(*(v + (g(0.0, n) if n and k < 3 else 0.0)
+                                                    for k, v in enumerate(vals6))))
+            if self.ft_driver is not None:
+                self.ft_driver.poll_devices_once()
+
+    def close(self) -> None:
+        for c in reversed(self._closers):
+            try:
+                c()
+            except Exception:
+                pass
+        self._closers.clear()

@@ -1,0 +1,27 @@
+"""The ``sim:`` section of a config: sensor models and initial state of the simulated rig."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+from rig_runtime import schema
+from rig_runtime.config import RigConfig
+from rig_runtime.schema import check, nonneg, positive
+
+
+@dataclass(frozen=True, kw_only=True)
+class SimConfig:
+    laser_noise_m: float = check(nonneg, default=1.0e-6)      # ESTIMATE: optoNCDT 1420 repeatability ≈ 1–2 µm
+    laser_latency_s: float = check(nonneg, default=0.0)
+    laser_rate_hz: Optional[float] = check(positive, default=None)   # None: each laser's output_rate_hz
+    encoder_noise_rad_s: float = check(nonneg, default=0.002)  # ESTIMATE: speed from encoder counts at 5 ms
+    ft_noise_N: float = check(nonneg, default=0.2)            # ESTIMATE
+    ft_rate_hz: Optional[float] = check(positive, default=None)      # None: devices.ft.poll_hz
+    initial_y_mm: Optional[float] = None   # None: the plant's rest state for u = 0
+    seed: int = 0
+    wheel_dynamics: str = "static"         # "static" = relation (4), "dynamic" = (3)
+
+
+def sim_config(cfg: RigConfig) -> SimConfig:
+    return schema.build(SimConfig, cfg.sim or {}, "sim", cfg.source)
