@@ -33,7 +33,8 @@ _channel_ids = itertools.count()
 
 
 class SimulatedRig:
-    def __init__(self, cfg: RigConfig, scenario: Optional[Scenario] = None, seed: Optional[int] = None):
+    def __init__(self, cfg: RigConfig, scenario: Optional[Scenario] = None, seed: Optional[int] = None,
+                 drive_bus: Optional[can.BusABC] = None):
         self.cfg = cfg
         self.sc = sim_config(cfg)
         self.seed = self.sc.seed if seed is None else seed
@@ -48,6 +49,7 @@ class SimulatedRig:
             y0 = self.sc.initial_y_mm * 1e-3
         self.plant.reset(y_r=y0)   # psi at rest (K·0 + psi_off), z = psi
         self.t = 0.0
+        self._drive_bus = drive_bus
         self.ft_driver = None
         self._next_ft = 0.0
         self._closers: list[Callable[[], None]] = []
@@ -74,8 +76,11 @@ class SimulatedRig:
         for lc in cfg.devices.lasers:
             self.s0[lc.role] = (lc.offset_mm + 0.5 * lc.measuring_range_mm) * 1e-3
         self.can_channel = f"rig-sim-{next(_channel_ids)}-{id(self)}"
-        self.bus = can.Bus(interface="virtual", channel=self.can_channel, receive_own_messages=False)
-        self._closers.append(self.bus.shutdown)
+        if self._drive_bus is not None:      # e.g. the far side of an emulated SLCAN adapter
+            self.bus = self._drive_bus
+        else:
+            self.bus = can.Bus(interface="virtual", channel=self.can_channel, receive_own_messages=False)
+            self._closers.append(self.bus.shutdown)
         self.drives = VirtualDriveSet(cfg.devices.can, self.bus, seed=self.seed)
         self._closers.append(self.drives.close)
         names = [s.name for s in cfg.devices.ft.sensors]
