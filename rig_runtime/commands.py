@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from .cli import arg, command
-from .metrics import clean, step_info
+from .metrics import clean
 from .runner import EXIT_OK, default_log_path, execute
 
 
@@ -43,18 +43,6 @@ def _print_summary(summary: dict, as_json: bool) -> None:
                   f"steady-state error {f(s['steady_state_error_mm'], '+.4f')} mm")
 
 
-def _steps_from_log(log: Path, scenario, h: float) -> list[dict]:
-    from .export import read_log
-    from .scenario import Reference
-    d = read_log(log)["columns"]
-    run = d["t_run"] > 0
-    t, y = d["t_run"][run], d["rear_e_y"][run] * 0 + d["y_r"][run]
-    if scenario is None or not len(t):
-        return []
-    steps = Reference(scenario.reference).steps()
-    return step_info(t, y, steps, t_end=float(t[-1]) + h, h=h)
-
-
 @command("dry-run", "run the controller against the simulated plant (lockstep by default)")
 @arg("--config", help="config file (default: configs/sim.yaml)")
 @arg("--scenario", default="single-step", help="scenario name in configs/scenarios or a path (default: single-step)")
@@ -66,8 +54,6 @@ def _steps_from_log(log: Path, scenario, h: float) -> list[dict]:
 @arg("--report", metavar="DIR", help="write PNG plots and a Markdown summary into DIR")
 def cmd_dry_run(args: argparse.Namespace) -> int:
     from . import config
-    from .clock import LockstepClock
-    from .devices import RigDevices
     from .scenario import load_scenario
     _quiet_libraries()
     cfg = config.load(args.config)
@@ -77,22 +63,8 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
         from sim_backend.realtime import run_realtime_dry_run
         summary, code = run_realtime_dry_run(cfg, scenario, args, log)
     else:
-        from sim_backend.rig import SimulatedRig
-        sim = SimulatedRig(cfg, scenario, seed=args.seed)
-        try:
-            clock = LockstepClock(advance=sim.advance)
-            devices = RigDevices(cfg, laser_ports=sim.laser_ports, can_bus=sim.runtime_bus(),
-                                 ft_endpoints=sim.ft_endpoints, ft_clock=clock.now, ft_thread=False)
-            sim.attach_ft_driver(devices.ft)
-            summary, code, loop = execute(
-                cfg, devices, clock, scenario=scenario, duration_s=args.duration, log_path=log,
-                status=False, in_cycle=sim.in_cycle(clock), on_running=sim.on_running,
-                extra_attrs={"mode": "dry-run lockstep", "seed": sim.seed},
-                open_context=lambda: sim.drives.serving(0.0))
-            summary["sim_time_s"] = clock.now()
-        finally:
-            sim.close()
-    summary["steps"] = _steps_from_log(log, scenario, cfg.controller.h)
+        from sim_backend.dryrun import run_lockstep
+        summary, code = run_lockstep(cfg, scenario, log, seed=args.seed, duration_s=args.duration)
     if args.report:
         from .report import write_report
         summary["report"] = [str(p) for p in write_report(log, args.report, scenario, summary)]

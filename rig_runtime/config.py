@@ -134,6 +134,7 @@ class Limits:
     stop_ramp_s: float = check(nonneg, default=0.5)     # STOPPING ramp to zero
     stuck_periods: Optional[int] = check(positive, default=200)  # bit-identical samples -> stuck
     laser_step_max: Optional[float] = check(positive, default=0.002)  # m per period -> implausible jump
+    corrupt_cycles: Optional[int] = check(positive, default=20)   # garbled frames in this many cycles in a row -> link fault
 
 
 @dataclass(frozen=True, kw_only=True)

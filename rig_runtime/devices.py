@@ -117,6 +117,7 @@ class RigDevices:
             c.t = r.t if r.t == r.t else -math.inf
             c.state = hl.state
             c.cause = hl.cause
+            c.bad = hl.bad_frames
             dist[i] = r.value_m
         rd = self.drives.poll(now)
         ok, cause = True, ""
@@ -129,6 +130,7 @@ class RigDevices:
             c.t = r.t if r.t == r.t else -math.inf
             c.state = hl.state
             c.cause = hl.cause
+            c.bad = hl.bad_frames
             omega[j] = r.omega
             if hl.state is Freshness.INVALID and ok:
                 ok, cause = False, f"drive {w} (node {r.node_id}): {hl.cause}"

@@ -67,3 +67,17 @@ def clean(v):
     if isinstance(v, (list, tuple)):
         return [clean(x) for x in v]
     return v
+
+
+def steps_from_log(log, scenario, h: float) -> list[dict]:
+    """``step_info`` for every reference step of ``scenario`` from a recorded run."""
+    from .export import read_log
+    from .scenario import Reference
+    if scenario is None:
+        return []
+    d = read_log(log)["columns"]
+    run = d["t_run"] > 0
+    t, y = d["t_run"][run], d["y_r"][run]
+    if not len(t):
+        return []
+    return step_info(t, y, Reference(scenario.reference).steps(), t_end=float(t[-1]) + h, h=h)

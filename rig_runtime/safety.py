@@ -46,7 +46,7 @@ class Channel:
     """One sensor channel as the supervisor sees it (updated in place every cycle)."""
 
     __slots__ = ("name", "kind", "value", "t", "state", "cause", "lo", "hi", "stale_s",
-                 "step_max", "stuck_check", "prev", "same", "delta")
+                 "step_max", "stuck_check", "prev", "same", "delta", "bad", "bad_prev", "bad_run")
 
     def __init__(self, name: str, kind: str, lo: float, hi: float, stale_s: float,
                  step_max: float = math.inf, stuck_check: bool = False):
@@ -60,6 +60,9 @@ class Channel:
         self.prev = math.nan
         self.same = 0
         self.delta = 0.0
+        self.bad = 0            # the driver's cumulative count of garbled frames / bytes
+        self.bad_prev = 0
+        self.bad_run = 0        # consecutive cycles with new garbled data
 
 
 class Supervisor:
@@ -149,22 +152,27 @@ class Supervisor:
             self._psi_rate = (psi - self._psi_prev) / self.h
         self._psi_prev = psi
         stuck_n = self.limits.stuck_periods or 0
+        corrupt_n = self.limits.corrupt_cycles or 0
         for c in channels:
             v, p = c.value, c.prev
             c.prev = v
             c.delta = v - p
             if c.stuck_check:
                 c.same = c.same + 1 if v == p else 0
+            b = c.bad
+            c.bad_run = c.bad_run + 1 if b > c.bad_prev else 0
+            c.bad_prev = b
         if not self.active:
             return
         lim = self.limits
-        if not converters_ok:
-            return self.trip(t, "converters", "converter", math.nan, math.nan, converter_cause)
-        if not recorder_ok:
-            return self.trip(t, "recorder", "recorder", math.nan, math.nan, recorder_cause)
+        # root causes first: a starved loop makes the converters' watchdogs trip too
         if consecutive_misses >= lim.overrun_burst:
             return self.trip(t, "loop", "overrun", consecutive_misses, lim.overrun_burst,
                              f"{consecutive_misses} control periods lost to deadline misses")
+        if not recorder_ok:
+            return self.trip(t, "recorder", "recorder", math.nan, math.nan, recorder_cause)
+        if not converters_ok:
+            return self.trip(t, "converters", "converter", math.nan, math.nan, converter_cause)
         for c in channels:
             age = t - c.t
             if c.state is Freshness.INVALID:
@@ -176,6 +184,9 @@ class Supervisor:
                 return self.trip(t, c.name, "nan", v, math.nan, "value is not finite")
             if v < c.lo or v > c.hi:
                 return self.trip(t, c.name, "range", v, c.hi if v > c.hi else c.lo, "raw value outside the sensor range")
+            if corrupt_n and c.bad_run >= corrupt_n:
+                return self.trip(t, c.name, "corrupt", c.bad_run, corrupt_n,
+                                 f"garbled frames in {c.bad_run} consecutive cycles ({c.bad} in total)")
             if stuck_n and c.same >= stuck_n:
                 return self.trip(t, c.name, "stuck", c.same, stuck_n, f"value repeated bit-identically for {c.same} cycles")
         for c in channels:

@@ -1,0 +1,67 @@
+"""Helpers for end-to-end tests against the lockstep simulated plant."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import can
+import numpy as np
+
+from drivers import canopen402 as co
+from rig_runtime import config
+from rig_runtime.export import read_log
+from rig_runtime.scenario import load_scenario
+from sim_backend.dryrun import run_lockstep
+
+
+@dataclasses.dataclass
+class Run:
+    summary: dict
+    code: int
+    log: dict
+    wire: list          # (sync_index, wheel, current_A) of every RPDO on the wire
+    syncs: int
+
+    @property
+    def fault(self):
+        return self.summary["faults"][0] if self.summary["faults"] else None
+
+    def col(self, name):
+        return self.log["columns"][name]
+
+    def fault_row(self) -> int:
+        t = self.col("t")
+        return int(np.argmin(np.abs(t - self.fault["t"])))
+
+
+def run(tmp_path: Path, scenario, cfg=None, **kw) -> Run:
+    cfg = cfg or config.load()
+    sc = load_scenario(scenario) if isinstance(scenario, str) else scenario
+    taps = []
+    rated = {d.node_id: (d.wheel, d.rated_current_A) for d in cfg.devices.can.drives}
+
+    def prepare(sim, devices, clock):
+        taps.append(can.Bus(interface="virtual", channel=sim.can_channel, receive_own_messages=False))
+        if kw.get("prepare"):
+            kw["prepare"](sim, devices, clock)
+
+    log = tmp_path / f"{sc.name}.h5"
+    summary, code = run_lockstep(cfg, sc, log, seed=kw.get("seed"), duration_s=kw.get("duration_s"),
+                                 prepare=prepare)
+    wire, syncs = [], 0
+    tap = taps[0]
+    while True:
+        m = tap.recv(0)
+        if m is None:
+            break
+        cid = m.arbitration_id
+        if cid == co.COB_SYNC:
+            syncs += 1
+        elif co.COB_RPDO1 < cid <= co.COB_RPDO1 + 127 and len(m.data) == co.RPDO1.size:
+            node = cid - co.COB_RPDO1
+            cw, tq = co.decode_rpdo1(m.data)
+            wheel, r = rated[node]
+            wire.append((syncs, wheel, co.permille_to_amps(tq, r)))
+    tap.shutdown()
+    return Run(summary, code, read_log(log), wire, syncs)
