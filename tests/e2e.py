@@ -65,3 +65,24 @@ def run(tmp_path: Path, scenario, cfg=None, **kw) -> Run:
             wire.append((syncs, wheel, co.permille_to_amps(tq, r)))
     tap.shutdown()
     return Run(summary, code, read_log(log), wire, syncs)
+
+
+def assert_safe_stop(r, device, check):
+    s = r.summary
+    assert s["final_state"] == "FAULT" and r.code == 3
+    f = r.fault
+    assert (f["device"], f["check"]) == (device, check), f
+    k = r.fault_row()
+    # the detecting cycle and every later one command zero, in the log …
+    for c in ("rear_u_lim", "i_fl", "i_fr", "i_rl", "i_rr"):
+        assert np.all(r.col(c)[k:] == 0.0), c
+    assert np.any(r.col("rear_u_lim")[:k] != 0.0)     # it was actually controlling before
+    # … and on the wire: RPDOs sent in cycle k (its SYNC is the (k+1)-th) and after carry 0 A
+    after = [i for n, _, i in r.wire if n >= k + 1]
+    assert after and all(i == 0.0 for i in after)
+    assert any(i != 0.0 for n, _, i in r.wire if n <= k)
+    ev = r.log["events"]
+    kinds = list(ev["kind"])
+    j = kinds.index("fault")
+    assert (ev["device"][j], ev["check"][j]) == (device, check)
+    assert r.log["rows"] == s["cycles"]
