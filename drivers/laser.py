@@ -80,6 +80,16 @@ def encode_values(xs: Iterable[int] | np.ndarray) -> bytes:
     return out.tobytes()
 
 
+def encode_list(xs: list[int]) -> bytes:
+    """Wire bytes of a few values (pure Python: cheaper than numpy below ~50 values)."""
+    out = bytearray()
+    for x in xs:
+        if not 0 <= x <= MAX_X:
+            raise ValueError(f"laser value {x} outside 0..{MAX_X}")
+        out += bytes((x & 0x3F, _FLAG_M | (x >> 6) & 0x3F, _FLAG_H | (x >> 12) & 0x3F))
+    return bytes(out)
+
+
 def distance_mm_from_x(x: int, mr_mm: float) -> float:
     """Distance from the start of the measuring range, mm, of a valid value x (0..65520)."""
     return (x / _X_PER_PERCENT - 1.0) * mr_mm / 100.0

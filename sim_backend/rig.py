@@ -23,6 +23,7 @@ from rig_runtime.config import LASER_ROLES, WHEELS, RigConfig
 from rig_runtime.geometry import ideal_readings, pose_from_carriers
 from rig_runtime.scenario import Scenario
 
+from .lockstep_bus import LockstepBus
 from .plant import Plant
 from .simconfig import sim_config
 from .virtual_drive import VirtualDriveSet
@@ -79,7 +80,7 @@ class SimulatedRig:
         if self._drive_bus is not None:      # e.g. the far side of an emulated SLCAN adapter
             self.bus = self._drive_bus
         else:
-            self.bus = can.Bus(interface="virtual", channel=self.can_channel, receive_own_messages=False)
+            self.bus = self._new_bus()
             self._closers.append(self.bus.shutdown)
         self.drives = VirtualDriveSet(cfg.devices.can, self.bus, seed=self.seed)
         self._closers.append(self.drives.close)
@@ -99,7 +100,12 @@ class SimulatedRig:
         return dict(self.ft.endpoints) if self.ft is not None else {}
 
     def runtime_bus(self) -> can.BusABC:
-        """A python-can bus for the runtime's side of the simulated CAN wire."""
+        """A python-can bus for the runtime's side (or a tap) of the simulated CAN wire."""
+        return self._new_bus()
+
+    def _new_bus(self) -> can.BusABC:
+        if self.sc.can_bus == "lockstep":
+            return LockstepBus(channel=self.can_channel)
         return can.Bus(interface="virtual", channel=self.can_channel, receive_own_messages=False)
 
     def attach_ft_driver(self, driver) -> None:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Literal, Optional
 
 from rig_runtime import schema
 from rig_runtime.config import RigConfig
@@ -20,7 +20,8 @@ class SimConfig:
     ft_rate_hz: Optional[float] = check(positive, default=None)      # None: devices.ft.poll_hz
     initial_y_mm: Optional[float] = None   # None: the plant's rest state for u = 0
     seed: int = 0
-    wheel_dynamics: str = "static"         # "static" = relation (4), "dynamic" = (3)
+    wheel_dynamics: Literal["static", "dynamic"] = "static"   # relation (4), or the dynamic form (3)
+    can_bus: Literal["lockstep", "virtual"] = "lockstep"      # python-can bus of the in-process sim
 
 
 def sim_config(cfg: RigConfig) -> SimConfig:

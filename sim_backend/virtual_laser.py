@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.laser import MAX_X, encode_values, xs_from_distance_mm
+from drivers.laser import MAX_X, encode_list, encode_values, x_from_distance_mm, xs_from_distance_mm
 from rig_runtime.config import LaserDevice
 
 __all__ = ["VirtualLaser", "FAULT_KINDS"]
@@ -52,6 +52,7 @@ PEAK_BEFORE_RANGE = 262077
 PEAK_AFTER_RANGE = 262078
 NO_PEAK = 262076
 _EPS = 1e-9     # k/rate computed in floats: 0.005·4000 may land just below 20
+_SMALL = 48         # up to this many frames per call: scalar Python (numpy's per-call cost dominates)
 _LDISC_CAP = 4095   # bytes the Linux n_tty line discipline holds; more waits in the flip buffer
 
 
@@ -74,6 +75,8 @@ class VirtualLaser:
         self.quantization_m = quantization_m
         self.latency_frames = round(latency_s * self.rate_hz)
         self._noise_rng, self._fault_rng = _rngs(seed)
+        self._nbuf: list[float] = []
+        self._ni = 0
         self._distance_m = cfg.offset_mm / 1000.0 + cfg.measuring_range_mm / 2000.0  # mid-range
         self._faults: dict[str, dict[str, Any]] = {}
         self._last_x: int | None = None
@@ -196,13 +199,49 @@ class VirtualLaser:
             xs = [int(f["out_of_range"].get("code", NO_PEAK))] * n
         elif "stuck" in f:
             xs = [int(f["stuck"]["x"])] * n
+        elif n <= _SMALL:
+            # scalar path (the lockstep hot path: a few frames per 5 ms step)
+            d0 = self._distance_m + float(f.get("offset", {}).get("amount_m", 0.0)) if f else self._distance_m
+            sd = self.noise_std_m
+            x_of = self._x_of
+            if sd > 0:
+                xs = [x_of(d0 + sd * e) for e in self._standard_normals(n)]
+            else:
+                xs = [x_of(d0)] * n
         else:
             d = np.full(n, self._distance_m + float(f.get("offset", {}).get("amount_m", 0.0)))
             if self.noise_std_m > 0:
-                d += self._noise_rng.normal(0.0, self.noise_std_m, n)
+                d += self.noise_std_m * np.array(self._standard_normals(n))
             xs = self._to_x(d).tolist()
         self._last_x = xs[-1]
         return xs
+
+    def _standard_normals(self, n: int) -> list[float]:
+        """n standard normal draws from blocks of the seeded generator (the same sequence
+        however the frames are split into calls)."""
+        out: list[float] = []
+        while n > 0:
+            if self._ni >= len(self._nbuf):
+                self._nbuf = self._noise_rng.standard_normal(4096).tolist()
+                self._ni = 0
+            take = min(n, len(self._nbuf) - self._ni)
+            out += self._nbuf[self._ni:self._ni + take]
+            self._ni += take
+            n -= take
+        return out
+
+    def _x_of(self, d_m: float) -> int:
+        """Scalar form of ``_to_x``."""
+        q = self.quantization_m
+        if q > 0:
+            d_m = round(d_m / q) * q
+        mr = self.cfg.measuring_range_mm
+        rel_mm = d_m * 1000.0 - self.cfg.offset_mm
+        if rel_mm < -0.01 * mr:
+            return PEAK_BEFORE_RANGE
+        if rel_mm > 1.01 * mr:
+            return PEAK_AFTER_RANGE
+        return x_from_distance_mm(rel_mm, mr)
 
     def _to_x(self, d_m: np.ndarray) -> np.ndarray:
         """Physical distances (m) -> wire values, with the device's out-of-span codes."""
@@ -219,7 +258,7 @@ class VirtualLaser:
         if "dropout" in self._faults:
             self.frames_suppressed += len(xs)
             return 0
-        data = encode_values(xs)
+        data = encode_list(xs) if len(xs) <= _SMALL else encode_values(xs)
         corrupt = self._faults.get("corrupt")
         if corrupt is not None:
             data = self._corrupt(data, len(xs), float(corrupt.get("p", 0.1)),

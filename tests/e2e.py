@@ -42,7 +42,7 @@ def run(tmp_path: Path, scenario, cfg=None, **kw) -> Run:
     rated = {d.node_id: (d.wheel, d.rated_current_A) for d in cfg.devices.can.drives}
 
     def prepare(sim, devices, clock):
-        taps.append(can.Bus(interface="virtual", channel=sim.can_channel, receive_own_messages=False))
+        taps.append(sim.runtime_bus())
         if kw.get("prepare"):
             kw["prepare"](sim, devices, clock)
 
