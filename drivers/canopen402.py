@@ -1,7 +1,7 @@
 """The four motor converters: CANopen (CiA 301) drives with the CiA 402 profile in cyclic
 synchronous torque mode (0x6060 = 10).
 
-Wire format (see docs/protocols-can.md for every byte, unit and source):
+Wire format (see docs/protocols.md, section 2 for every byte, unit and source):
 
 * SYNC        0x080, no data — the runtime sends it once per period; the drives sample.
 * RPDO1       0x200+n, 4 bytes: controlword UINT16 (0x6040), target torque INT16 (0x6071,

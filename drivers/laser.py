@@ -1,6 +1,6 @@
 """Micro-Epsilon optoNCDT 1420-class laser triangulation sensors on RS-422.
 
-Wire format (optoNCDT 1420 manual, Chap. 8.2 and 7.5.2.1; see docs/protocols-laser.md):
+Wire format (optoNCDT 1420 manual, Chap. 8.2 and 7.5.2.1; see docs/protocols.md, section 1):
 every output value is three bytes sent L, M, H. The two top bits of each byte are a
 flag (``00`` L, ``01`` M, ``10`` H), the low six bits are data, so a value carries 18
 bits ``x = L6 | M6 << 6 | H6 << 12``. Distances are 16-bit values 0..65520 with

@@ -9,7 +9,7 @@ target torque, SYNC triggers TPDO1 (statusword, velocity actual, torque actual),
 heartbeat producer (0x1017) and consumer (0x1016) run on the set's clock, and a watchdog
 cuts the current when SYNC or RPDO1 stop.
 
-Behaviour a real converter has and this one models (docs/protocols-can.md):
+Behaviour a real converter has and this one models (docs/protocols.md, section 2):
 
 * RPDO1 transmission type 0xFF acts on reception; 0..240 latches the target at the next SYNC.
 * TPDO1 transmission type n in 1..240 is sent on every n-th SYNC; other types send nothing.
