@@ -1,0 +1,138 @@
+"""What one cycle's ``poll()`` + ``write()`` costs for all devices together, against the
+virtual devices: six lasers at 4 kHz on ptys, four CiA 402 drives on a python-can bus,
+the F/T hand-off (four sensors polled by the driver's own thread over Modbus TCP).
+
+The virtual devices produce one period's worth of frames between cycles (not timed), so
+every timed poll drains what a real 5 ms period brings (20 frames per laser, 4 TPDOs,
+heartbeats). Baseline, same run: the bare transport floor — one non-blocking ``os.read``
+per pty and the same CAN frames sent and received with no codec or driver logic.
+
+    python benchmarks/driver_cost.py [--cycles N] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import can  # noqa: E402
+import numpy as np  # noqa: E402
+
+from rig_runtime import config  # noqa: E402
+from rig_runtime.config import WHEELS  # noqa: E402
+from drivers.canopen402 import DriveBus  # noqa: E402
+from drivers.ft300 import FTSensorSet, Wrench  # noqa: E402
+from drivers.laser import LaserDriver  # noqa: E402
+from sim_backend.virtual_drive import VirtualDriveSet  # noqa: E402
+from sim_backend.virtual_ft import VirtualFTServer  # noqa: E402
+from sim_backend.virtual_laser import VirtualLaser, emit_all  # noqa: E402
+
+
+def dist(a) -> dict:
+    a = np.asarray(a) * 1e6
+    return {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)), "max": float(a.max())}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cycles", type=int, default=4000)
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    cfg = config.load()
+    h = cfg.controller.h
+    lasers, drivers = [], []
+    for i, lc in enumerate(cfg.devices.lasers):
+        vl = VirtualLaser(lc, noise_std_m=1e-6, seed=i, output_rate_hz=4000.0)
+        lasers.append(vl)
+        drivers.append(LaserDriver(lc, port=vl.port_name, stale_after_s=4 * h))
+    chan = f"bench-{os.getpid()}"
+    sim_bus = can.Bus(interface="virtual", channel=chan)
+    vdrives = VirtualDriveSet(cfg.devices.can, sim_bus)
+    drive_bus = DriveBus(cfg.devices.can, bus=can.Bus(interface="virtual", channel=chan), period_s=h)
+    names = [s.name for s in cfg.devices.ft.sensors]
+    ft_srv = VirtualFTServer(names).start()
+    for n in names:
+        ft_srv.set_wrench(n, Wrench(1.0, 2.0, 3.0, 0.1, 0.2, 0.3))
+    ft = FTSensorSet(cfg.devices.ft, endpoints=ft_srv.endpoints)
+    try:
+        for d in drivers:
+            d.open()
+        with vdrives.serving(0.0):
+            drive_bus.open()
+        ft.open()
+        currents = [0.1, -0.1, 0.5, -0.5]
+        t = 0.0
+        cyc, base = [], []
+        fds = [os.open(vl.port_name, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY) for vl in lasers[:1]]
+        gc.collect(); gc.freeze(); gc.disable()
+        for k in range(args.cycles + 200):
+            t += h
+            for w in WHEELS:
+                vdrives.set_wheel_speed(w, 13.3)
+            vdrives.service(t - h)          # answers last cycle's SYNC with TPDOs
+            emit_all(lasers, t)             # one period of laser frames
+            t0 = time.perf_counter()
+            for d in drivers:
+                d.poll(t)
+            drive_bus.poll(t)
+            ft.poll(t)
+            drive_bus.write(currents, t)
+            t1 = time.perf_counter()
+            if k >= 200:
+                cyc.append(t1 - t0)
+        gc.enable(); gc.unfreeze()
+        # baseline: the transport floor with the same traffic, no codec/driver logic
+        raw_fds = [d._ser.fileno() for d in drivers]
+        msgs = [can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)] + [
+            can.Message(arbitration_id=0x200 + i, data=b"\x0f\x00\x10\x00", is_extended_id=False) for i in range(1, 5)]
+        rx = drive_bus._bus if hasattr(drive_bus, "_bus") else None
+        for k in range(args.cycles + 200):
+            t += h
+            vdrives.service(t - h)
+            emit_all(lasers, t)
+            t0 = time.perf_counter()
+            for fd in raw_fds:
+                try:
+                    os.read(fd, 4096)
+                except BlockingIOError:
+                    pass
+            if rx is not None:
+                while rx.recv(0) is not None:
+                    pass
+                for m in msgs:
+                    rx.send(m)
+            t1 = time.perf_counter()
+            if k >= 200:
+                base.append(t1 - t0)
+        for fd in fds:
+            os.close(fd)
+    finally:
+        ft.close(); ft_srv.close()
+        drive_bus.close(); vdrives.close(); sim_bus.shutdown()
+        for d in drivers:
+            d.close()
+        for vl in lasers:
+            vl.close()
+    out = {"cycle_us": dist(cyc), "baseline_us": dist(base),
+           "ratio_p50": float(np.percentile(cyc, 50) / np.percentile(base, 50)),
+           "cycles": args.cycles, "lasers_hz": 4000, "drives": 4, "ft_sensors": len(names)}
+    if args.json:
+        print(json.dumps(out))
+    else:
+        c, b = out["cycle_us"], out["baseline_us"]
+        print(f"poll()+write(), all devices: p50 {c['p50']:.1f} us, p99 {c['p99']:.1f} us, max {c['max']:.1f} us")
+        print(f"transport floor (same run):  p50 {b['p50']:.1f} us, p99 {b['p99']:.1f} us -> ratio p50 {out['ratio_p50']:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
