@@ -100,8 +100,11 @@ class SimulatedRig:
         return dict(self.ft.endpoints) if self.ft is not None else {}
 
     def runtime_bus(self) -> can.BusABC:
-        """A python-can bus for the runtime's side (or a tap) of the simulated CAN wire."""
-        return self._new_bus()
+        """A python-can bus for the runtime's side (or a tap) of the simulated CAN wire;
+        shut down with the simulated rig."""
+        bus = self._new_bus()
+        self._closers.append(bus.shutdown)
+        return bus
 
     def _new_bus(self) -> can.BusABC:
         if self.sc.can_bus == "lockstep":
