@@ -61,7 +61,9 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
     log = Path(args.log) if args.log else default_log_path("dry-run")
     if args.realtime:
         from sim_backend.realtime import run_realtime_dry_run
+        from .metrics import steps_from_log
         summary, code = run_realtime_dry_run(cfg, scenario, args, log)
+        summary["steps"] = steps_from_log(log, scenario, cfg.controller.h)
     else:
         from sim_backend.dryrun import run_lockstep
         summary, code = run_lockstep(cfg, scenario, log, seed=args.seed, duration_s=args.duration)

@@ -156,6 +156,8 @@ class ControlLoop:
                 st = sup.state
                 if st is State.IDLE and math.isnan(self.t_start):
                     arm_blockers = sup.arm_blockers(channels, dev.converters_ready, t)
+                    if stats.overrun_periods:   # warm-up still missing deadlines (first drains, imports)
+                        arm_blockers.append(f"loop: {stats.overrun_periods} periods lost to deadline misses")
                     if not arm_blockers:
                         sup.arm(channels, dev.converters_ready, t)
                     elif t >= t_arm_deadline:
@@ -240,11 +242,11 @@ class ControlLoop:
                 k_next = int((t_done - t0) / h) + 1 if missed else k + 1  # next release still ahead
                 stats.update(lateness, work, missed, k_next - k - 1)
                 k = k_next
-                if not math.isnan(self.t_start):
-                    if sup.state is State.IDLE:
-                        break
-                    if sup.state is State.FAULT and t >= t_fault_end:
-                        break
+                st = sup.state
+                if st is State.FAULT and t >= t_fault_end:
+                    break
+                if st is State.IDLE and (not math.isnan(self.t_start) or self.stop_requested):
+                    break
         except BaseException:
             # anything unexpected inside the loop: zero current and disable before leaving
             self._safe_off()
