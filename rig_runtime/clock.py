@@ -73,6 +73,10 @@ def apply_realtime(rt: Realtime) -> list[str]:
     """Apply SCHED_FIFO, CPU affinity and mlockall as configured; return one line per
     setting saying whether it took effect (each is used when the OS permits)."""
     report = []
+    if rt.switch_interval_us is not None:
+        import sys
+        sys.setswitchinterval(rt.switch_interval_us * 1e-6)
+        report.append(f"interpreter switch interval {rt.switch_interval_us:g} us: applied")
     if rt.cpu_affinity:
         try:
             os.sched_setaffinity(0, set(rt.cpu_affinity))

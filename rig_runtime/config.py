@@ -231,6 +231,8 @@ class Realtime:
     cpu_affinity: Optional[tuple[int, ...]] = None
     mlockall: bool = False
     spin_us: float = check(nonneg, default=200.0)   # sleep until this long before the deadline, then spin
+    switch_interval_us: Optional[float] = check(positive, default=250.0)  # interpreter switch interval: bounds how
+                                                    # long a helper thread (F/T polling, recorder) can hold the GIL
 
 
 @dataclass(frozen=True, kw_only=True)
