@@ -1,0 +1,62 @@
+"""``rig sim``: serve the simulated rig in its own process, in real time, for an unmodified
+``rig run`` in another process (registered with the CLI on import; the work is done by
+``sim_backend.process``, imported only when the command runs).
+
+Output on stdout, one line each, then ``ready``::
+
+    laser b_f /dev/pts/7            (one per laser role)
+    can slcan /dev/pts/9            (the emulated SLCAN adapter)
+    ft ft_fl 127.0.0.1:40123        (one per force–torque sensor, Modbus TCP)
+    status /abs/path/status.json    (with --status-file)
+    config /abs/path/generated.yaml (with --write-config)
+    ready
+
+See docs/sim-process.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from .cli import arg, command
+
+
+def _cpus(text: str) -> list[int]:
+    """``0`` or ``0,2`` -> [0] / [0, 2]."""
+    try:
+        cpus = [int(c) for c in text.split(",") if c.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected CPU numbers like 0 or 0,2, got {text!r}") from None
+    if not cpus or min(cpus) < 0:
+        raise argparse.ArgumentTypeError(f"expected CPU numbers like 0 or 0,2, got {text!r}")
+    return cpus
+
+
+@command("sim", "serve the simulated rig in real time for `rig run` in another process "
+                "(lasers on ptys, SLCAN adapter on a pty, Modbus TCP F/T sensors)")
+@arg("--config", help="config file of the simulated rig (default: configs/sim.yaml)")
+@arg("--scenario", help="scenario name or path whose disturbances and faults the plant applies "
+                        "(scenario time starts at the runtime's first SYNC)")
+@arg("--seed", type=int, help="random seed of the simulated sensors (default: sim.seed)")
+@arg("--write-config", metavar="PATH", help="write a rig config for `rig run --config PATH` pointing at the ports")
+@arg("--status-file", metavar="PATH", help="rewrite a JSON status (applied currents, drive states, plant, timing) "
+                                           "every --status-period")
+@arg("--status-period", type=float, default=0.05, metavar="S", help="status file period, s (default 0.05)")
+@arg("--duration", type=float, metavar="S", help="stop after S seconds (default: serve until SIGINT/SIGTERM)")
+@arg("--rt-priority", type=int, metavar="N", help="SCHED_FIFO priority of the simulator's threads (when permitted)")
+@arg("--cpu-affinity", type=_cpus, metavar="CPUS", help="CPUs for the simulator, e.g. 0 or 0,2 (when permitted)")
+@arg("--runtime-rt-priority", type=int, metavar="N",
+     help="write realtime.sched_fifo_priority: N into the generated config (for the rig run that uses it)")
+@arg("--runtime-cpu-affinity", type=_cpus, metavar="CPUS",
+     help="write realtime.cpu_affinity: [CPUS] into the generated config")
+@arg("--can-interface", default="slcan", choices=("slcan", "rig_slcan"),
+     help="python-can interface the generated config uses for the SLCAN pty: slcan (python-can's own "
+          "client, default) or rig_slcan (the project's buffer-reading client: measured drive poll 0.12 ms "
+          "instead of 1.8 ms p50)")
+def cmd_sim(args: argparse.Namespace) -> int:
+    from sim_backend.process import serve
+    return serve(args.config, args.scenario, args.seed, write_config=args.write_config,
+                 status_file=args.status_file, status_period_s=args.status_period, duration_s=args.duration,
+                 rt_priority=args.rt_priority, cpu_affinity=args.cpu_affinity,
+                 runtime_rt_priority=args.runtime_rt_priority, runtime_cpu_affinity=args.runtime_cpu_affinity,
+                 can_interface=args.can_interface)

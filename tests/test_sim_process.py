@@ -1,0 +1,503 @@
+"""``rig sim`` — the simulated rig served in its own process — and ``rig run`` against it.
+
+1. The SLCAN adapter alone: python-can's own ``slcan`` client <-> adapter <-> virtual bus.
+2. End to end: ``rig sim`` in one subprocess, ``rig run --config <generated>`` in another.
+3. Signals: SIGINT/SIGTERM stop ``rig run`` cleanly (the simulated drives end at zero
+   current, disabled); after SIGKILL the simulated converters' own watchdog cuts the current.
+4. A scenario's fault injection acts at its scenario time (``rig sim --scenario``).
+
+Times in the simulator's status are ``time.monotonic()``, system-wide on Linux, so they are
+compared with this process's clock directly.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import signal
+import subprocess
+import sys
+import time
+import warnings
+
+import can
+import numpy as np
+import pytest
+
+from rig_runtime import config, schema
+from rig_runtime.export import read_log
+from sim_backend.process import start_sim_process
+from sim_backend.slcan import SlcanAdapter, encode_frame, parse_frame
+
+WHEELS = ("fl", "fr", "rl", "rr")
+WATCHDOG_S = config.load().devices.can.watchdog_ms / 1000.0
+STATUS_PERIOD_S = 0.05
+
+
+def rig_run_cmd(*args: str) -> list[str]:
+    """The unmodified `rig run` (``python -m rig_runtime`` is the ``rig`` command)."""
+    return [sys.executable, "-m", "rig_runtime", "run", *args]
+
+
+# ============================================================================ 1. SLCAN adapter
+@pytest.fixture
+def slcan_pair():
+    chan = f"slcan-test-{os.getpid()}-{time.monotonic_ns()}"
+    adapter_bus = can.Bus(interface="virtual", channel=chan, receive_own_messages=False)
+    far = can.Bus(interface="virtual", channel=chan, receive_own_messages=False)
+    adapter = SlcanAdapter(adapter_bus).start()
+    yield adapter, far
+    adapter.close()
+    adapter_bus.shutdown()
+    far.shutdown()
+
+
+def _recv(bus, timeout=2.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        m = bus.recv(0.05)
+        if m is not None:
+            return m
+    return None
+
+
+def test_slcan_python_can_client_both_ways(slcan_pair):
+    adapter, far = slcan_pair
+    client = can.Bus(interface="slcan", channel=adapter.port_name, bitrate=1_000_000, sleep_after_open=0)
+    try:
+        deadline = time.monotonic() + 2.0
+        while not adapter.is_open and time.monotonic() < deadline:     # the adapter reads on its thread
+            time.sleep(0.005)
+        assert adapter.is_open and adapter.bitrate == 1_000_000
+        assert client.get_version(2.0) == (10, 13)
+        assert client.get_serial_number(2.0) == "RIG0"
+        frames = []
+        for ext in (False, True):
+            for dlc in range(9):
+                cid = (0x1ABCDE00 + dlc) if ext else (0x700 + dlc)
+                frames.append(can.Message(arbitration_id=cid, is_extended_id=ext, data=bytes(range(0xF0, 0xF0 + dlc))))
+        frames.append(can.Message(arbitration_id=0x123, is_extended_id=False, is_remote_frame=True, dlc=4))
+        frames.append(can.Message(arbitration_id=0x1234567, is_extended_id=True, is_remote_frame=True, dlc=0))
+        for m in frames:
+            # host -> bus
+            client.send(m, timeout=0)
+            r = _recv(far)
+            assert r is not None, m
+            assert (r.arbitration_id, r.is_extended_id, r.is_remote_frame, r.dlc) == \
+                   (m.arbitration_id, m.is_extended_id, m.is_remote_frame, m.dlc)
+            assert bytes(r.data) == bytes(m.data)
+            # bus -> host
+            far.send(m)
+            r = _recv(client)
+            assert r is not None, m
+            assert (r.arbitration_id, r.is_extended_id, r.is_remote_frame, r.dlc) == \
+                   (m.arbitration_id, m.is_extended_id, m.is_remote_frame, m.dlc)
+            assert bytes(r.data) == bytes(m.data)
+        # a burst from the bus arrives complete and in order; recv(0) drains without acks in between
+        burst = [can.Message(arbitration_id=0x181 + i % 4, is_extended_id=False, data=i.to_bytes(8, "little"))
+                 for i in range(50)]
+        for m in burst:
+            far.send(m)
+        got, deadline = [], time.monotonic() + 3.0
+        while len(got) < len(burst) and time.monotonic() < deadline:
+            m = client.recv(0.05)
+            if m is not None:
+                got.append(m)
+        assert [bytes(m.data) for m in got] == [bytes(m.data) for m in burst]
+        # sends at the runtime's rate leave no acknowledgement lines behind: recv(0) sees nothing
+        for _ in range(20):
+            client.send(can.Message(arbitration_id=0x80, is_extended_id=False), timeout=0)
+        n = 0
+        while _recv(far, 0.5) is not None:
+            n += 1
+            if n == 20:
+                break
+        assert n == 20
+        assert client.recv(0.1) is None
+    finally:
+        client.shutdown()
+    deadline = time.monotonic() + 2.0
+    while adapter.is_open and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert not adapter.is_open                 # python-can sends C at shutdown
+    far.send(can.Message(arbitration_id=0x181, is_extended_id=False, data=b"\x01"))
+    time.sleep(0.1)
+    assert adapter.counters["closed_dropped"] >= 1
+    assert adapter.counters["bad_commands"] == 0
+
+
+def _raw_exchange(fd, text: bytes, expect_bytes: int, timeout=2.0) -> bytes:
+    os.write(fd, text)
+    out = b""
+    deadline = time.monotonic() + timeout
+    while len(out) < expect_bytes and time.monotonic() < deadline:
+        r, _, _ = select.select([fd], [], [], 0.05)
+        if r:
+            out += os.read(fd, 4096)
+    return out
+
+
+def test_slcan_protocol_details(slcan_pair):
+    adapter, far = slcan_pair
+    import tty
+    fd = os.open(adapter.port_name, os.O_RDWR | os.O_NOCTTY)
+    try:
+        tty.setraw(fd)
+        assert _raw_exchange(fd, b"t1230\r", 1) == b"\x07"           # not open: refused
+        assert _raw_exchange(fd, b"S8\r", 1) == b"\r"
+        assert _raw_exchange(fd, b"S77\r", 1) == b"\x07"             # unknown bit rate
+        assert _raw_exchange(fd, b"O\r", 1) == b"\r"
+        assert _raw_exchange(fd, b"S6\r", 1) == b"\x07"              # bit rate only while closed
+        assert _raw_exchange(fd, b"t12321122\r", 1, timeout=0.2) == b""   # no ack for transmit
+        m = _recv(far)
+        assert (m.arbitration_id, bytes(m.data)) == (0x123, b"\x11\x22")
+        assert _raw_exchange(fd, b"t1232112\r", 1) == b"\x07"         # data shorter than the DLC
+        assert _raw_exchange(fd, b"t8000\r", 1) == b"\x07"            # 11-bit id out of range
+        assert _raw_exchange(fd, b"F\r", 4) == b"F00\r"
+        far.send(can.Message(is_error_frame=True, arbitration_id=0, dlc=0))
+        time.sleep(0.1)
+        assert _raw_exchange(fd, b"F\r", 4) == b"F80\r"              # bus error seen, then cleared
+        assert _raw_exchange(fd, b"F\r", 4) == b"F00\r"
+        assert _raw_exchange(fd, b"V\r", 6) == b"V1013\r"
+        assert _raw_exchange(fd, b"?\r", 1) == b"\x07"
+        # frames while closed are dropped; what the host left unread is discarded when it opens again
+        assert _raw_exchange(fd, b"C\r", 1) == b"\r"
+        far.send(can.Message(arbitration_id=0x701, is_extended_id=False, data=b"\x05"))
+        time.sleep(0.1)
+        assert _raw_exchange(fd, b"O\r", 1) == b"\r"
+        far.send(can.Message(arbitration_id=0x702, is_extended_id=False, data=b"\x05"))   # left unread
+        time.sleep(0.1)
+        os.write(fd, b"C\rO\r")
+        time.sleep(0.1)
+        far.send(can.Message(arbitration_id=0x1FFFFFFF, is_extended_id=True, data=b""))
+        out = _raw_exchange(fd, b"", 12, timeout=1.0)
+        assert out == b"\rT1FFFFFFF0\r", out
+        assert adapter.counters["closed_dropped"] == 1
+    finally:
+        os.close(fd)
+
+
+def test_slcan_codec_roundtrip():
+    for m in (can.Message(arbitration_id=0x7FF, is_extended_id=False, data=b"\x00" * 8),
+              can.Message(arbitration_id=0, is_extended_id=True, data=b""),
+              can.Message(arbitration_id=0x10, is_extended_id=False, is_remote_frame=True, dlc=8)):
+        line = encode_frame(m)
+        r = parse_frame(line[:-1])
+        assert (r.arbitration_id, r.is_extended_id, r.is_remote_frame, r.dlc, bytes(r.data)) == \
+               (m.arbitration_id, m.is_extended_id, m.is_remote_frame, m.dlc, bytes(m.data))
+    assert encode_frame(can.Message(arbitration_id=0x181, is_extended_id=False, data=b"\xab"), 0x1234) == b"t1811AB1234\r"
+    for bad in (b"t12", b"t12391122", b"t123x", b"T1234567", b"t12G0", b"r1231FF"):
+        assert parse_frame(bad) is None
+
+
+# ============================================================================ 2./3. processes
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    """One `rig sim` for the module; each test runs its own `rig run` session against it."""
+    wd = tmp_path_factory.mktemp("rig-sim")
+    # SCHED_FIFO for the simulator and (via the generated config) the runtime, the runtime
+    # above, when the OS permits (both report and carry on when it does not). Measured on a
+    # loaded 2-core machine (docs/sim-process.md): without it the runtime faulted on its own
+    # deadline misses or driver races in 2 of 5 runs of 6 s, with it in none of 5. No CPU
+    # pinning: each process's helper threads would then compete with its real-time thread
+    # for one CPU with no time slicing, which measured no better
+    sp = start_sim_process(extra_args=["--rt-priority", "50", "--runtime-rt-priority", "80"], workdir=wd)
+    yield sp
+    code = sp.stop(signal.SIGINT)
+    assert code == 0, sp.stderr()
+
+
+class KnownRuntimeFault(Exception):
+    """`rig run` stopped on a fault of its own, known to happen on a loaded machine
+    (docs/sim-process.md, "Known runtime issues") — not a misbehaviour of the simulated rig:
+
+    * ``loop``/``overrun``: its own deadline misses. python-can's slcan client costs the
+      runtime ~2 ms of each 5 ms cycle (1 ms of it a blocking read), and a loaded 2-core
+      machine stretches a few consecutive cycles past their deadline now and then;
+    * a laser ``invalid`` "device disconnected (hang-up on the port)": drivers/laser.py takes an
+      empty read followed by a readable select() for a hang-up — a race with bytes that
+      arrive in between, which a streaming device makes happen;
+    * ``stale`` TPDOs or laser values while the simulator demonstrably served them in time:
+      its session statistics show every TPDO on the pty within 10 ms of its SYNC and the
+      lasers' emission thread never more than 10 ms late (the runtime flags 20 ms).
+
+    Tests retry such an attempt (with a warning); any other fault fails them."""
+
+
+ATTEMPTS = 3
+SIM_PROMPT_MS = 10.0
+
+
+def _retrying(fn):
+    last = None
+    for i in range(ATTEMPTS):
+        try:
+            return fn(i)
+        except KnownRuntimeFault as e:
+            last = e
+            warnings.warn(f"attempt {i + 1}/{ATTEMPTS}: {e}")
+    pytest.fail(f"rig run stopped on its own known faults in all {ATTEMPTS} attempts; last: {last}")
+
+
+def _known_runtime_fault(f, stats) -> bool:
+    dev, chk, msg = f["device"], f["check"], f.get("message") or ""
+    if (dev, chk) == ("loop", "overrun"):
+        return True
+    if chk == "invalid" and "hang-up on the port" in msg:
+        return True
+    if chk == "stale" and dev in WHEELS:
+        lat = stats["tpdo_latency_ms"]
+        return lat["n"] > 0 and lat["max"] < SIM_PROMPT_MS
+    if chk == "stale" and dev in config.LASER_ROLES:
+        return stats["tick_lateness_max_ms"] < SIM_PROMPT_MS
+    return False
+
+
+def _sim_stats(sim) -> dict:
+    """The simulator's statistics of the session that just ended (status at most 50 ms old)."""
+    t = time.monotonic()
+    return sim.wait_status(lambda s: s["t"] > t, timeout_s=2.0)["session_stats"]
+
+
+def _check_faults(sim, faults, what: str, extra: str = "") -> None:
+    """KnownRuntimeFault if every fault is a known runtime-side one."""
+    stats = _sim_stats(sim)
+    if faults and all(_known_runtime_fault(f, stats) for f in faults):
+        brief = [(f["device"], f["check"], f.get("message")) for f in faults]
+        raise KnownRuntimeFault(f"{what}: {brief}; simulator: {stats}{extra}")
+
+
+def _log_faults(log) -> list[dict]:
+    try:
+        ev = read_log(log)["events"]
+    except Exception:  # noqa: BLE001 - a log killed before its first flush
+        return []
+    return [{"device": d, "check": c, "message": m}
+            for k, d, c, m in zip(ev["kind"], ev["device"], ev["check"], ev["message"]) if k == "fault"]
+
+
+def _start_run(sim, tmp_path, name, *extra):
+    log = tmp_path / f"{name}.h5"
+    cmd = rig_run_cmd("--config", str(sim.config_path), "--scenario", "single-step", "--json", "--log", str(log), *extra)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
+    return proc, log
+
+
+def _kill_and_explain(sim, proc, log, what: str):
+    """Kill a `rig run` that misbehaved; KnownRuntimeFault if its log shows only known runtime
+    faults (a FAULT before RUNNING never ends the loop: docs/sim-process.md)."""
+    proc.kill()
+    out, err = proc.communicate()
+    faults = _log_faults(log)
+    _check_faults(sim, faults, what)
+    pytest.fail(f"{what}; log faults {faults}\nstdout: {out[-2000:]}\nstderr: {err[-3000:]}")
+
+
+def _finish(sim, proc, log, timeout) -> dict:
+    """Wait for `rig run` to end; its JSON summary. KnownRuntimeFault on a known runtime FAULT."""
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        _kill_and_explain(sim, proc, log, f"rig run did not end within {timeout} s")
+    try:
+        summary = json.loads(out.strip().splitlines()[-1])
+    except (IndexError, ValueError):
+        pytest.fail(f"rig run exited {proc.returncode} without a JSON summary\nstdout: {out[-2000:]}\nstderr: {err[-3000:]}")
+    if summary["final_state"] == "FAULT":
+        _check_faults(sim, summary["faults"], "final state FAULT", f"; runtime timing {summary['timing']}")
+    assert proc.returncode == 0, f"stdout: {out[-2000:]}\nstderr: {err[-3000:]}"
+    return summary
+
+
+def _wait_running(sim, proc, log, min_session_s=1.6, timeout=20.0) -> dict:
+    """Until the runtime is in its session for min_session_s (past the step at 1 s) and the
+    rear converters apply current; the status at that moment."""
+    deadline = time.monotonic() + timeout
+    count0 = sim.status()["session"]["count"]
+    st: dict = {}
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            _finish(sim, proc, log, 5)
+            pytest.fail(f"rig run ended before it was stopped ({proc.returncode})")
+        st = sim.status()
+        ses = st["session"]
+        if ses["count"] > count0 and not ses["active"]:          # the runtime stopped the drives by itself
+            time.sleep(0.5)                                        # let it end (or show that it hangs)
+            if proc.poll() is not None:
+                _finish(sim, proc, log, 5)
+                pytest.fail(f"rig run ended before it was stopped ({proc.returncode})")
+            _kill_and_explain(sim, proc, log, "rig run disabled the drives by itself and did not end")
+        if (ses["active"] and ses["t0"] is not None and st["t"] - ses["t0"] > min_session_s
+                and abs(st["currents"]["rl"]) > 0.02):
+            return st
+        time.sleep(0.02)
+    _kill_and_explain(sim, proc, log, f"rig run never got RUNNING with current against rig sim; last status {st}")
+
+
+def test_generated_config_points_at_the_simulator(sim):
+    cfg = config.load(sim.config_path)
+    assert cfg.devices.can.interface == "slcan" and cfg.devices.can.channel == sim.ports["can"]["channel"]
+    assert {l.role: l.port for l in cfg.devices.lasers} == sim.ports["laser"]
+    assert {s.name: (s.host, s.port) for s in cfg.devices.ft.sensors} == sim.ports["ft"]
+    ref = config.load()                                  # the same plant, controller, geometry
+    assert cfg.plant == ref.plant and cfg.controller == ref.controller and cfg.geometry == ref.geometry
+    assert cfg.devices.can.drives == ref.devices.can.drives and cfg.devices.can.watchdog_ms == ref.devices.can.watchdog_ms
+    for line in sim.lines[:-1]:
+        assert line.split()[0] in ("laser", "can", "ft", "status", "config")
+    assert sim.lines[-1] == "ready"
+    st = sim.wait_status(lambda s: s["timing"]["steps"] > 10, timeout_s=5.0)
+    assert st["error"] == "" and not st["session"]["active"]
+
+
+def test_generated_config_matches_the_shipped_template(sim):
+    """configs/sim-process.yaml documents the generated file: same settings, other ports."""
+    gen, tpl = config.load(sim.config_path), config.load(config.CONFIG_DIR / "sim-process.yaml")
+
+    def strip(c):
+        d = schema.to_dict(c.devices)
+        d["can"]["channel"] = d["can"]["eds"] = None
+        for l in d["lasers"]:
+            l["port"] = None
+        for f in d["ft"]["sensors"]:
+            f["port"] = None
+        return d
+
+    assert strip(gen) == strip(tpl)
+    assert (gen.plant, gen.controller, gen.limits, gen.geometry) == (tpl.plant, tpl.controller, tpl.limits, tpl.geometry)
+    assert gen.devices.can.interface == tpl.devices.can.interface == "slcan"
+
+
+@pytest.mark.slow
+def test_rig_run_against_rig_sim_tracks_the_step(sim, tmp_path):
+    def attempt(i):
+        sessions0 = sim.status()["session"]["count"]
+        proc, log = _start_run(sim, tmp_path, f"e2e-{i}", "--duration", "6")
+        return sessions0, _finish(sim, proc, log, 30), log
+
+    sessions0, summary, log = _retrying(attempt)
+    assert summary["final_state"] == "IDLE", summary
+    assert summary["faults"] == [], summary
+    assert summary["recorder"]["healthy"] and summary["recorder"]["rows"] > 1000
+    d = read_log(log)
+    c = d["columns"]
+    assert len(c["t"]) == summary["recorder"]["rows"]
+    run = c["t_run"] > 0
+    t, y, y_ref = c["t_run"][run], c["y_r"][run], c["y_ref"][run]
+    assert t[-1] > 5.5
+    assert abs(y_ref[-1] - 2.0e-3) < 1e-9
+    tail = t > t[-1] - 0.5
+    assert abs(float(np.mean(y[tail])) - 2.0e-3) < 0.35e-3, float(np.mean(y[tail]))
+    assert float(np.max(y)) < 3.0e-3                       # no wild overshoot
+    before = (t > 0.8) & (t < 1.0)
+    assert float(np.mean(y[before])) < 1.0e-3               # the 2 mm came from the step, not before it
+    st = sim.wait_status(lambda s: not s["session"]["active"], timeout_s=2.0)   # ended by the NMT stop
+    assert st["session"]["count"] == sessions0 + 1, st["session"]
+    assert all(v == 0.0 for v in st["currents"].values())
+    assert st["error"] == ""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_signal_stops_rig_run_cleanly(sim, tmp_path, sig):
+    def attempt(i):
+        trips0 = {w: d["watchdog_trips"] for w, d in sim.status()["drives"].items()}
+        proc, log = _start_run(sim, tmp_path, f"{sig.name}-{i}")
+        _wait_running(sim, proc, log)
+        proc.send_signal(sig)
+        summary = _finish(sim, proc, log, 20)
+        return trips0, summary, log, time.monotonic()
+
+    trips0, summary, log, t_exit = _retrying(attempt)
+    assert summary["final_state"] == "IDLE" and summary["faults"] == [], summary
+    d = read_log(log)
+    assert len(d["columns"]["t"]) == summary["recorder"]["rows"] > 0
+    assert any("signal" in m for m in d["events"]["message"])
+    # the simulated converters: zero current, disabled and pre-operational by the runtime's safe
+    # stop — not by their watchdog. (Their heartbeat consumer reports the runtime's heartbeat
+    # ending 250 ms later, EMCY 0x8130 -> FAULT, which may already have happened by now.)
+    st = sim.wait_status(lambda s: s["t"] > t_exit, timeout_s=2.0)
+    for w in WHEELS:
+        dr = st["drives"][w]
+        assert dr["current_A"] == 0.0, st
+        assert dr["nmt"] == "PRE-OPERATIONAL", st
+        assert dr["state"] in ("SWITCH ON DISABLED", "FAULT") and dr["error_code"] in (0, 0x8130), (w, st["drives"])
+        assert dr["watchdog_trips"] == trips0[w], st
+
+
+@pytest.mark.slow
+def test_sigkill_converter_watchdog_cuts_current(sim, tmp_path):
+    def attempt(i):
+        trips0 = {w: d["watchdog_trips"] for w, d in sim.status()["drives"].items()}
+        proc, log = _start_run(sim, tmp_path, f"sigkill-{i}")
+        st = _wait_running(sim, proc, log)
+        t_kill = time.monotonic()
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(5)
+        faults = _log_faults(log)
+        if faults:                           # it faulted (and disabled the drives) before the kill
+            _check_faults(sim, faults, "fault before SIGKILL")
+        assert faults == [], faults
+        return trips0, st, t_kill
+
+    trips0, st, t_kill = _retrying(attempt)
+    powered = [w for w in WHEELS if st["currents"][w] != 0.0]
+    assert "rl" in powered and "rr" in powered
+    # the status file (rewritten every 50 ms) shows every converter off within the watchdog time
+    # (a drive whose last RPDOs the killed runtime did not get to send trips one period earlier;
+    # the plant thread notes the current's end at its next step, up to 5 ms after the trip)
+    def all_off(s):
+        return (s["t"] > t_kill and all(v == 0.0 for v in s["currents"].values())
+                and all(d["state"] != "OPERATION ENABLED" for d in s["drives"].values()))
+
+    st = sim.wait_status(all_off, timeout_s=3.0, period_s=0.005)
+    t_all_off = st["t"]
+    st = sim.wait_status(lambda s: all((s["drives"][w]["t_current_zero"] or 0.0) > t_kill - 0.01 for w in powered),
+                         timeout_s=1.0, period_s=0.005)
+    margin = 0.25                                 # a loaded 2-core machine
+    assert t_all_off - t_kill < WATCHDOG_S + STATUS_PERIOD_S + margin, (t_all_off - t_kill, st)
+    for w in WHEELS:
+        dr = st["drives"][w]
+        assert dr["state"] == "FAULT" and dr["error_code"] == 0x8250, dr          # EMCY RPDO timeout
+        assert dr["nmt"] == "OPERATIONAL", dr                                     # nobody told it otherwise
+        assert dr["watchdog_trips"] == trips0[w] + 1, dr
+    for w in powered:
+        dr = st["drives"][w]
+        last_cmd = min(dr["last_sync_t"], dr["last_rpdo_t"])
+        t_zero = dr["t_current_zero"]                # seen by the plant thread (5 ms resolution)
+        assert t_zero is not None and t_zero > t_kill - 0.01, dr
+        assert t_zero - last_cmd >= WATCHDOG_S - 0.002, (t_zero - last_cmd, dr)  # not before the timeout
+        assert t_zero - t_kill <= WATCHDOG_S + margin, (t_zero - t_kill, dr)
+
+
+@pytest.mark.slow
+def test_scenario_faults_act_in_scenario_time(tmp_path):
+    """`rig sim --scenario fault-dropout`: laser b_f falls silent 3 s into the session
+    (scenario time starts at the runtime's first SYNC, a few cycles before RUNNING)."""
+    with start_sim_process(scenario="fault-dropout", workdir=tmp_path / "sim",
+                           extra_args=["--rt-priority", "50", "--runtime-rt-priority", "80"]) as sp:
+        def attempt(i):
+            log = tmp_path / f"dropout-{i}.h5"
+            proc = subprocess.Popen(rig_run_cmd("--config", str(sp.config_path), "--scenario", "fault-dropout",
+                                                "--json", "--log", str(log)),
+                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
+            try:
+                out, err = proc.communicate(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                out, err = proc.communicate()
+                pytest.fail(f"rig run did not end\nstderr: {err[-3000:]}")
+            summary = json.loads(out.strip().splitlines()[-1])
+            first = summary["faults"][:1]
+            if first and first[0]["device"] != "b_f":
+                _check_faults(sp, first, "a fault before the injected one")
+            return summary, sp.status()
+
+        summary, st = _retrying(attempt)
+    assert summary["final_state"] == "FAULT", summary
+    f = summary["faults"][0]
+    assert (f["device"], f["check"]) == ("b_f", "stale"), summary["faults"]
+    t_fault = f["t"] - summary["run_started_t"]               # RUNNING time; the session began earlier
+    lead = summary["run_started_t"] - st["session"]["t0"]
+    assert 0.0 < lead < 0.5, lead
+    assert 3.0 - lead <= t_fault <= 3.0 - lead + 0.1, (t_fault, lead)
