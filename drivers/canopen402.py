@@ -776,12 +776,25 @@ class DriveBus(Driver):
                 pass
 
     def _do_close(self) -> None:
-        """Safe stop of the drives, then release the bus (ours only)."""
+        """Safe stop of the drives, switch off their heartbeat consumers (a clean stop
+        must not leave every drive faulting on the runtime's missing heartbeat), then
+        release the bus (ours only)."""
         try:
             self.disable(self._last_now)
+            self._consumers_off(self._last_now)
         finally:
             self._release_bus()
             self._ready = False
+
+    def _consumers_off(self, now: float) -> None:
+        """Expedited SDO download 0x1016:01 = 0 to every drive, fire and forget (the
+        answers are not awaited: a drive that misses it only logs a heartbeat fault)."""
+        if self._bus is None:
+            return
+        for d in self._nodes:
+            data = bytes((0x23, 0x16, 0x10, 0x01, 0, 0, 0, 0))
+            self._send(can.Message(arbitration_id=node_cob_id(COB_SDO_RX, d.node_id), data=data,
+                                   is_extended_id=False), now, self.DISABLE_SEND_TIMEOUT_S)
 
     # ------------------------------------------------------------------ cycle: out
     def _send(self, msg: can.Message, now: float, timeout: float = 0.0) -> bool:

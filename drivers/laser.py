@@ -63,7 +63,7 @@ _CLEAN = b"LMH" * 1024          # flags of a gap-free stream of up to 1024 frame
 _LDISC_FULL = 4095              # Linux n_tty holds this many unread bytes; more wait behind
 _READ_CHUNK = 65536
 _os_read = os.read              # module-level so a test can make the port fail
-_select = select.select
+_HUP = select.POLLHUP | select.POLLERR | select.POLLNVAL
 
 
 def encode_value(x: int) -> bytes:
@@ -226,6 +226,7 @@ class LaserDriver(Driver):
         self._gain = mr / (100.0 * _X_PER_PERCENT * 1000.0)
         self._bias = (cfg.offset_mm - mr / 100.0) / 1000.0
         self._ser: serial.Serial | None = None
+        self._poller: select.poll | None = None
         self._reset_state()
 
     def _reset_state(self) -> None:
@@ -254,8 +255,11 @@ class LaserDriver(Driver):
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DeviceInitError(self.name, f"cannot open serial port {self.port!r}: {exc}") from exc
         self._ser = ser
+        self._poller = select.poll()      # POLLHUP tells a vanished device from "no data yet"
+        self._poller.register(ser.fd, select.POLLIN)
 
     def _do_close(self) -> None:
+        self._poller = None
         ser, self._ser = self._ser, None
         if ser is not None:
             try:
@@ -275,7 +279,7 @@ class LaserDriver(Driver):
         if not data:
             # VMIN = VTIME = 0: an empty read means "nothing yet" — unless the port also
             # polls readable, which is a hang-up (the device end is gone)
-            if _select([fd], [], [], 0)[0]:
+            if self._poller is not None and any(ev & _HUP for _, ev in self._poller.poll(0)):
                 raise DeviceIOError(self.name, "device disconnected (hang-up on the port)")
             return data
         if len(data) < _LDISC_FULL:

@@ -128,6 +128,10 @@ class ControlLoop:
         stats = self.stats
         in_cycle = self.in_cycle
         wall0 = time.perf_counter()
+        gc.collect()            # before t0: a collection can take tens of ms
+        gc.freeze()
+        gc_was_enabled = gc.isenabled()
+        gc.disable()
         t0 = clock.now() + h
         k = 0
         t_arm_deadline = t0 + arm_timeout_s
@@ -135,10 +139,6 @@ class ControlLoop:
         t_fault_end = math.inf
         arm_blockers: list[str] = []
         next_status = 0.0
-        gc.collect()
-        gc.freeze()
-        gc_was_enabled = gc.isenabled()
-        gc.disable()
         u_out = [0.0, 0.0]
         try:
             while True:

@@ -337,7 +337,7 @@ def _wait_running(sim, proc, log, min_session_s=1.6, timeout=20.0) -> dict:
 
 def test_generated_config_points_at_the_simulator(sim):
     cfg = config.load(sim.config_path)
-    assert cfg.devices.can.interface == "slcan" and cfg.devices.can.channel == sim.ports["can"]["channel"]
+    assert cfg.devices.can.interface == "rig_slcan" and cfg.devices.can.channel == sim.ports["can"]["channel"]
     assert {l.role: l.port for l in cfg.devices.lasers} == sim.ports["laser"]
     assert {s.name: (s.host, s.port) for s in cfg.devices.ft.sensors} == sim.ports["ft"]
     ref = config.load()                                  # the same plant, controller, geometry
@@ -365,7 +365,7 @@ def test_generated_config_matches_the_shipped_template(sim):
 
     assert strip(gen) == strip(tpl)
     assert (gen.plant, gen.controller, gen.limits, gen.geometry) == (tpl.plant, tpl.controller, tpl.limits, tpl.geometry)
-    assert gen.devices.can.interface == tpl.devices.can.interface == "slcan"
+    assert gen.devices.can.interface == tpl.devices.can.interface == "rig_slcan"
 
 
 @pytest.mark.slow
