@@ -1,0 +1,954 @@
+"""Plant model of the 1:5 IRDW roller rig and its integrator (paper Sec. 4, eqs. (2)-(9)).
+
+Both wheel carriers c in {f, r}. Per carrier the yaw part has the states
+
+    psi   yaw angle between carrier and frame (the paper's psi_af / psi_ar), rad
+    p     yaw rate psi_dot, rad/s
+    z     Bouc-Wen state z_hyst of (9), rad   (frozen at 0 for the linear model)
+    ue    residual du - uf of the low-pass filtered input uf used by the damping law (7), A
+          (stored as the residual: it decays to exactly 0 instead of losing digits in du - uf)
+
+and there are the lateral displacements y_f, y_r (m) and, with ``wheel_dynamics="dynamic"``,
+the differential wheel speeds dw_f, dw_r (rad/s) of (3).  Equations, disturbance model,
+integrator and its measured error: docs/plant-model.md.
+
+Yaw, per carrier (Delta u held over the step, M_z the disturbance yaw moment):
+
+    psi'' = -2 D omega0 psi' - omega0^2 (a psi + (1-a) z) + K omega0^2 du + omega0^2 psi_off + M_z/J_z
+    z'    = A psi' - beta |psi'| |z|^(n-1) z - gamma psi' |z|^n                (a = a_Bouc)
+    uf'   = (du - uf)/tau,  tau = 1/(2 pi u_filter_hz);   udot = uf' = (du - uf)/tau = ue/tau
+          (with du held: ue' = -ue/tau; ue jumps by the change of du at a step boundary)
+    D     = D_min if |udot| >= c_udot_max else D_max - |udot|/c_udot_max (D_max - D_min)
+
+Lateral (2a)/(2b) with the offset of Sec. 4.1.2 and a lateral force as creep velocity:
+
+    y_f' = +a_l y_f - a_l y_r + cy v psi_af + |v| F_y_f/(2 c22)
+    y_r' = -a_l y_r + a_l y_f + cy v psi_ar + v/(2 l0) y_off + |v| F_y_r/(2 c22),   a_l = cy v/(2 l0)
+
+With ``front_contact`` false the front carrier is lifted: y_f == 0, its yaw still follows its own
+yaw dynamics, its wheels have no rolling contact (dw_f = 0).
+
+The integrator (``Plant.step``) is pure-Python scalar code: an exact solution of the yaw
+oscillator linearised about the (sub)step start (D frozen at its exact average over the
+(sub)step, Bouc-Wen stiffness as the secant slope of the exact z(psi) map, iterated), the
+exact Bouc-Wen map z(psi) for n = 1, the exact filter update, and exponential (exact for a
+cubic Hermite forcing) updates of the lateral and wheel-speed ODEs.  ``Plant.rhs`` is the same
+model as a vectorised numpy right-hand side for the stiff reference solver.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from math import ceil, cos, exp, expm1, log, log1p, sin, sqrt
+from typing import Any, Callable, Optional, Sequence
+
+import numpy as np
+
+from rig_runtime.config import Plant as PlantParams
+
+__all__ = [
+    "PlantState", "Plant", "Scenario", "WHEEL_LOAD_N", "STATE_NAMES",
+    "scenario_open_loop_steps", "scenario_sine", "scenario_free_response",
+    "simulate", "reference", "loop_width",
+]
+
+#: ESTIMATE: static vertical load per wheel, N. A full-scale low-floor IRW wheel carries about
+#: 60 kN; scaled 1:5 with mass ~ 1/5^3 that is 480 N. Only used for the simulated Fz readings.
+WHEEL_LOAD_N = 480.0
+
+#: Layout of the state vector used by ``Plant.rhs`` / ``Plant.state_vector`` (the last two only
+#: with ``wheel_dynamics="dynamic"``).
+STATE_NAMES = ("y_f", "y_r", "psi_af", "psi_rate_f", "z_f", "ue_f",
+               "psi_ar", "psi_rate_r", "z_r", "ue_r", "dw_f", "dw_r")
+_I_YF, _I_YR = 0, 1
+_I_F, _I_R = 2, 6          # offsets of (psi, p, z, ue) of the front / rear carrier
+_I_DW = 10
+
+# Integrator tolerances (adaptive mode). Measured effect: docs/plant-model.md.
+_TOL_D = 0.03        # max relative change of D within one sub-step (log ratio)
+_TOL_NL = 0.005      # max relative change of the Bouc-Wen stiffness within one sub-step
+_TOL_K = 1e-13       # secant iteration: accepted yaw-angle change caused by the slope update, rad
+_MAX_SUB = 4096      # hard cap on sub-steps per call
+
+
+@dataclass(frozen=True, slots=True)
+class PlantState:
+    """A snapshot of the plant (SI units). ``ue_*`` = du - uf, the residual of the input filter
+    of the damping law (udot = ue/tau); ``du_*`` the inputs held since the last step."""
+
+    t: float = 0.0
+    y_f: float = 0.0
+    y_r: float = 0.0
+    psi_af: float = 0.0
+    psi_ar: float = 0.0
+    psi_rate_f: float = 0.0
+    psi_rate_r: float = 0.0
+    z_f: float = 0.0
+    z_r: float = 0.0
+    ue_f: float = 0.0
+    ue_r: float = 0.0
+    dw_f: float = 0.0
+    dw_r: float = 0.0
+    du_f: float = 0.0      # inputs held since the last step
+    du_r: float = 0.0
+
+
+# --------------------------------------------------------------------------- helpers
+def _osc_coef(c: float, w: float, h: float) -> tuple[float, float, float]:
+    """Exact step of x'' + c x' + w x = f (f constant) from x(0) = 0, x'(0) = p0.
+
+    Returns (e12, e22, g1) with x(h) = e12 p0 + g1 f and x'(h) = e22 p0 + e12 f.
+    Robust for over-, under- and critically damped cases and for w -> 0 (c > 0).
+    """
+    hc = 0.5 * c
+    q2 = hc * hc - w
+    if q2 * h * h > 1e-6:                       # overdamped: two real poles
+        q = sqrt(q2)
+        l2 = -(hc + q)                          # fast pole
+        l1 = w / l2                             # slow pole (l1 l2 = w), no cancellation
+        m1 = expm1(l1 * h)
+        m2 = expm1(l2 * h)
+        inv = 0.5 / q                           # 1/(l1 - l2)
+        e12 = (m1 - m2) * inv
+        e22 = (l1 * m1 - l2 * m2 + (l1 - l2)) * inv
+        phi1 = m1 / l1 if l1 != 0.0 else h
+        g1 = (phi1 - m2 / l2) * inv
+        return e12, e22, g1
+    ea = exp(-hc * h)
+    if q2 * h * h < -1e-6:                      # underdamped
+        mu = sqrt(-q2)
+        cs = cos(mu * h)
+        sn = sin(mu * h) / mu
+    else:                                       # (nearly) critically damped: series
+        u = q2 * h * h
+        cs = 1.0 + u * (0.5 + u / 24.0)
+        sn = h * (1.0 + u * (1.0 / 6.0 + u / 120.0))
+    e12 = ea * sn
+    e22 = ea * (cs - hc * sn)
+    if w * h * h > 1e-4:
+        g1 = (1.0 - ea * (cs + hc * sn)) / w
+    else:
+        g1 = h * h * (0.5 - c * h / 6.0 + (c * c - w) * h * h / 24.0)
+    return e12, e22, g1
+
+
+def _hermite_weights(lam: float, h: float) -> tuple[float, float, float, float, float]:
+    """Exact step of y' = -lam y + g(t) over [0, h] with g the cubic Hermite interpolant of
+    (g0, g0', g1, g1'):  y(h) = phi y0 + w0 g0 + w1 g0' + w2 g1 + w3 g1'.
+
+    Uses J_j = int_0^1 exp(-x (1-s)) s^j ds, x = lam h: a series for |x| < 0.5, else the
+    recursion J_j = (1 - j J_{j-1})/x.  Pure math: cheap enough to redo whenever dt changes.
+    """
+    x = lam * h
+    if abs(x) < 0.5:
+        J = []
+        for j in range(4):
+            acc, term, k = 0.0, 1.0 / math.factorial(j + 1), 0
+            while True:                           # j! sum_k (-x)^k/(j+k+1)!
+                acc += term
+                k += 1
+                term *= -x / (j + k + 1)
+                if abs(term) < 1e-18 * abs(acc) or k > 40:
+                    break
+            J.append(math.factorial(j) * acc)
+    else:
+        J = [-expm1(-x) / x]
+        for j in range(1, 4):
+            J.append((1.0 - j * J[-1]) / x)
+    J0, J1, J2, J3 = J
+    return (exp(-x), h * (J0 - 3.0 * J2 + 2.0 * J3), h * h * (J1 - 2.0 * J2 + J3),
+            h * (3.0 * J2 - 2.0 * J3), h * h * (J3 - J2))
+
+
+def _hermite_weights_coupled(a: float, h: float) -> tuple:
+    """Exact step of (2a)/(2b) with the front in contact, Y = (y_f, y_r), Y' = M Y + G(t),
+    M = a [[1, -1], [1, -1]] (nilpotent: e^{Mt} = I + M t), G cubic Hermite over [0, h].
+
+    Returns (Phi, (W0, W1, W2, W3)) as nested lists: Y(h) = Phi Y0 + W0 G0 + W1 G0' + W2 G1 + W3 G1'.
+    int_0^h G = h/2 (G0 + G1) + h^2/12 (G0' - G1');
+    int_0^h (h - t) G = h^2 (7/20 G0 + 3/20 G1) + h^3 (1/20 G0' - 1/30 G1').
+    """
+    M = ((a, -a), (a, -a))
+    I = ((1.0, 0.0), (0.0, 1.0))
+    phi = [[I[i][j] + h * M[i][j] for j in range(2)] for i in range(2)]
+    c_int = (h / 2, h * h / 12, h / 2, -h * h / 12)                       # for G0, G0', G1, G1'
+    c_mom = (0.35 * h * h, h ** 3 / 20, 0.15 * h * h, -h ** 3 / 30)
+    W = [[[c_int[k] * I[i][j] + c_mom[k] * M[i][j] for j in range(2)] for i in range(2)]
+         for k in range(4)]
+    return phi, W
+
+
+def _select(cond: bool, a: float, b: float) -> float:
+    return a if cond else b
+
+
+class _Carrier:
+    """Yaw dynamics (6)-(9) of one wheel carrier: constants and state, advanced in place."""
+
+    __slots__ = ("w0", "w02", "K", "psi_off", "inv_Jw2", "a", "oma", "A", "beta", "gamma", "n",
+                 "hyst", "tau", "cmax", "Dmin", "Dmax", "dD", "fixed_sub",
+                 "psi", "p", "z", "e", "du", "M", "vl",
+                 "_ck", "_cv", "nsub_last")
+
+    def __init__(self, P: PlantParams, fixed_sub: Optional[int]):
+        self.w0 = P.omega0
+        self.w02 = P.omega0 ** 2
+        self.K = P.K
+        self.psi_off = P.psi_off
+        J_z = P.b * P.k_tau / (P.r0 * P.K * P.omega0 ** 2)
+        self.inv_Jw2 = 1.0 / (J_z * self.w02)
+        bw = P.bouc_wen
+        self.hyst = bw is not None and bw.a < 1.0
+        if bw is None:
+            self.a, self.A, self.beta, self.gamma, self.n = 1.0, 1.0, 0.0, 0.0, 1
+        else:
+            self.a, self.A, self.beta, self.gamma, self.n = bw.a, bw.A, bw.beta, bw.gamma, bw.n
+        self.oma = 1.0 - self.a
+        self.tau = 1.0 / (2.0 * math.pi * P.u_filter_hz)
+        self.cmax = P.c_udot_max
+        self.Dmin, self.Dmax = P.D_min, P.D_max
+        self.dD = P.D_max - P.D_min
+        self.fixed_sub = fixed_sub
+        self.psi = self.p = self.z = self.e = self.du = self.M = self.vl = 0.0
+        self._ck = None
+        self._cv = (0.0, 0.0, 0.0)
+        self.nsub_last = 0
+
+    # -- model pieces ------------------------------------------------------------
+    def damping(self) -> float:
+        """D of (7) for the current filter state and held input."""
+        rho = abs(self.e) / (self.tau * self.cmax)
+        return self.Dmin if rho >= 1.0 else self.Dmax - rho * self.dD
+
+    def accel(self, D: float) -> float:
+        """psi'' at the current state with damping D (held input and moment)."""
+        w02 = self.w02
+        ueq = self.K * self.du + self.psi_off + self.M * self.inv_Jw2
+        R = self.psi - self.oma * (self.psi - self.z)
+        return -2.0 * D * self.w0 * self.p + w02 * (ueq - R)
+
+    def zmap(self, z: float, dpsi: float) -> float:
+        """Exact Bouc-Wen state after a monotone change dpsi of psi (z'(psi) = A - kappa z, n = 1)."""
+        if dpsi == 0.0:
+            return z
+        if self.n != 1:
+            return self._zmap_general(z, dpsi)
+        A, beta, gamma = self.A, self.beta, self.gamma
+        s = 1.0 if dpsi > 0.0 else -1.0
+        for _ in range(2):                      # at most one zero crossing of z
+            if z > 0.0:
+                sig = 1.0
+            elif z < 0.0:
+                sig = -1.0
+            else:
+                sig = s if A >= 0.0 else -s
+            kap = beta * s + gamma * sig
+            slope = A - kap * z                 # dz/dpsi at the start
+            kd = kap * dpsi
+            if kd != 0.0:
+                zn = z - slope * expm1(-kd) / kap
+            else:
+                zn = z + slope * dpsi
+            if z == 0.0 or zn * z >= 0.0:
+                return zn
+            # crossed zero: distance in psi to z = 0, continue from there with the other sign
+            if kap != 0.0 and A != 0.0:
+                d = log1p(-kap * z / A) / kap
+            else:
+                d = -z / slope
+            dpsi -= d
+            z = 0.0
+            if dpsi * s <= 0.0:
+                return 0.0
+        return z
+
+    def _zmap_general(self, z: float, dpsi: float) -> float:
+        """Bouc-Wen for n != 1: RK4 in psi with sub-steps small against the local stiffness."""
+        A, beta, gamma, n = self.A, self.beta, self.gamma, self.n
+        s = 1.0 if dpsi > 0.0 else -1.0
+
+        def g(zz: float) -> float:
+            az = abs(zz)
+            return A - beta * s * az ** (n - 1) * zz - gamma * az ** n
+
+        zs = max(abs(z), (abs(A) / (beta + abs(gamma))) ** (1.0 / n))
+        stiff = (beta + abs(gamma)) * n * zs ** (n - 1)
+        m = max(1, min(100000, ceil(abs(dpsi) * stiff / 0.05)))
+        hs = dpsi / m
+        for _ in range(m):
+            k1 = g(z)
+            k2 = g(z + 0.5 * hs * k1)
+            k3 = g(z + 0.5 * hs * k2)
+            k4 = g(z + hs * k3)
+            z += hs * (k1 + 2 * k2 + 2 * k3 + k4) / 6.0
+        return z
+
+    def slope(self, z: float, s: float) -> float:
+        """dz/dpsi of (9) at z when psi moves in direction s (+1 / -1)."""
+        if z == 0.0:
+            return self.A
+        az = abs(z)
+        if self.n == 1:
+            return self.A - self.beta * s * z - self.gamma * az
+        return self.A - self.beta * s * az ** (self.n - 1) * z - self.gamma * az ** self.n
+
+    def _mean_D(self, rho: float, ta: float, tb: float) -> float:
+        """Exact time average of D(t) over [ta, tb]; |udot(t)|/c_max = rho exp(-t/tau)."""
+        tau = self.tau
+        t1 = tau * log(rho) if rho > 1.0 else 0.0   # D leaves D_min at t1
+        if t1 >= tb:
+            return self.Dmin
+        acc = 0.0
+        ts = ta
+        if t1 > ta:
+            acc = self.Dmin * (t1 - ta)
+            ts = t1
+        acc += self.Dmax * (tb - ts) - self.dD * rho * tau * (exp(-ts / tau) - exp(-tb / tau))
+        return acc / (tb - ta)
+
+    # -- integration -------------------------------------------------------------
+    def _coef(self, c: float, w: float, h: float) -> tuple[float, float, float]:
+        key = (c, w, h)
+        if key == self._ck:
+            return self._cv
+        v = _osc_coef(c, w, h)
+        self._ck = key
+        self._cv = v
+        return v
+
+    def _sub(self, h: float, c: float, ueq: float) -> float:
+        """Advance (psi, p, z) over h with constant damping coefficient c = 2 D omega0.
+
+        Returns the relative change of the Bouc-Wen stiffness seen over the sub-step
+        (0 for the linear model), which the caller uses to refine the sub-steps.
+        """
+        psi, p, z = self.psi, self.p, self.z
+        oma = self.oma
+        f = self.w02 * (ueq - (psi - oma * (psi - z)))
+        if not self.hyst:
+            e12, e22, g1 = self._coef(c, self.w02, h)
+            self.psi = psi + e12 * p + g1 * f
+            self.p = e22 * p + e12 * f
+            return 0.0
+        a = self.a
+        w02 = self.w02
+        ap = a / oma                               # a/(1-a): stiffness floor in units of k
+        s = 1.0 if (p > 0.0 or (p == 0.0 and f >= 0.0)) else -1.0
+        n1 = self.n == 1
+        if n1:                                     # dz/dpsi = A - kappa z (inlined slope())
+            sig = 1.0 if z > 0.0 else (-1.0 if z < 0.0 else s)
+            kap = self.beta * s + self.gamma * sig
+            k0 = self.A - kap * z
+        else:
+            k0 = self.slope(z, s)
+        k = k0
+        # predict the secant slope over the expected motion (last velocity) -> usually one solve
+        xe = self.vl * h
+        if n1 and xe * s > 0.0:
+            kx = kap * xe
+            if kx != 0.0:
+                k = -k0 * expm1(-kx) / kx
+        nl = -1.0
+        x = z1 = 0.0
+        for it in range(10):
+            e12, e22, g1 = _osc_coef(c, w02 * (a + oma * k), h)
+            x = e12 * p + g1 * f
+            if x == 0.0:
+                z1 = z
+                break
+            if x * s < 0.0 and it == 0:            # moves the other way: restart with that slope
+                s = -s
+                k = k0 = self.slope(z, s)
+                continue
+            z1 = self.zmap(z, x)
+            ks = (z1 - z) / x
+            kmin = k0 if k0 < ks else ks
+            if kmin < 0.0:
+                kmin = 0.0
+            if nl < 0.0:                           # tangent vs secant: Bouc-Wen curvature over h
+                nl = abs(ks - k0) / (ap + kmin)
+            kmin = k if k < ks else ks
+            if kmin < 0.0:
+                kmin = 0.0
+            if abs(ks - k) * oma * abs(x) <= _TOL_K * (a + oma * kmin):
+                break
+            k = ks
+        self.psi = psi + x
+        self.p = e22 * p + e12 * f
+        self.z = z1
+        self.vl = x / h
+        return nl if nl > 0.0 else 0.0
+
+    def advance(self, h: float, ef: float, du: float, M: float) -> None:
+        """Advance the carrier's yaw states over h with input du and moment M held."""
+        r = self.e + (du - self.du)               # filter residual just after the input change
+        self.du = du
+        self.M = M
+        self.e = r * ef
+        ueq = self.K * du + self.psi_off + M * self.inv_Jw2
+        rho = abs(r) / (self.tau * self.cmax)
+        w0 = self.w0
+        if rho * ef >= 1.0:                        # |udot| >= c_max through the whole step
+            vary = False
+            D = self.Dmin
+        elif rho * self.dD <= 1e-12 * self.Dmax:   # D == D_max to 12 digits
+            vary = False
+            D = self.Dmax
+        else:
+            vary = True
+            D = 0.0
+        n = self.fixed_sub
+        if n is None:
+            n = 1
+            if vary:
+                d0 = self.Dmin if rho >= 1.0 else self.Dmax - rho * self.dD
+                d1 = self.Dmax - rho * ef * self.dD
+                n = max(1, min(_MAX_SUB, ceil(log(d1 / d0) / _TOL_D)))
+        if not self.hyst and not vary and n == 1:  # fast path: linear, constant damping
+            self._sub(h, 2.0 * D * w0, ueq)
+            self.nsub_last = 1
+            return
+        adaptive = self.fixed_sub is None and self.hyst
+        hs = h / n
+        count = 0
+        for j in range(n):
+            t = j * hs
+            if adaptive:
+                count += self._piece(t, hs, rho, vary, D, ueq)
+            else:
+                self._sub(hs, self._c(rho, vary, D, t, t + hs), ueq)
+                count += 1
+        self.nsub_last = count
+
+    def _c(self, rho: float, vary: bool, D: float, ta: float, tb: float) -> float:
+        """Damping coefficient 2 D omega0 with D averaged exactly over [ta, tb]."""
+        return 2.0 * self.w0 * (self._mean_D(rho, ta, tb) if vary else D)
+
+    def _piece(self, t: float, hh: float, rho: float, vary: bool, D: float, ueq: float) -> int:
+        """Advance over [t, t + hh] with the hysteresis: split at a reversal of psi' (the map
+        z(psi) is exact for monotone psi) and refine where the Bouc-Wen stiffness changes much."""
+        saved = (self.psi, self.p, self.z, self.vl)
+        c = 2.0 * self.w0 * (self._mean_D(rho, t, t + hh) if vary else D)
+        nl = self._sub(hh, c, ueq)
+        p0 = saved[1]
+        if p0 * self.p < 0.0:
+            ts = self._reversal_time(saved, c, ueq, hh)
+            self.psi, self.p, self.z, self.vl = saved
+            return (self._refined(t, ts, rho, vary, D, ueq, None)
+                    + self._refined(t + ts, hh - ts, rho, vary, D, ueq, None))
+        if nl > _TOL_NL:
+            self.psi, self.p, self.z, self.vl = saved
+            return self._refined(t, hh, rho, vary, D, ueq, nl)
+        return 1
+
+    def _refined(self, t: float, hh: float, rho: float, vary: bool, D: float, ueq: float,
+                 nl: Optional[float]) -> int:
+        """Advance over [t, t + hh] in m equal sub-steps, m from the Bouc-Wen curvature
+        ``nl`` of one trial sub-step (computed here when not given)."""
+        if nl is None:
+            saved = (self.psi, self.p, self.z, self.vl)
+            nl = self._sub(hh, self._c(rho, vary, D, t, t + hh), ueq)
+            if nl <= _TOL_NL:
+                return 1
+            self.psi, self.p, self.z, self.vl = saved
+        m = min(_MAX_SUB, ceil(nl / _TOL_NL))
+        hm = hh / m
+        for i in range(m):
+            self._sub(hm, self._c(rho, vary, D, t + i * hm, t + (i + 1) * hm), ueq)
+        return m
+
+    def _reversal_time(self, saved: tuple, c: float, ueq: float, hh: float) -> float:
+        """Time in (0, hh) at which psi' of the linearised solution from ``saved`` crosses 0
+        (Illinois regula falsi on the exact solution; stiffness of the initial direction)."""
+        psi, p0, z = saved[0], saved[1], saved[2]
+        k0 = self.slope(z, 1.0 if p0 > 0.0 else -1.0)
+        w = self.w02 * (self.a + self.oma * k0)
+        f = self.w02 * (ueq - (psi - self.oma * (psi - z)))
+        ta, pa = 0.0, p0
+        e12, e22, _ = _osc_coef(c, w, hh)
+        tb, pb = hh, e22 * p0 + e12 * f
+        if pa * pb >= 0.0:                          # not bracketed by the linearisation
+            return hh * p0 / (p0 - self.p)
+        for _ in range(40):
+            tm = (ta * pb - tb * pa) / (pb - pa)
+            if not (min(ta, tb) < tm < max(ta, tb)):
+                tm = 0.5 * (ta + tb)
+            e12, e22, _ = _osc_coef(c, w, tm)
+            pm = e22 * p0 + e12 * f
+            if pm * pb < 0.0:
+                ta, pa = tb, pb
+            else:
+                pa *= 0.5                           # Illinois modification
+            tb, pb = tm, pm
+            if abs(tb - ta) <= 1e-9 * hh or pm == 0.0:
+                break
+        return min(max(tb, 1e-12 * hh), hh * (1.0 - 1e-12))
+
+
+# --------------------------------------------------------------------------- the plant
+class Plant:
+    """Both wheel carriers of the rig: lateral (2), wheel speeds (4) or (3), yaw (6)-(9).
+
+    ``step(dt, du_f, du_r, ...)`` advances by dt with inputs and disturbances held (ZOH).
+    ``wheel_dynamics``: "static" uses the algebraic relation (4); "dynamic" integrates (3)
+    exactly (its pole -c11 r0^2/(J_x v) is about -5.6e4 1/s).  ``substeps``: None = adaptive
+    (default; meets the documented accuracy), an int = that many equal yaw sub-steps per
+    call with no adaptation (faster, less accurate when D varies or the hysteresis flips).
+    """
+
+    def __init__(self, params: PlantParams, wheel_dynamics: str = "static",
+                 substeps: Optional[int] = None):
+        if wheel_dynamics not in ("static", "dynamic"):
+            raise ValueError(f"wheel_dynamics: expected 'static' or 'dynamic', got {wheel_dynamics!r}")
+        if substeps is not None and (not isinstance(substeps, int) or substeps < 1):
+            raise ValueError(f"substeps: expected None or an int >= 1, got {substeps!r}")
+        if wheel_dynamics == "dynamic" and not params.v > 0:
+            raise ValueError("wheel_dynamics='dynamic' needs v > 0: the creep pole "
+                             "-c11 r0^2/(J_x v) of (3) is unstable/undefined otherwise")
+        P = params
+        self.params = P
+        self.wheel_dynamics = wheel_dynamics
+        self.dynamic = wheel_dynamics == "dynamic"
+        self.substeps = substeps
+        self.n_states = 12 if self.dynamic else 10
+        # derived constants
+        self.cy = P.c_y
+        self.Gamma = P.Gamma
+        self.a_lat = P.a_lat
+        self.c22 = P.c11                                     # ESTIMATE: c22 ~ c11
+        self.J_z = P.b * P.k_tau / (P.r0 * P.K * P.omega0 ** 2)
+        self.front_contact = P.front_contact
+        self._cyv = self.cy * P.v
+        self._off = P.v / (2.0 * P.l0) * P.y_off             # paper Sec. 4.1.2: (v/(2 l0)) y_off
+        self._fy = abs(P.v) / (2.0 * self.c22)               # lateral creep velocity per N
+        self._gvb = self.Gamma * P.v * P.b / (2.0 * P.r0 ** 2)
+        self._b2r = P.b / (2.0 * P.r0)
+        self._vk = P.v * P.k_tau / (P.r0 ** 2 * P.c11)
+        self._lam = P.c11 * P.r0 ** 2 / (P.J_x * P.v) if self.dynamic else 0.0
+        self._w_nom = P.v / P.r0
+        self._front = _Carrier(P, substeps)
+        self._rear = _Carrier(P, substeps)
+        self._h = None
+        self.reset()
+
+    # ---------------------------------------------------------------- state handling
+    def reset(self, *, t: float = 0.0, y_f: Optional[float] = None, y_r: Optional[float] = None,
+              psi_af: Optional[float] = None, psi_ar: Optional[float] = None,
+              psi_rate_f: float = 0.0, psi_rate_r: float = 0.0,
+              z_f: Optional[float] = None, z_r: Optional[float] = None,
+              du_f: float = 0.0, du_r: float = 0.0) -> None:
+        """Set the state; no disturbance is held afterwards.
+
+        Defaults give a rest state: filters settled on du, psi = K du + psi_off (the linear
+        equilibrium), z = psi (then a psi + (1-a) z = psi, so it is an equilibrium of the
+        hysteretic model too), and y at its lateral equilibrium for that psi:
+        y_r = (c_y v psi_ar + v y_off/(2 l0))/a_l with the front lifted (y_f = 0 always);
+        with front contact y_r = 0 and y_f = y_r - g_r/a_l (an equilibrium only if
+        psi_af = psi_ar and y_off = 0, otherwise (2a)/(2b) have none and y drifts).
+        """
+        P = self.params
+        for car, psi, rate, z, du in ((self._front, psi_af, psi_rate_f, z_f, du_f),
+                                      (self._rear, psi_ar, psi_rate_r, z_r, du_r)):
+            car.psi = P.K * du + P.psi_off if psi is None else float(psi)
+            car.p = float(rate)
+            car.z = (car.psi if z is None else float(z)) if car.hyst else 0.0
+            car.du = float(du)
+            car.e = 0.0
+            car.M = 0.0
+            car.vl = car.p
+        self._t = float(t)
+        a = self.a_lat
+        g_r = self._cyv * self._rear.psi + self._off
+        if self.front_contact:
+            self._y_r = 0.0 if y_r is None else float(y_r)
+            if y_f is not None:
+                self._y_f = float(y_f)
+            else:
+                self._y_f = self._y_r - g_r / a if a != 0.0 else self._y_r
+        else:
+            self._y_f = 0.0
+            self._y_r = (g_r / a if a != 0.0 else 0.0) if y_r is None else float(y_r)
+        self._F_f = self._F_r = 0.0
+        self._dw_f, self._dw_r = self._dw_static()
+
+    @property
+    def state(self) -> PlantState:
+        f, r = self._front, self._rear
+        return PlantState(self._t, self._y_f, self._y_r, f.psi, r.psi, f.p, r.p, f.z, r.z,
+                          f.e, r.e, self._dw_f, self._dw_r, f.du, r.du)
+
+    def set_state(self, s: PlantState) -> None:
+        """Restore a snapshot taken with ``state`` (disturbances are reset to zero)."""
+        f, r = self._front, self._rear
+        self._t, self._y_f, self._y_r = s.t, (s.y_f if self.front_contact else 0.0), s.y_r
+        f.psi, r.psi, f.p, r.p = s.psi_af, s.psi_ar, s.psi_rate_f, s.psi_rate_r
+        f.z, r.z = (s.z_f if f.hyst else 0.0), (s.z_r if r.hyst else 0.0)
+        f.e, r.e, f.du, r.du = s.ue_f, s.ue_r, s.du_f, s.du_r
+        f.M = r.M = 0.0
+        f.vl, r.vl = f.p, r.p
+        self._F_f = self._F_r = 0.0
+        self._dw_f, self._dw_r = (s.dw_f, s.dw_r) if self.dynamic else self._dw_static()
+
+    def state_vector(self) -> np.ndarray:
+        """The state in the layout of ``rhs`` (``STATE_NAMES``)."""
+        f, r = self._front, self._rear
+        x = [self._y_f, self._y_r, f.psi, f.p, f.z, f.e, r.psi, r.p, r.z, r.e]
+        if self.dynamic:
+            x += [self._dw_f, self._dw_r]
+        return np.array(x)
+
+    def set_state_vector(self, x: Sequence[float], t: Optional[float] = None) -> None:
+        f, r = self._front, self._rear
+        x = [float(v) for v in x]
+        self._y_f = x[0] if self.front_contact else 0.0
+        self._y_r = x[1]
+        f.psi, f.p, f.z, f.e = x[2:6]
+        r.psi, r.p, r.z, r.e = x[6:10]
+        f.vl, r.vl = f.p, r.p
+        if not f.hyst:
+            f.z = r.z = 0.0
+        if t is not None:
+            self._t = float(t)
+        self._dw_f, self._dw_r = (x[10], x[11]) if self.dynamic else self._dw_static()
+
+    # ---------------------------------------------------------------- outputs
+    t = property(lambda self: self._t, doc="simulated time, s")
+    y_f = property(lambda self: self._y_f, doc="front lateral displacement, m (0 if lifted)")
+    y_r = property(lambda self: self._y_r, doc="rear lateral displacement, m")
+    dw_f = property(lambda self: self._dw_f, doc="front wheel-speed difference omega_fl - omega_fr, rad/s")
+    dw_r = property(lambda self: self._dw_r, doc="rear wheel-speed difference omega_rl - omega_rr, rad/s")
+    psi_af = property(lambda self: self._front.psi, doc="front carrier yaw angle psi_af, rad")
+    psi_ar = property(lambda self: self._rear.psi, doc="rear carrier yaw angle psi_ar, rad")
+    psi_rate_f = property(lambda self: self._front.p, doc="front yaw rate, rad/s")
+    psi_rate_r = property(lambda self: self._rear.p, doc="rear yaw rate, rad/s")
+    z_f = property(lambda self: self._front.z, doc="front Bouc-Wen state (0 if linear)")
+    z_r = property(lambda self: self._rear.z, doc="rear Bouc-Wen state (0 if linear)")
+    D_f = property(lambda self: self._front.damping(), doc="front damping D of (7) now")
+    D_r = property(lambda self: self._rear.damping(), doc="rear damping D of (7) now")
+    uf_f = property(lambda self: self._front.du - self._front.e, doc="front filtered input uf, A")
+    uf_r = property(lambda self: self._rear.du - self._rear.e, doc="rear filtered input uf, A")
+    udot_f = property(lambda self: self._front.e / self._front.tau,
+                      doc="filtered input derivative used by (7), front, A/s")
+    udot_r = property(lambda self: self._rear.e / self._rear.tau,
+                      doc="filtered input derivative used by (7), rear, A/s")
+    omega_fl = property(lambda self: self._w_nom + 0.5 * self._dw_f, doc="front-left wheel speed, rad/s")
+    omega_fr = property(lambda self: self._w_nom - 0.5 * self._dw_f, doc="front-right wheel speed, rad/s")
+    omega_rl = property(lambda self: self._w_nom + 0.5 * self._dw_r, doc="rear-left wheel speed, rad/s")
+    omega_rr = property(lambda self: self._w_nom - 0.5 * self._dw_r, doc="rear-right wheel speed, rad/s")
+    substeps_last = property(lambda self: (self._front.nsub_last, self._rear.nsub_last),
+                             doc="yaw sub-steps used by the last step (front, rear)")
+
+    def _dw_static(self) -> tuple[float, float]:
+        """Relation (4) per carrier in contact (a lifted carrier has no rolling contact: 0)."""
+        f, r = self._front, self._rear
+        dwr = self._gvb * self._y_r + self._b2r * r.p + self._vk * r.du
+        dwf = (self._gvb * self._y_f + self._b2r * f.p + self._vk * f.du) if self.front_contact else 0.0
+        return dwf, dwr
+
+    def ft_readings(self) -> dict[str, tuple[float, float, float, float, float, float]]:
+        """Simulated force-torque sensor values (Fx, Fy, Fz, Mx, My, Mz) per wheel side.
+
+        Model (estimates, docs/plant-model.md): the held disturbance of a carrier passes half
+        through each side (Fy = F_y/2, Mz = M_z/2); a carrier in contact adds the static
+        wheel load Fz = WHEEL_LOAD_N and the longitudinal reaction of the differential motor
+        torque, Fx = +-k_tau du/(2 r0) (left +, right -); Mx = My = 0.
+        """
+        P = self.params
+        out = {}
+        for name, car, F, contact in (("f", self._front, self._F_f, self.front_contact),
+                                      ("r", self._rear, self._F_r, True)):
+            fx = P.k_tau * car.du / (2.0 * P.r0) if contact else 0.0
+            fz = WHEEL_LOAD_N if contact else 0.0
+            out[name + "l"] = (fx, 0.5 * F, fz, 0.0, 0.0, 0.5 * car.M)
+            out[name + "r"] = (-fx, 0.5 * F, fz, 0.0, 0.0, 0.5 * car.M)
+        return out
+
+    # ---------------------------------------------------------------- integration
+    def _prepare(self, h: float) -> None:
+        """Per-dt constants: filter decay, lateral and wheel-speed Hermite weights (a few µs)."""
+        self._h = h
+        self._ef = exp(-h / self._rear.tau)
+        if self.front_contact:
+            self._lat2 = _hermite_weights_coupled(self.a_lat, h)
+        else:
+            self._lat1 = _hermite_weights(self.a_lat, h)
+        if self.dynamic:
+            lam = self._lam
+            phi, *w = _hermite_weights(lam, h)
+            self._wh = (phi,) + tuple(lam * x for x in w)     # forcing of (3) is lam * (4)
+
+    def step(self, dt: float, du_f: float, du_r: float, F_y_f: float = 0.0, F_y_r: float = 0.0,
+             M_z_f: float = 0.0, M_z_r: float = 0.0) -> None:
+        """Advance by dt (s) with the differential currents du_f, du_r (A), lateral forces
+        F_y_* (N) and yaw moments M_z_* (N m) held constant over the step."""
+        if dt != self._h:
+            if not dt > 0.0:
+                raise ValueError(f"dt: expected a positive step, got {dt!r}")
+            self._prepare(dt)
+        f, r = self._front, self._rear
+        cyv = self._cyv
+        psi_f0, p_f0, psi_r0, p_r0 = f.psi, f.p, r.psi, r.p
+        if self.dynamic:
+            start = (psi_f0, p_f0, f.z, f.e + (du_f - f.du), psi_r0, p_r0, r.z, r.e + (du_r - r.du),
+                     self._y_f, self._y_r)
+        ef = self._ef
+        # yaw (exact / sub-stepped); skip an untouched carrier resting exactly at equilibrium
+        if (p_f0 != 0.0 or du_f != f.du or f.e != 0.0 or M_z_f != f.M or f.K * du_f + f.psi_off
+                + M_z_f * f.inv_Jw2 != f.psi - f.oma * (f.psi - f.z)):
+            f.advance(dt, ef, du_f, M_z_f)
+        else:
+            f.nsub_last = 0
+        r.advance(dt, ef, du_r, M_z_r)
+        self._F_f, self._F_r = F_y_f, F_y_r
+        # lateral: exponential update, forcing = cubic Hermite of psi over the step
+        fy = self._fy
+        if self.front_contact:
+            (P0, P1), W = self._lat2
+            yf0, yr0 = self._y_f, self._y_r
+            cf = fy * F_y_f
+            cr = self._off + fy * F_y_r
+            gf0, gr0 = cyv * psi_f0 + cf, cyv * psi_r0 + cr
+            gf1, gr1 = cyv * f.psi + cf, cyv * r.psi + cr
+            hf0, hr0, hf1, hr1 = cyv * p_f0, cyv * p_r0, cyv * f.p, cyv * r.p
+            W0, W1, W2, W3 = W
+            self._y_f = (P0[0] * yf0 + P0[1] * yr0 + W0[0][0] * gf0 + W0[0][1] * gr0 + W1[0][0] * hf0
+                        + W1[0][1] * hr0 + W2[0][0] * gf1 + W2[0][1] * gr1 + W3[0][0] * hf1 + W3[0][1] * hr1)
+            self._y_r = (P1[0] * yf0 + P1[1] * yr0 + W0[1][0] * gf0 + W0[1][1] * gr0 + W1[1][0] * hf0
+                        + W1[1][1] * hr0 + W2[1][0] * gf1 + W2[1][1] * gr1 + W3[1][0] * hf1 + W3[1][1] * hr1)
+        else:
+            phi, w00, w10, w01, w11 = self._lat1
+            cr = self._off + fy * F_y_r
+            yr0 = self._y_r
+            self._y_r = (phi * yr0 + w00 * (cyv * psi_r0 + cr) + w10 * (cyv * p_r0)
+                        + w01 * (cyv * r.psi + cr) + w11 * (cyv * r.p))
+        self._t += dt
+        # wheel speeds
+        if not self.dynamic:
+            gvb, b2r, vk = self._gvb, self._b2r, self._vk
+            self._dw_r = gvb * self._y_r + b2r * r.p + vk * du_r
+            if self.front_contact:
+                self._dw_f = gvb * self._y_f + b2r * f.p + vk * du_f
+        else:
+            self._wheel_dynamic(dt, start)
+
+    def _wheel_dynamic(self, dt: float, start: tuple) -> None:
+        """Exact exponential update of (3): Delta-omega relaxes to the static value (4) with the
+        pole -lam; (4) over the step is taken as the cubic Hermite interpolant of its end values
+        and end derivatives (only the last ~1/lam of the step matters)."""
+        phi, w00, w10, w01, w11 = self._wh
+        gvb, b2r, vk = self._gvb, self._b2r, self._vk
+        a, cyv, fy = self.a_lat, self._cyv, self._fy
+        f, r = self._front, self._rear
+        fpsi0, fp0, fz0, fe0, rpsi0, rp0, rz0, re0, yf0, yr0 = start
+        yf1, yr1 = self._y_f, self._y_r
+        # lateral rates at both ends
+        cr = self._off + fy * self._F_r
+        yr_d0 = -a * yr0 + a * yf0 + cyv * rpsi0 + cr
+        yr_d1 = -a * yr1 + a * yf1 + cyv * r.psi + cr
+        self._dw_r = self._dw_update(r, rpsi0, rp0, rz0, re0, yr0, yr1, yr_d0, yr_d1, self._dw_r)
+        if self.front_contact:
+            cf = fy * self._F_f
+            yf_d0 = a * yf0 - a * yr0 + cyv * fpsi0 + cf
+            yf_d1 = a * yf1 - a * yr1 + cyv * f.psi + cf
+            self._dw_f = self._dw_update(f, fpsi0, fp0, fz0, fe0, yf0, yf1, yf_d0, yf_d1, self._dw_f)
+
+    def _dw_update(self, car: _Carrier, psi0: float, p0: float, z0: float, e0: float,
+                   y0: float, y1: float, yd0: float, yd1: float, dw: float) -> float:
+        phi, w00, w10, w01, w11 = self._wh
+        gvb, b2r, vk = self._gvb, self._b2r, self._vk
+        du = car.du
+        rho0 = abs(e0) / (car.tau * car.cmax)               # right limit at the step start
+        D0 = car.Dmin if rho0 >= 1.0 else car.Dmax - rho0 * car.dD
+        ueq = car.K * du + car.psi_off + car.M * car.inv_Jw2
+        acc0 = -2.0 * D0 * car.w0 * p0 + car.w02 * (ueq - (psi0 - car.oma * (psi0 - z0)))
+        acc1 = car.accel(car.damping())
+        s0 = gvb * y0 + b2r * p0 + vk * du
+        s1 = gvb * y1 + b2r * car.p + vk * du
+        return phi * dw + w00 * s0 + w10 * (gvb * yd0 + b2r * acc0) + w01 * s1 + w11 * (gvb * yd1 + b2r * acc1)
+
+    # ---------------------------------------------------------------- reference model
+    def rhs(self, t: float, x: np.ndarray, inputs: Any) -> np.ndarray:
+        """The same model as a vectorised right-hand side (x of shape (n,) or (n, m)).
+
+        ``inputs`` = (du_f, du_r, F_y_f, F_y_r, M_z_f, M_z_r), held constant over the
+        integration interval (the model's input is zero-order hold).  Where du changes, the
+        filter residual ue of the state jumps by the same amount: see ``input_jump``.
+        """
+        x = np.asarray(x, dtype=float)
+        if x.ndim == 1:       # scalar path (the implicit solver's Newton iterations): plain floats
+            return np.array(self._rhs(x.tolist(), inputs, abs, _select))
+        out = np.empty_like(x)
+        for i, r in enumerate(self._rhs(list(x), inputs, np.abs, np.where)):
+            out[i] = r
+        return out
+
+    def _rhs(self, x: list, inputs: Any, absf: Callable, select: Callable) -> list:
+        du_f, du_r, Fyf, Fyr, Mzf, Mzr = (float(v) for v in inputs)
+        a, cyv = self.a_lat, self._cyv
+        yf, yr = x[_I_YF], x[_I_YR]
+        dx = [0.0] * self.n_states
+        if self.front_contact:
+            dx[_I_YF] = a * yf - a * yr + cyv * x[_I_F] + self._fy * Fyf
+        else:
+            yf = 0.0
+        dx[_I_YR] = -a * yr + a * yf + cyv * x[_I_R] + self._off + self._fy * Fyr
+        for car, i, du, M in ((self._front, _I_F, du_f, Mzf), (self._rear, _I_R, du_r, Mzr)):
+            psi, p, z, ue = x[i], x[i + 1], x[i + 2], x[i + 3]
+            udot = ue / car.tau
+            rho = absf(udot) / car.cmax
+            D = select(rho >= 1.0, car.Dmin, car.Dmax - rho * car.dD)
+            if car.hyst:
+                R = car.a * psi + car.oma * z
+                az = absf(z)
+                n = car.n
+                if n == 1:
+                    dx[i + 2] = car.A * p - car.beta * absf(p) * z - car.gamma * p * az
+                else:
+                    dx[i + 2] = car.A * p - car.beta * absf(p) * az ** (n - 1) * z - car.gamma * p * az ** n
+            else:
+                R = psi
+            dx[i] = p
+            dx[i + 1] = (-2.0 * D * car.w0 * p - car.w02 * R
+                         + car.w02 * (car.K * du + car.psi_off + M * car.inv_Jw2))
+            dx[i + 3] = -udot
+        if self.dynamic:
+            lam = self._lam
+            gvb, b2r, vk = self._gvb, self._b2r, self._vk
+            dx[_I_DW + 1] = lam * (gvb * yr + b2r * x[_I_R + 1] + vk * du_r - x[_I_DW + 1])
+            if self.front_contact:
+                dx[_I_DW] = lam * (gvb * yf + b2r * x[_I_F + 1] + vk * du_f - x[_I_DW])
+            else:
+                dx[_I_DW] = -lam * x[_I_DW]
+        return dx
+
+    @staticmethod
+    def input_jump(x: np.ndarray, old: Sequence[float], new: Sequence[float]) -> np.ndarray:
+        """State vector just after the held inputs change from ``old`` to ``new`` (ue += d du)."""
+        x = np.array(x, dtype=float)
+        x[_I_F + 3] += new[0] - old[0]
+        x[_I_R + 3] += new[1] - old[1]
+        return x
+
+
+# --------------------------------------------------------------------------- scenarios
+@dataclass(frozen=True)
+class Scenario:
+    """Inputs held over each step k: columns du_f, du_r, F_y_f, F_y_r, M_z_f, M_z_r."""
+
+    name: str
+    params: PlantParams
+    dt: float
+    inputs: np.ndarray
+    initial: dict = field(default_factory=dict)
+
+    @property
+    def t(self) -> np.ndarray:
+        return np.arange(len(self.inputs) + 1) * self.dt
+
+
+def _inputs(n: int) -> np.ndarray:
+    return np.zeros((n, 6))
+
+
+def scenario_open_loop_steps(params: PlantParams, h: float = 0.005, t_end: float = 120.0,
+                             levels: Sequence[tuple[float, float]] = (
+                                 (0.0, 0.0), (20.0, 1.0), (40.0, 0.0), (60.0, -1.0),
+                                 (80.0, 0.5), (100.0, -0.5))) -> Scenario:
+    """Open-loop steps of du_r like Fig. 3: (start time, level) pairs, front lifted and idle."""
+    n = int(round(t_end / h))
+    U = _inputs(n)
+    tk = np.arange(n) * h
+    for t0, lv in levels:
+        U[tk >= t0 - 1e-9, 1] = lv
+    return Scenario("open_loop_steps", params, h, U)
+
+
+def scenario_sine(params: PlantParams, nu: float, amplitude: float = 0.7, h: float = 0.005,
+                  hold: Optional[float] = None, periods: float = 1.0) -> Scenario:
+    """du_r = amplitude sin(2 pi nu t) over ``periods`` periods (Fig. 9; one step more, so the
+    record ends just past the last rising zero crossing), sampled and held every ``hold``
+    seconds (default: every step h; ``hold`` is rounded to a multiple of h)."""
+    n = int(math.ceil(periods / nu / h - 1e-9)) + 1    # just past the end of the last period
+    m = 1 if hold is None else max(1, int(round(hold / h)))
+    tk = (np.arange(n) // m) * m * h
+    U = _inputs(n)
+    U[:, 1] = amplitude * np.sin(2.0 * np.pi * nu * tk)
+    return Scenario(f"sine_{nu * 1e3:g}mHz", params, h, U)
+
+
+def scenario_free_response(params: PlantParams, psi0: float = 0.01, D: float = 0.28,
+                           h: float = 0.005, t_end: float = 3.0) -> Scenario:
+    """Free response of the lifted, linear carrier (Sec. 4.3.2): du = 0, psi(0) = psi0, D fixed."""
+    P = replace(params, bouc_wen=None, D_min=D, D_max=D)
+    n = int(round(t_end / h))
+    return Scenario("free_response", P, h, _inputs(n), {"psi_ar": psi0})
+
+
+def simulate(scenario: Scenario, plant: Optional[Plant] = None, **plant_kw: Any) -> np.ndarray:
+    """Run the integrator over the scenario; returns states (n+1, n_states) at t = k dt
+    (layout ``STATE_NAMES``)."""
+    pl = plant if plant is not None else Plant(scenario.params, **plant_kw)
+    pl.reset(**scenario.initial)
+    f, r = pl._front, pl._rear
+    dyn = pl.dynamic
+
+    def row() -> tuple:
+        x = (pl._y_f, pl._y_r, f.psi, f.p, f.z, f.e, r.psi, r.p, r.z, r.e)
+        return x + (pl._dw_f, pl._dw_r) if dyn else x
+    rows = [row()]
+    dt = scenario.dt
+    step = pl.step
+    for u in scenario.inputs.tolist():
+        step(dt, *u)
+        rows.append(row())
+    return np.array(rows)
+
+
+def reference(scenario: Scenario, rtol: float = 1e-10, atol: float = 1e-12, method: str = "Radau",
+              **plant_kw: Any) -> np.ndarray:
+    """The same scenario with ``scipy.integrate.solve_ivp`` (restarted wherever the held
+    inputs change, so it sees exactly the same ZOH input); states at t = k dt."""
+    from scipy.integrate import solve_ivp
+
+    pl = Plant(scenario.params, **plant_kw)
+    pl.reset(**scenario.initial)
+    U = scenario.inputs
+    n = len(U)
+    dt = scenario.dt
+    out = np.empty((n + 1, pl.n_states))
+    x = pl.state_vector()
+    out[0] = x
+    prev = (pl._front.du, pl._rear.du, 0.0, 0.0, 0.0, 0.0)
+    change = np.flatnonzero(np.any(np.diff(U, axis=0) != 0.0, axis=1)) + 1
+    bounds = np.concatenate(([0], change, [n]))
+    for k0, k1 in zip(bounds[:-1], bounds[1:]):
+        t_eval = np.arange(k0 + 1, k1 + 1) * dt
+        x = pl.input_jump(x, prev, U[k0])
+        prev = tuple(U[k0])
+        sol = solve_ivp(pl.rhs, (k0 * dt, k1 * dt), x, method=method, t_eval=t_eval,
+                        args=(tuple(U[k0]),), rtol=rtol, atol=atol)
+        if not sol.success:
+            raise RuntimeError(f"reference solver failed on [{k0 * dt}, {k1 * dt}]: {sol.message}")
+        out[k0 + 1:k1 + 1] = sol.y.T
+        x = sol.y[:, -1]
+    return out
+
+
+def loop_width(du: np.ndarray, psi: np.ndarray) -> float:
+    """Width of the psi-du loop (Fig. 9): psi where du crosses zero falling minus psi where it
+    crosses zero rising (the last crossing of each kind), by linear interpolation.  ``du`` and
+    ``psi`` are sampled at the same instants; |du| below 1e-12 max|du| counts as zero."""
+    du = np.asarray(du, dtype=float)
+    psi = np.asarray(psi, dtype=float)
+    s = np.sign(np.where(np.abs(du) <= 1e-12 * np.max(np.abs(du)), 0.0, du))
+    up = np.flatnonzero((s[:-1] < 0) & (s[1:] >= 0))
+    dn = np.flatnonzero((s[:-1] > 0) & (s[1:] <= 0))
+    if len(up) == 0 or len(dn) == 0:
+        raise ValueError("du has no rising and falling zero crossing")
+
+    def at(i: int) -> float:
+        w = 1.0 if s[i + 1] == 0 else du[i] / (du[i] - du[i + 1])
+        return float(psi[i] + w * (psi[i + 1] - psi[i]))
+
+    return at(dn[-1]) - at(up[-1])
