@@ -887,7 +887,7 @@ def scenario_free_response(params: PlantParams, psi0: float = 0.01, D: float = 0
 
 def simulate(scenario: Scenario, plant: Optional[Plant] = None, **plant_kw: Any) -> np.ndarray:
     """Run the integrator over the scenario; returns states (n+1, n_states) at t = k dt
-    (layout ``STATE_NAMES``)."""
+    (layout ``STATE_NAMES``). A given ``plant`` is reset and used with its own parameters."""
     pl = plant if plant is not None else Plant(scenario.params, **plant_kw)
     pl.reset(**scenario.initial)
     f, r = pl._front, pl._rear
