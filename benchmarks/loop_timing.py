@@ -25,7 +25,6 @@ import os
 import sys
 import tempfile
 import time
-from array import array
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))

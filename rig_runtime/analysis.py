@@ -80,7 +80,7 @@ def outer_matrix(cfg: RigConfig) -> np.ndarray:
 def closed_loop_matrix(cfg: RigConfig) -> np.ndarray:
     """Ā_cl of (19), states [y, ψ, ψ̇, x_I, x_diff] (a similarity transform of the paper's
     error coordinates: same eigenvalues). ψ̇_ref is taken exactly, ψ̇ through (12)."""
-    p, g = cfg.plant, cfg.controller.pipd
+    g = cfg.controller.pipd
     A, B = model_10(cfg, a=_outer_a(cfg))
     T = g.T_f_psi
     M = np.zeros((5, 5))
@@ -103,7 +103,7 @@ def closed_loop_matrix(cfg: RigConfig) -> np.ndarray:
 def sampled_closed_loop(cfg: RigConfig) -> np.ndarray:
     """Eigenvalues of the loop as implemented: plant (10) (with (10)'s own lateral pole)
     held over h, the Tustin PI-PD of ``control.py``; returned as ln(z)/h (1/s)."""
-    p, c = cfg.plant, cfg.controller
+    c = cfg.controller
     g, h = c.pipd, c.h
     A, B = model_10(cfg)
     n = 3

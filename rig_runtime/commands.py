@@ -5,9 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import sys
-import time
 from pathlib import Path
 
 from .cli import arg, command

@@ -13,9 +13,8 @@ import json
 import math
 import signal
 import sys
-import time
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Optional
 
 from . import __version__, schema
 from .clock import Clock

@@ -737,7 +737,6 @@ class Plant:
         pole -lam; (4) over the step is taken as the cubic Hermite interpolant of its end values
         and end derivatives (only the last ~1/lam of the step matters)."""
         phi, w00, w10, w01, w11 = self._wh
-        gvb, b2r, vk = self._gvb, self._b2r, self._vk
         a, cyv, fy = self.a_lat, self._cyv, self._fy
         f, r = self._front, self._rear
         fpsi0, fp0, fz0, fe0, rpsi0, rp0, rz0, re0, yf0, yr0 = start

@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-import can
 import numpy as np
 
 from drivers import canopen402 as co

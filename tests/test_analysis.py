@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from rig_runtime import analysis, config
+from rig_runtime import analysis
 
 
 def _match(computed, printed, rel=0.02):

@@ -6,7 +6,6 @@ import json
 import subprocess
 import sys
 
-import pytest
 
 RIG = [sys.executable, "-m", "rig_runtime"]
 

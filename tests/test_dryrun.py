@@ -2,7 +2,6 @@
 transports (ptys, a python-can bus, Modbus TCP on 127.0.0.1)."""
 
 import numpy as np
-import pytest
 
 from .e2e import run
 

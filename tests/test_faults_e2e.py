@@ -1,7 +1,6 @@
 """Every fault scenario ends in FAULT with the right cause, zero current on the wire from
 the detecting cycle on, the cause in the log's event table, and a readable log."""
 
-import numpy as np
 import pytest
 
 from .e2e import assert_safe_stop, run

@@ -236,7 +236,7 @@ def test_exponential_hermite_weights_are_exact_for_cubics(lam, h):
 @pytest.mark.parametrize("a", [1.746, -0.9])
 def test_coupled_lateral_weights_are_exact_for_cubics(a):
     h = 0.05
-    (g, df), (gr, dr) = _hermite_g(h), _hermite_g(h)
+    g, df = _hermite_g(h)
     M = np.array([[a, -a], [a, -a]])
     phi, W = _hermite_weights_coupled(a, h)
     Y0 = np.array([1e-3, -2e-3])
