@@ -52,11 +52,9 @@ import numpy as np
 import yaml
 
 from drivers.canopen402 import COB_NMT, COB_SYNC, COB_TPDO1, NMT_START, NMT_STATE_NAMES
-from drivers.ft300 import Wrench
 from rig_runtime import config as rig_config
 from rig_runtime import schema
-from rig_runtime.config import LASER_ROLES, WHEELS, RigConfig
-from rig_runtime.geometry import ideal_readings, pose_from_carriers
+from rig_runtime.config import WHEELS, RigConfig
 from rig_runtime.scenario import Scenario
 
 from .rig import SimulatedRig
@@ -370,25 +368,11 @@ class RealtimeSim:
     def _publish(self, t: float) -> None:
         """Physical values -> virtual devices (the lasers emit on the ticks, not here)."""
         sim = self.sim
-        p, geo = sim.plant, self.cfg.geometry
-        pose = pose_from_carriers(p.y_f, p.y_r, p.psi_af, p.psi_ar, geo)
-        r = ideal_readings(pose, geo, s0=0.0)
-        for role, v in zip(LASER_ROLES, (r.b_f, r.b_r, r.s_fl, r.s_fr, r.s_rl, r.s_rr)):
-            vl = sim.lasers.get(role)
-            if vl is not None:
-                vl.set_distance(v + (sim.s0[role] if role.startswith("s") else 0.0))
-        g = sim._rng.gauss
-        en = sim.sc.encoder_noise_rad_s
-        for w, om in zip(WHEELS, (p.omega_fl, p.omega_fr, p.omega_rl, p.omega_rr)):
-            self.drives.set_wheel_speed(w, om + (g(0.0, en) if en else 0.0))
+        sim.set_laser_distances()
+        sim.set_wheel_speeds()
         if sim.ft is not None and t >= self._next_ft - 1e-12:
             self._next_ft = t + self.ft_period
-            fr = p.ft_readings()
-            n = sim.sc.ft_noise_N
-            for s in self.cfg.devices.ft.sensors:
-                vals6 = fr.get(s.name[-2:], (0.0,) * 6)
-                sim.ft.set_wrench(s.name, Wrench(*(v + (g(0.0, n) if n and i < 3 else 0.0)
-                                                   for i, v in enumerate(vals6))))
+            sim.set_wrenches()
 
     # ------------------------------------------------------------------ status
     def timing(self) -> dict[str, Any]:

@@ -210,30 +210,42 @@ class SimulatedRig:
 
     def _publish(self, t: float) -> None:
         """Physical values -> virtual devices (their own codecs), frames up to ``t``."""
+        self.set_laser_distances()
+        emit_all(self._laser_list, t)
+        self.set_wheel_speeds()
+        if self.ft is not None and t >= self._next_ft - 1e-12:
+            self._next_ft = t + self.ft_period
+            self.set_wrenches()
+            if self.ft_driver is not None:
+                self.ft_driver.poll_devices_once()
+
+    def set_laser_distances(self) -> None:
+        """The distances the six lasers see for the plant's pose (no frames are emitted)."""
         p, geo = self.plant, self.cfg.geometry
         pose = pose_from_carriers(p.y_f, p.y_r, p.psi_af, p.psi_ar, geo)
         r = ideal_readings(pose, geo, s0=0.0)
-        vals = (r.b_f, r.b_r, r.s_fl, r.s_fr, r.s_rl, r.s_rr)
-        for role, v in zip(LASER_ROLES, vals):
+        for role, v in zip(LASER_ROLES, (r.b_f, r.b_r, r.s_fl, r.s_fr, r.s_rl, r.s_rr)):
             vl = self.lasers.get(role)
             if vl is not None:
                 vl.set_distance(v + (self.s0[role] if role.startswith("s") else 0.0))
-        emit_all(self._laser_list, t)
+
+    def set_wheel_speeds(self) -> None:
+        """The plant's wheel speeds, with encoder noise, to the virtual drives."""
+        p = self.plant
         g = self._rng.gauss
         en = self.sc.encoder_noise_rad_s
         for w, om in zip(WHEELS, (p.omega_fl, p.omega_fr, p.omega_rl, p.omega_rr)):
             self.drives.set_wheel_speed(w, om + (g(0.0, en) if en else 0.0))
-        if self.ft is not None and t >= self._next_ft - 1e-12:
-            self._next_ft = t + self.ft_period
-            fr = p.ft_readings()
-            n = self.sc.ft_noise_N
-            for s in self.cfg.devices.ft.sensors:
-                key = s.name[-2:]
-                vals6 = fr.get(key, (0.0,) * 6)
-                self.ft.set_wrench(s.name, Wrench(*(v + (g(0.0, n) if n and k < 3 else 0.0)
-                                                    for k, v in enumerate(vals6))))
-            if self.ft_driver is not None:
-                self.ft_driver.poll_devices_once()
+
+    def set_wrenches(self) -> None:
+        """The plant's force–torque readings, with noise on the forces, to the Modbus servers."""
+        fr = self.plant.ft_readings()
+        g = self._rng.gauss
+        n = self.sc.ft_noise_N
+        for s in self.cfg.devices.ft.sensors:
+            vals6 = fr.get(s.name[-2:], (0.0,) * 6)
+            self.ft.set_wrench(s.name, Wrench(*(v + (g(0.0, n) if n and k < 3 else 0.0)
+                                                for k, v in enumerate(vals6))))
 
     def close(self) -> None:
         for c in reversed(self._closers):
