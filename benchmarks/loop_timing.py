@@ -78,9 +78,6 @@ def main() -> int:
         cfg = dataclasses.replace(cfg, realtime=dataclasses.replace(
             cfg.realtime, sched_fifo_priority=args.fifo,
             cpu_affinity=(args.cpu,) if args.cpu is not None else None))
-        if cfg.devices.can.interface == "slcan":
-            cfg = dataclasses.replace(cfg, devices=dataclasses.replace(
-                cfg.devices, can=dataclasses.replace(cfg.devices.can, interface="rig_slcan")))
         rt = apply_realtime(cfg.realtime)
         h = cfg.controller.h
         clock = RealtimeClock(cfg.realtime.spin_us * 1e-6)

@@ -26,39 +26,46 @@ _BITRATES = {10000: "S0", 20000: "S1", 50000: "S2", 100000: "S3", 125000: "S4", 
              500000: "S6", 750000: "S7", 1000000: "S8", 83300: "S9"}
 
 
-def encode_frame(msg: can.Message) -> bytes:
-    """One SLCAN transmit command for ``msg`` (classic CAN)."""
+_HEX = frozenset(b"0123456789abcdefABCDEF")
+
+
+def encode_frame(msg: can.Message, timestamp_ms: Optional[int] = None) -> bytes:
+    """One SLCAN line for a classic CAN frame (``None``-free; error/FD frames are not encodable)."""
+    dlc = msg.dlc
     if msg.is_extended_id:
-        head = f"{'R' if msg.is_remote_frame else 'T'}{msg.arbitration_id:08X}{msg.dlc:d}"
+        head = f"{'R' if msg.is_remote_frame else 'T'}{msg.arbitration_id:08X}{dlc:d}"
     else:
-        head = f"{'r' if msg.is_remote_frame else 't'}{msg.arbitration_id:03X}{msg.dlc:d}"
-    if msg.is_remote_frame:
-        return (head + "\r").encode()
-    return (head + bytes(msg.data).hex().upper() + "\r").encode()
+        head = f"{'r' if msg.is_remote_frame else 't'}{msg.arbitration_id:03X}{dlc:d}"
+    body = "" if msg.is_remote_frame else bytes(msg.data[:dlc]).hex().upper()
+    tail = f"{timestamp_ms:04X}" if timestamp_ms is not None else ""
+    return (head + body + tail + "\r").encode("ascii")
 
 
-def decode_frame(line: bytes) -> Optional[can.Message]:
-    """A received SLCAN line (without its ``\\r``) as a message; None if it is no frame."""
-    if not line:
+def parse_frame(line: bytes) -> Optional[can.Message]:
+    """A ``t``/``T``/``r``/``R`` command line (without ``\\r``) -> Message, None if malformed."""
+    kind = line[:1]
+    if kind not in (b"t", b"T", b"r", b"R"):
+        return None                                  # acks (z, Z), status or version replies
+    ext = kind in (b"T", b"R")
+    remote = kind in (b"r", b"R")
+    n_id = 8 if ext else 3
+    if len(line) < 1 + n_id + 1:
         return None
-    k = line[0]
-    if k in (0x74, 0x72):          # t, r
-        n_id, ext = 3, False
-    elif k in (0x54, 0x52):        # T, R
-        n_id, ext = 8, True
-    else:
+    id_txt, dlc_txt = line[1:1 + n_id], line[1 + n_id:2 + n_id]
+    if not all(c in _HEX for c in id_txt) or not dlc_txt.isdigit():
         return None
-    try:
-        can_id = int(line[1:1 + n_id], 16)
-        dlc = int(line[1 + n_id:2 + n_id], 16)
-        remote = k in (0x72, 0x52)
-        data = b"" if remote else bytes.fromhex(line[2 + n_id:2 + n_id + 2 * dlc].decode())
-    except ValueError:
+    can_id, dlc = int(id_txt, 16), int(dlc_txt)
+    if dlc > 8 or can_id > (0x1FFFFFFF if ext else 0x7FF):
         return None
-    if not remote and len(data) != dlc:
+    rest = line[2 + n_id:]
+    if remote:
+        if rest:
+            return None
+        return can.Message(arbitration_id=can_id, is_extended_id=ext, is_remote_frame=True, dlc=dlc)
+    if len(rest) != 2 * dlc or not all(c in _HEX for c in rest):
         return None
-    return can.Message(timestamp=time.time(), arbitration_id=can_id, is_extended_id=ext,
-                       is_remote_frame=remote, dlc=dlc, data=data, check=False)
+    return can.Message(arbitration_id=can_id, is_extended_id=ext, data=bytes.fromhex(rest.decode("ascii")),
+                       dlc=dlc)
 
 
 class SlcanBus(can.BusABC):
@@ -122,8 +129,9 @@ class SlcanBus(can.BusABC):
             if b == 13 or b == 7:          # \r or \a ends a reply
                 if b == 7:
                     self.errors += 1
-                msg = decode_frame(bytes(buf[start:i]))
+                msg = parse_frame(bytes(buf[start:i]))
                 if msg is not None:
+                    msg.timestamp = time.time()
                     self._rx.append(msg)
                 start = i + 1
         del buf[:start]

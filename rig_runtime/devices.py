@@ -22,6 +22,15 @@ FT_COMPONENTS = ("fx", "fy", "fz", "mx", "my", "mz")
 FT_RANGE = (300.0, 30.0)    # FT 300 class: ±300 N, ±30 N m (rated range)
 
 
+def _update(c: Channel, value: float, t: float, health) -> None:
+    """A supervisor channel from one driver reading (``t`` NaN = nothing received yet)."""
+    c.value = value
+    c.t = t if t == t else -math.inf
+    c.state = health.state
+    c.cause = health.cause
+    c.bad = health.bad_frames
+
+
 class RigDevices:
     """Owns the drivers; ``open`` brings everything up (blocking), ``poll``/``write`` are
     the non-blocking per-cycle calls."""
@@ -111,26 +120,15 @@ class RigDevices:
         dist = self.dist
         for i, d in enumerate(self.lasers):
             r = d.poll(now)
-            c = ch[i]
-            hl = r.health
-            c.value = r.value_m
-            c.t = r.t if r.t == r.t else -math.inf
-            c.state = hl.state
-            c.cause = hl.cause
-            c.bad = hl.bad_frames
+            _update(ch[i], r.value_m, r.t, r.health)
             dist[i] = r.value_m
         rd = self.drives.poll(now)
         ok, cause = True, ""
         omega = self.omega
         for j, w in enumerate(WHEELS):
             r = rd.wheels[w]
-            c = ch[6 + j]
             hl = r.health
-            c.value = r.omega
-            c.t = r.t if r.t == r.t else -math.inf
-            c.state = hl.state
-            c.cause = hl.cause
-            c.bad = hl.bad_frames
+            _update(ch[6 + j], r.omega, r.t, hl)
             omega[j] = r.omega
             if hl.state is Freshness.INVALID and ok:
                 ok, cause = False, f"drive {w} (node {r.node_id}): {hl.cause}"
@@ -144,15 +142,10 @@ class RigDevices:
             ev = self.extra_values
             for k, n in enumerate(self.ft_names):
                 r = fr[n]
-                c = ch[10 + k]
                 w = r.wrench
-                c.state, c.cause = r.health.state, r.health.cause
-                c.t = r.t if r.t == r.t else -math.inf
-                if w is None:
-                    c.value = math.nan
-                    continue
-                c.value = w.fy
-                ev[6 * k:6 * k + 6] = (w.fx, w.fy, w.fz, w.mx, w.my, w.mz)
+                _update(ch[10 + k], math.nan if w is None else w.fy, r.t, r.health)
+                if w is not None:
+                    ev[6 * k:6 * k + 6] = (w.fx, w.fy, w.fz, w.mx, w.my, w.mz)
 
     def write(self, currents: Sequence[float], now: float) -> None:
         self.drives.write(currents, now)

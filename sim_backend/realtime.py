@@ -6,7 +6,6 @@ the interpreter's switch interval)."""
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
@@ -23,9 +22,6 @@ from .process import start_sim_process
 def run_realtime_dry_run(cfg: RigConfig, scenario: Scenario, args: argparse.Namespace, log: Path) -> tuple[dict, int]:
     with start_sim_process(config=cfg.source, scenario=scenario.source or None, seed=args.seed) as sp:
         rcfg = config.load(sp.config_path)
-        if rcfg.devices.can.interface == "slcan":   # the buffer-reading client: python-can's reads byte by byte
-            rcfg = dataclasses.replace(rcfg, devices=dataclasses.replace(
-                rcfg.devices, can=dataclasses.replace(rcfg.devices.can, interface="rig_slcan")))
         devices = RigDevices(rcfg)
         rt_report = apply_realtime(rcfg.realtime)
         clock = RealtimeClock(rcfg.realtime.spin_us * 1e-6)

@@ -61,52 +61,16 @@ from typing import Callable, Optional
 
 import can
 
+from drivers.slcan_bus import encode_frame, parse_frame  # one SLCAN codec for both ends
+
 __all__ = ["SlcanAdapter", "encode_frame", "parse_frame"]
 
 _OK = b"\r"
 _ERR = b"\x07"
 _BITRATES = {"0": 10_000, "1": 20_000, "2": 50_000, "3": 100_000, "4": 125_000, "5": 250_000,
              "6": 500_000, "7": 750_000, "8": 1_000_000, "9": 83_300}
-_HEX = frozenset(b"0123456789abcdefABCDEF")
 FLAG_OVERRUN = 0x08
 FLAG_BUS_ERROR = 0x80
-
-
-def encode_frame(msg: can.Message, timestamp_ms: Optional[int] = None) -> bytes:
-    """One SLCAN line for a classic CAN frame (``None``-free; error/FD frames are not encodable)."""
-    dlc = msg.dlc
-    if msg.is_extended_id:
-        head = f"{'R' if msg.is_remote_frame else 'T'}{msg.arbitration_id:08X}{dlc:d}"
-    else:
-        head = f"{'r' if msg.is_remote_frame else 't'}{msg.arbitration_id:03X}{dlc:d}"
-    body = "" if msg.is_remote_frame else bytes(msg.data[:dlc]).hex().upper()
-    tail = f"{timestamp_ms:04X}" if timestamp_ms is not None else ""
-    return (head + body + tail + "\r").encode("ascii")
-
-
-def parse_frame(line: bytes) -> Optional[can.Message]:
-    """A ``t``/``T``/``r``/``R`` command line (without ``\\r``) -> Message, None if malformed."""
-    kind = line[:1]
-    ext = kind in (b"T", b"R")
-    remote = kind in (b"r", b"R")
-    n_id = 8 if ext else 3
-    if len(line) < 1 + n_id + 1:
-        return None
-    id_txt, dlc_txt = line[1:1 + n_id], line[1 + n_id:2 + n_id]
-    if not all(c in _HEX for c in id_txt) or not dlc_txt.isdigit():
-        return None
-    can_id, dlc = int(id_txt, 16), int(dlc_txt)
-    if dlc > 8 or can_id > (0x1FFFFFFF if ext else 0x7FF):
-        return None
-    rest = line[2 + n_id:]
-    if remote:
-        if rest:
-            return None
-        return can.Message(arbitration_id=can_id, is_extended_id=ext, is_remote_frame=True, dlc=dlc)
-    if len(rest) != 2 * dlc or not all(c in _HEX for c in rest):
-        return None
-    return can.Message(arbitration_id=can_id, is_extended_id=ext, data=bytes.fromhex(rest.decode("ascii")),
-                       dlc=dlc)
 
 
 class SlcanAdapter:

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.slcan_bus import decode_frame, encode_frame
+from drivers.slcan_bus import encode_frame, parse_frame
 from sim_backend.slcan import SlcanAdapter
 
 
@@ -23,15 +23,15 @@ def test_encode_by_hand():
 
 
 def test_decode_rejects_garbage():
-    assert decode_frame(b"z") is None and decode_frame(b"") is None
-    assert decode_frame(b"t20340F00FA") is None        # dlc 4 but 3 bytes
-    assert decode_frame(b"tXYZ0") is None
+    assert parse_frame(b"z") is None and parse_frame(b"") is None
+    assert parse_frame(b"t20340F00FA") is None        # dlc 4 but 3 bytes
+    assert parse_frame(b"tXYZ0") is None
 
 
 @given(cid=st.integers(0, 0x7FF), data=st.binary(max_size=8), ext=st.booleans(), ext_id=st.integers(0, 0x1FFFFFFF))
 def test_round_trip(cid, data, ext, ext_id):
     m = can.Message(arbitration_id=ext_id if ext else cid, data=data, is_extended_id=ext)
-    back = decode_frame(encode_frame(m)[:-1])
+    back = parse_frame(encode_frame(m)[:-1])
     assert (back.arbitration_id, bytes(back.data), back.is_extended_id, back.dlc) == \
         (m.arbitration_id, bytes(m.data), ext, len(data))
 
