@@ -22,8 +22,7 @@ import math
 import os
 import select
 import re
-from dataclasses import dataclass
-from typing import Iterable
+from typing import Iterable, NamedTuple
 
 import numpy as np
 import serial
@@ -181,8 +180,7 @@ def _values(buf: bytes, start: int, end: int) -> list[int]:
 
 
 # --------------------------------------------------------------------------- driver
-@dataclass(frozen=True, slots=True)
-class LaserReading:
+class LaserReading(NamedTuple):
     """One laser channel after a poll.
 
     ``value_m`` is the physical distance ``offset_mm + d_mm`` in metres of the latest valid
@@ -193,7 +191,8 @@ class LaserReading:
     measurement; decide on ``health.state``, not on NaN checks. ``n_values`` counts the
     valid distance values decoded in this poll; ``raw_x`` is the latest value received
     (incl. error codes), -1 before the first. ``health`` is a snapshot, not the driver's
-    live object.
+    live object. Immutable; a named tuple because a frozen dataclass costs three times as
+    much to build, every 5 ms.
     """
 
     role: str

@@ -15,9 +15,11 @@ from __future__ import annotations
 
 import collections
 import os
+import re
 import select
 import time
-from typing import Any, Optional
+from binascii import unhexlify
+from typing import Any, Optional, Sequence
 
 import can
 import serial
@@ -27,6 +29,9 @@ _BITRATES = {10000: "S0", 20000: "S1", 50000: "S2", 100000: "S3", 125000: "S4", 
 
 
 _HEX = frozenset(b"0123456789abcdefABCDEF")
+# a data frame with an 11-bit id, the usual line: t III L DD… (the length is checked after)
+_STD_DATA = re.compile(rb"t([0-9A-Fa-f]{3})([0-8])((?:[0-9A-Fa-f][0-9A-Fa-f]){0,8})")
+_FRAME_START = frozenset(b"tTrR")
 
 
 def encode_frame(msg: can.Message, timestamp_ms: Optional[int] = None) -> bytes:
@@ -43,6 +48,14 @@ def encode_frame(msg: can.Message, timestamp_ms: Optional[int] = None) -> bytes:
 
 def parse_frame(line: bytes) -> Optional[can.Message]:
     """A ``t``/``T``/``r``/``R`` command line (without ``\\r``) -> Message, None if malformed."""
+    m = _STD_DATA.fullmatch(line)
+    if m is not None:                                # fast path: standard-id data frame
+        id_txt, dlc_txt, data_txt = m.groups()
+        dlc = dlc_txt[0] - 48
+        can_id = int(id_txt, 16)
+        if len(data_txt) != 2 * dlc or can_id > 0x7FF:
+            return None
+        return can.Message(arbitration_id=can_id, is_extended_id=False, data=unhexlify(data_txt), dlc=dlc)
     kind = line[:1]
     if kind not in (b"t", b"T", b"r", b"R"):
         return None                                  # acks (z, Z), status or version replies
@@ -64,8 +77,7 @@ def parse_frame(line: bytes) -> Optional[can.Message]:
         return can.Message(arbitration_id=can_id, is_extended_id=ext, is_remote_frame=True, dlc=dlc)
     if len(rest) != 2 * dlc or not all(c in _HEX for c in rest):
         return None
-    return can.Message(arbitration_id=can_id, is_extended_id=ext, data=bytes.fromhex(rest.decode("ascii")),
-                       dlc=dlc)
+    return can.Message(arbitration_id=can_id, is_extended_id=ext, data=unhexlify(rest), dlc=dlc)
 
 
 class SlcanBus(can.BusABC):
@@ -78,7 +90,7 @@ class SlcanBus(can.BusABC):
         except (serial.SerialException, OSError, ValueError) as e:
             raise can.CanInitializationError(f"cannot open SLCAN port {channel!r}: {e}") from e
         self._fd = self._ser.fd
-        self._buf = bytearray()
+        self._buf = b""
         self._rx: collections.deque = collections.deque()
         self.errors = 0                   # \a replies of the adapter
         self.channel_info = f"SLCAN on {channel}"
@@ -103,7 +115,15 @@ class SlcanBus(can.BusABC):
             raise can.CanInitializationError(f"SLCAN adapter did not answer {cmd!r} within {timeout_s} s")
 
     def send(self, msg: can.Message, timeout: Optional[float] = None) -> None:
-        data = encode_frame(msg)
+        self._write(encode_frame(msg))
+
+    def send_many(self, msgs: Sequence[can.Message]) -> None:
+        """Send several frames with one ``write(2)`` (one USB transfer on a real adapter):
+        the control loop's SYNC + RPDOs of a period. Not part of python-can's API; callers
+        fall back to ``send`` per frame on other buses."""
+        self._write(b"".join([encode_frame(m) for m in msgs]))
+
+    def _write(self, data: bytes) -> None:
         try:
             n = os.write(self._fd, data)
         except BlockingIOError:
@@ -122,19 +142,20 @@ class SlcanBus(can.BusABC):
             raise can.CanOperationError(f"SLCAN read failed: {e}") from e
         if not chunk:
             return
-        buf = self._buf
-        buf += chunk
-        start = 0
-        for i, b in enumerate(buf):
-            if b == 13 or b == 7:          # \r or \a ends a reply
-                if b == 7:
-                    self.errors += 1
-                msg = parse_frame(bytes(buf[start:i]))
+        buf = self._buf + chunk if self._buf else chunk
+        if 7 in buf:                       # \a: the adapter refused a command; ends a reply too
+            self.errors += buf.count(7)
+            buf = buf.replace(b"\a", b"\r")
+        lines = buf.split(b"\r")
+        self._buf = lines.pop()            # an unfinished line waits for the next read
+        stamp = time.time()
+        starts = _FRAME_START
+        for line in lines:
+            if line and line[0] in starts:  # skip acks (z, Z) and empty OK replies
+                msg = parse_frame(line)
                 if msg is not None:
-                    msg.timestamp = time.time()
+                    msg.timestamp = stamp
                     self._rx.append(msg)
-                start = i + 1
-        del buf[:start]
 
     def _recv_internal(self, timeout: Optional[float]):
         rx = self._rx

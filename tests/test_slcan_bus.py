@@ -77,3 +77,54 @@ def test_against_the_emulated_adapter():
 def test_missing_port_is_an_init_error():
     with pytest.raises(can.CanInitializationError, match="/dev/nonexistent-slcan"):
         can.Bus(interface="rig_slcan", channel="/dev/nonexistent-slcan")
+
+
+def _bare_bus(fd):
+    """A SlcanBus reading from ``fd`` without the adapter handshake (parser tests)."""
+    import collections
+
+    from drivers.slcan_bus import SlcanBus
+    bus = object.__new__(SlcanBus)
+    bus._fd, bus._buf, bus._rx, bus.errors = fd, b"", collections.deque(), 0
+    return bus
+
+
+def test_drain_keeps_split_lines_and_skips_acks_and_garbage():
+    import os
+    r, w = os.pipe()
+    os.set_blocking(r, False)
+    bus = _bare_bus(r)
+    try:
+        os.write(w, b"z\rt18180102030405060708\rZ\rt1" + b"8")      # ack, frame, ack, half a frame
+        bus._drain()
+        assert [(m.arbitration_id, bytes(m.data)) for m in bus._rx] == [(0x181, bytes(range(1, 9)))]
+        os.write(w, b"22AABB\r\atXYZ0\rt2021\r")    # rest of the frame, an error reply, garbage, bad length
+        bus._drain()
+        assert [(m.arbitration_id, bytes(m.data)) for m in bus._rx][1:] == [(0x182, b"\xaa\xbb")]
+        assert bus.errors == 1 and bus._buf == b""
+    finally:
+        os.close(r)
+        os.close(w)
+
+
+def test_send_many_is_one_write_and_reaches_the_bus():
+    chan = f"slcan-many-{time.monotonic_ns()}"
+    far = can.Bus(interface="virtual", channel=chan)
+    peer = can.Bus(interface="virtual", channel=chan)
+    adapter = SlcanAdapter(far)
+    adapter.start()
+    try:
+        bus = can.Bus(interface="rig_slcan", channel=adapter.port_name, bitrate=1_000_000)
+        try:
+            sent = [can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)] + [
+                can.Message(arbitration_id=0x200 + i, data=bytes((i, 0, 0x10, 0)), is_extended_id=False)
+                for i in range(1, 5)]
+            bus.send_many(sent)
+            got = _recv_all(peer, len(sent))
+            assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(m.arbitration_id, bytes(m.data)) for m in sent]
+        finally:
+            bus.shutdown()
+    finally:
+        adapter.close()
+        far.shutdown()
+        peer.shutdown()
