@@ -41,7 +41,7 @@ class StatusLine:
     def __call__(self, loop: ControlLoop) -> None:
         m = loop.last_measurement
         st = loop.stats
-        lat = st.lateness[-1] * 1e6 if len(st.lateness) else 0.0
+        lat = st.lateness.last * 1e6
         y = m.y_r * 1e3 if m else math.nan
         psi = m.psi_ar * 1e3 if m else math.nan
         self.stream.write(f"\r{loop.supervisor.state.name:<8} y={y:+7.3f} mm  psi={psi:+7.3f} mrad  "
