@@ -101,3 +101,18 @@ def apply_realtime(rt: Realtime) -> list[str]:
         except OSError as e:
             report.append(f"mlockall: not applied ({e})")
     return report
+
+
+def as_background_thread() -> bool:
+    """Called first in a helper thread (recorder writer, pollers): run it SCHED_OTHER.
+
+    Threads inherit the policy of the thread that creates them; once the process runs
+    SCHED_FIFO, a helper at the loop's priority would not be preempted by the loop on a
+    shared CPU. Linux applies ``sched_setscheduler(0, …)`` to the calling thread only.
+    Returns whether the thread now runs SCHED_OTHER (False where the OS does not tell)."""
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        return os.sched_getscheduler(0) == os.SCHED_OTHER
+    except (OSError, AttributeError):
+        return False

@@ -72,6 +72,7 @@ import h5py
 import numpy as np
 from h5py import h5s
 
+from .clock import as_background_thread
 from .errors import DeviceInitError
 
 LOG_FORMAT = "rig-runtime-log"
@@ -340,6 +341,7 @@ class Recorder:
 
     # ------------------------------------------------------------------ writer side
     def _run(self) -> None:
+        as_background_thread()          # the loop (SCHED_FIFO) must preempt the writer
         next_flush = time.monotonic() + self.flush_period
         while True:
             closing = self._stop.wait(_POLL_S)

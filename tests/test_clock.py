@@ -1,0 +1,55 @@
+"""Clocks and real-time settings: the real-time clock releases on time and never early,
+the lockstep clock advances the simulation, helper threads drop out of SCHED_FIFO."""
+
+import os
+import threading
+
+import pytest
+
+from rig_runtime.clock import LockstepClock, RealtimeClock, as_background_thread
+
+
+def test_realtime_clock_never_releases_early():
+    clock = RealtimeClock(200e-6)
+    t0 = clock.now()
+    for k in range(1, 21):
+        t = clock.wait_until(t0 + k * 0.002)
+        assert t >= t0 + k * 0.002
+
+
+def test_lockstep_clock_advances_the_simulation():
+    seen = []
+    clock = LockstepClock(advance=seen.append)
+    assert clock.wait_until(0.005) == 0.005 and clock.wait_until(0.005) == 0.005
+    clock.spend(0.001)
+    assert clock.now() == pytest.approx(0.006) and seen == [0.005]
+
+
+def test_helper_threads_leave_sched_fifo():
+    """A thread created by a SCHED_FIFO thread inherits FIFO; as_background_thread undoes it."""
+    result = {}
+
+    def fifo_parent():
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+        except (OSError, AttributeError) as e:
+            result["skip"] = str(e)
+            return
+
+        def child():
+            result["inherited"] = os.sched_getscheduler(0)
+            result["ok"] = as_background_thread()
+            result["after"] = os.sched_getscheduler(0)
+        t = threading.Thread(target=child)
+        t.start()
+        t.join()
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+    t = threading.Thread(target=fifo_parent)
+    t.start()
+    t.join()
+    if "skip" in result:
+        pytest.skip(f"SCHED_FIFO not permitted here: {result['skip']}")
+    assert result["inherited"] == os.SCHED_FIFO
+    assert result["ok"] and result["after"] == os.SCHED_OTHER
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER      # the test's own thread untouched
