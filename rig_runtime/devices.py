@@ -19,6 +19,7 @@ from .errors import ConfigError, DeviceInitError
 from .safety import Channel
 
 FT_COMPONENTS = ("fx", "fy", "fz", "mx", "my", "mz")
+_INVALID = Freshness.INVALID
 FT_RANGE = (300.0, 30.0)    # FT 300 class: ±300 N, ±30 N m (rated range)
 
 
@@ -116,23 +117,44 @@ class RigDevices:
 
     # ------------------------------------------------------------------ cycle
     def poll(self, now: float) -> None:
+        # _update inlined: this runs every 5 ms for 14 channels
         ch = self.channels
         dist = self.dist
-        for i, d in enumerate(self.lasers):
+        ninf = -math.inf
+        i = 0
+        for d in self.lasers:
             r = d.poll(now)
-            _update(ch[i], r.value_m, r.t, r.health)
-            dist[i] = r.value_m
+            c = ch[i]
+            hl = r.health
+            v = r.value_m
+            c.value = v
+            t = r.t
+            c.t = t if t == t else ninf
+            c.state = hl.state
+            c.cause = hl.cause
+            c.bad = hl.bad_frames
+            dist[i] = v
+            i += 1
         rd = self.drives.poll(now)
         ok, cause = True, ""
         omega = self.omega
-        for j, w in enumerate(WHEELS):
-            r = rd.wheels[w]
+        j = 0
+        for r in rd.wheels.values():        # WHEELS order (DriveBus sorts its drives so)
             hl = r.health
-            _update(ch[6 + j], r.omega, r.t, hl)
-            omega[j] = r.omega
-            if hl.state is Freshness.INVALID and ok:
-                ok, cause = False, f"drive {w} (node {r.node_id}): {hl.cause}"
-        if rd.bus.state is Freshness.INVALID and ok:
+            c = ch[6 + j]
+            v = r.omega
+            c.value = v
+            t = r.t
+            c.t = t if t == t else ninf
+            st = hl.state
+            c.state = st
+            c.cause = hl.cause
+            c.bad = hl.bad_frames
+            omega[j] = v
+            if st is _INVALID and ok:
+                ok, cause = False, f"drive {r.wheel} (node {r.node_id}): {hl.cause}"
+            j += 1
+        if rd.bus.state is _INVALID and ok:
             ok, cause = False, f"CAN bus: {rd.bus.cause}"
         self.converters_ok = ok
         self.converter_cause = cause
