@@ -73,6 +73,10 @@ def main() -> int:
     for name in ("pymodbus", "can", "canopen"):
         logging.getLogger(name).setLevel(logging.CRITICAL)
     sim_args = ["--rt-priority", str(max(1, args.fifo - 30))] if args.fifo else []
+    if args.cpu is not None:
+        others = sorted(set(os.sched_getaffinity(0)) - {args.cpu})
+        if others:
+            sim_args += ["--cpu-affinity", ",".join(map(str, others))]
     with tempfile.TemporaryDirectory() as d, start_sim_process(seed=0, workdir=Path(d) / "sim", extra_args=sim_args) as sp:
         cfg = config.load(sp.config_path)
         cfg = dataclasses.replace(cfg, realtime=dataclasses.replace(
