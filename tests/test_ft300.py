@@ -1,12 +1,19 @@
-"""FT 300 codec, driver and virtual sensors — over real Modbus TCP/RTU on this machine."""
+"""FT 300 codec, driver (poll process, poll threads, lockstep) and virtual sensors — over
+real Modbus TCP/RTU on this machine."""
 
 from __future__ import annotations
 
 import asyncio
 import math
+import multiprocessing
+import os
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
+from multiprocessing import shared_memory
 
 import pytest
 from hypothesis import given, settings
@@ -21,9 +28,12 @@ from drivers.ft300 import (
     REG_START,
     FTSensorSet,
     Wrench,
+    _Published,
     registers_from_wrench,
     wrench_from_registers,
 )
+from drivers.ft_modbus import decode_read_response, encode_read_request, frame_length
+from drivers.ft_process import SLOT_SIZE, SlotReader, SlotWriter
 from rig_runtime.config import FTBus, FTSensor
 from rig_runtime.errors import ConfigError
 from sim_backend.virtual_ft import VirtualFTServer
@@ -69,12 +79,29 @@ def server():
     srv.close()
 
 
-@pytest.fixture
-def driver(server):
-    d = FTSensorSet(bus("left", "right"), server.endpoints)
+@pytest.fixture(params=["process", "thread"])
+def driver(server, request):
+    """The driver polling in the background: in its own process (default) or in threads."""
+    d = FTSensorSet(bus("left", "right"), server.endpoints, poller=request.param)
     d.open()
     yield d
     d.close()
+
+
+def ft_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name.startswith("ft-poll")]
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:                                    # a zombie is dead too
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
 
 
 # --------------------------------------------------------------------------- codec
@@ -182,12 +209,13 @@ def test_stuck_and_offset_faults_change_what_arrives(server, driver):
     wait_for(lambda: close_to(driver.poll(time.monotonic())["left"].wrench, Wrench(fz=2.5, mz=-0.1)))
 
 
-def test_poll_never_waits_while_the_device_hangs(server):
+@pytest.mark.parametrize("poller", ["process", "thread"])
+def test_poll_never_waits_while_the_device_hangs(server, poller):
     cfg = bus("left", "right", timeout_s=0.5)
-    with FTSensorSet(cfg, server.endpoints) as d:
+    with FTSensorSet(cfg, server.endpoints, poller=poller) as d:
         server.inject("left", "dropout")
         server.inject("right", "dropout")
-        time.sleep(0.05)                           # both poll threads now sit in a 0.5 s wait
+        time.sleep(0.05)                           # both pollers now sit in a 0.5 s wait
         before = d.poll(time.monotonic())["left"].health.timeouts
         rounds = [poll_costs(d, 500) for _ in range(5)]
         assert d.poll(time.monotonic())["left"].health.timeouts == before   # still hanging
@@ -210,39 +238,54 @@ def poll_costs(d: FTSensorSet, n: int) -> list[float]:
     return sorted(costs)
 
 
-def test_refused_connection_at_open_names_the_endpoint():
+@pytest.mark.parametrize("poller", ["process", "thread"])
+def test_refused_connection_at_open_names_the_endpoint(poller):
     port = free_port()
-    d = FTSensorSet(bus("left"), {"left": ("127.0.0.1", port)})
+    d = FTSensorSet(bus("left"), {"left": ("127.0.0.1", port)}, poller=poller)
     with pytest.raises(DeviceInitError, match=rf"ft left \(127\.0\.0\.1:{port}\)") as ei:
         d.open()
     assert isinstance(ei.value.__cause__, ConnectionRefusedError)
     assert not d.is_open
+    assert not multiprocessing.active_children() and not ft_threads()
     d.close()
 
 
-def test_silent_device_at_open_is_an_init_error(server):
+@pytest.mark.parametrize("poller", ["process", "thread"])
+def test_silent_device_at_open_is_an_init_error(server, poller):
     server.inject("right", "dropout")
-    d = FTSensorSet(bus("left", "right"), server.endpoints)
+    d = FTSensorSet(bus("left", "right"), server.endpoints, poller=poller)
     with pytest.raises(DeviceInitError, match=r"ft right .*not reachable after 3 requests.*timeout"):
         d.open()
-    assert not [t for t in threading.enumerate() if t.name.startswith("ft-poll")]
+    assert not ft_threads()
+    assert not multiprocessing.active_children()
 
 
-def test_close_is_idempotent_and_stops_threads(server):
-    d = FTSensorSet(bus("left", "right"), server.endpoints)
+@pytest.mark.parametrize("poller", ["process", "thread"])
+def test_close_is_idempotent_and_stops_the_poller(server, poller):
+    d = FTSensorSet(bus("left", "right"), server.endpoints, poller=poller)
     d.open()
-    assert [t for t in threading.enumerate() if t.name.startswith("ft-poll")]
+    if poller == "thread":
+        assert ft_threads() and d.poll_process is None
+    else:
+        assert not ft_threads()                   # no Modbus work in this process
+        pid = d.poll_process.pid
+        assert pid_alive(pid) and d.poll_process.name == "ft-poll"
     d.close()
     d.close()
-    assert not [t for t in threading.enumerate() if t.name.startswith("ft-poll")]
+    assert not ft_threads()
+    assert not multiprocessing.active_children() and d.poll_process is None
+    if poller == "process":
+        assert not pid_alive(pid)
     assert set(d.poll(time.monotonic())) == {"left", "right"}   # still answers, never raises
+    assert d.poll(time.monotonic())["left"].wrench == W_LEFT    # the last published sample
 
 
-def test_connection_loss_is_reported_and_reconnected():
+@pytest.mark.parametrize("poller", ["process", "thread"])
+def test_connection_loss_is_reported_and_reconnected(poller):
     srv = VirtualFTServer(["left"]).start()
     srv.set_wrench("left", W_LEFT)
     endpoint = srv.endpoints["left"]
-    with FTSensorSet(bus("left"), srv.endpoints, reconnect_s=0.02) as d:
+    with FTSensorSet(bus("left"), srv.endpoints, reconnect_s=0.02, poller=poller) as d:
         srv.close()
         h = wait_for(lambda: (x := driver_health(d)).state is Freshness.STALE and x)
         assert "cannot connect" in h.cause and "refused" in h.cause
@@ -278,6 +321,36 @@ def test_lockstep_polling_uses_the_given_clock_without_threads(server):
         d.close()
 
 
+def test_lockstep_round_keeps_the_requests_of_all_sensors_in_flight():
+    """Three sensors, two silent: one round waits one timeout, not one per sensor."""
+    names = ("a", "b", "c")
+    with VirtualFTServer(list(names)) as srv:
+        d = FTSensorSet(bus(*names, timeout_s=0.2), srv.endpoints, clock=lambda: 5.0)
+        d.open(start_thread=False)
+        try:
+            srv.inject("a", "dropout")
+            srv.inject("c", "dropout")
+            srv.set_wrench("b", Wrench(mx=0.5))
+            t0 = time.monotonic()
+            d.poll_devices_once()
+            took = time.monotonic() - t0
+            r = d.poll(5.0)
+            assert r["b"].wrench == Wrench(mx=0.5) and r["b"].health.fresh
+            assert r["a"].health.timeouts == 1 and r["c"].health.timeouts == 1
+            assert 0.2 <= took < 0.35, took
+            srv.clear("a")
+            srv.clear("c")
+            d.poll_devices_once()                  # reconnected (dropped after the timeout), answered
+            assert all(x.health.fresh for x in d.poll(5.0).values())
+        finally:
+            d.close()
+
+
+def test_invalid_poller_is_rejected():
+    with pytest.raises(ValueError, match="poller"):
+        FTSensorSet(bus("left"), poller="fork")
+
+
 def test_config_errors_are_caught_before_connecting():
     with pytest.raises(ConfigError, match="distinct sensor names"):
         FTSensorSet(bus(sensors=(FTSensor(name="a"), FTSensor(name="a", port=1))))
@@ -308,6 +381,202 @@ def test_virtual_server_close_frees_ports_and_threads():
     for host, port in endpoints.values():
         with pytest.raises(ConnectionRefusedError):
             socket.create_connection((host, port), timeout=1).close()
+
+
+# --------------------------------------------------------------------------- the poll process
+def test_process_poller_delivers_new_values_within_a_few_periods(server):
+    cfg = bus("left", "right", poll_hz=100.0)
+    with FTSensorSet(cfg, server.endpoints, poller="process") as d:
+        r = d.poll(time.monotonic())
+        assert r["left"].wrench == W_LEFT and r["left"].health.fresh     # read once by open()
+        for k in range(1, 4):
+            w = Wrench(fx=float(k), mz=-0.001 * k)
+            server.set_wrench("left", w)
+            t0 = time.monotonic()
+            got = wait_for(lambda w=w: (x := d.poll(time.monotonic())["left"]).wrench == w and x, timeout=2.0)
+            # 100 Hz polling: normally within 1-2 periods; 0.5 s leaves room for a loaded machine
+            assert time.monotonic() - t0 < 0.5
+            assert got.t >= t0 - 0.011 and got.health.fresh and got.health.counters["samples"] >= 2
+
+
+def test_process_poller_reports_the_counters_and_causes_of_the_child(server):
+    with FTSensorSet(bus("left", "right"), server.endpoints, poller="process") as d:
+        server.inject("right", "out_of_range", code=6)
+        h = wait_for(lambda: (x := d.poll(time.monotonic())["right"].health).state is Freshness.INVALID and x)
+        assert h.cause == "Modbus exception 6 (server device busy)" and h.errors >= 1
+        assert h.counters["connects"] == 1 and h.counters["samples"] >= 1
+        server.clear("right")
+        server.inject("left", "corrupt")
+        h = wait_for(lambda: (x := d.poll(time.monotonic())["left"].health).state is Freshness.STALE and x)
+        assert "garbled response: byte count 255" in h.cause and h.bad_frames >= 2 and h.errors == 0
+
+
+def test_killing_the_server_makes_the_process_poller_stale_with_a_cause():
+    srv = VirtualFTServer(["left"]).start()
+    srv.set_wrench("left", W_LEFT)
+    with FTSensorSet(bus("left"), srv.endpoints, reconnect_s=0.05, poller="process") as d:
+        assert d.poll(time.monotonic())["left"].health.fresh
+        srv.close()
+        r = wait_for(lambda: (x := d.poll(time.monotonic())["left"]).health.state is not Freshness.FRESH and x)
+        assert r.health.state is Freshness.STALE and r.wrench == W_LEFT
+        assert "cannot connect" in r.health.cause or "connection lost" in r.health.cause
+        assert d.poll_process.is_alive()           # the poller itself keeps trying
+
+
+def test_a_dead_poll_process_shows_as_stale_with_its_exit(server):
+    with FTSensorSet(bus("left", "right"), server.endpoints, poller="process") as d:
+        proc = d.poll_process
+        os.kill(proc.pid, signal.SIGKILL)
+        h = wait_for(lambda: (x := d.poll(time.monotonic())["left"].health).state is Freshness.STALE and x)
+        assert "poll process exited with code -9" in h.cause
+    assert not multiprocessing.active_children()
+
+
+def test_poll_process_runs_sched_other_even_when_started_from_a_fifo_thread(server):
+    out: dict = {}
+
+    def opener() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+        except (OSError, AttributeError) as exc:
+            out["skip"] = repr(exc)
+            return
+        d = FTSensorSet(bus("left"), {"left": server.endpoints["left"]}, poller="process")
+        d.open()
+        out["d"] = d
+
+    t = threading.Thread(target=opener)
+    t.start()
+    t.join(30)
+    if "skip" in out:
+        pytest.skip(f"cannot run SCHED_FIFO here: {out['skip']}")
+    d = out["d"]
+    try:
+        assert os.sched_getscheduler(d.poll_process.pid) == os.SCHED_OTHER
+    finally:
+        d.close()
+
+
+_ORPHAN_SCRIPT = """
+import sys, time
+sys.path.insert(0, {root!r})
+from rig_runtime.config import FTBus, FTSensor
+from drivers.ft300 import FTSensorSet
+if __name__ == "__main__":
+    d = FTSensorSet(FTBus(poll_hz=50.0, sensors=(FTSensor(name="left"),)), {{"left": ("127.0.0.1", {port})}})
+    d.open()
+    print(d.poll_process.pid, flush=True)
+    time.sleep(60)
+"""
+
+
+def test_poll_process_dies_with_its_parent(server, tmp_path):
+    script = tmp_path / "parent.py"
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    script.write_text(_ORPHAN_SCRIPT.format(root=root, port=server.endpoints["left"][1]))
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    try:
+        child = int(parent.stdout.readline())
+        assert pid_alive(child)
+        parent.kill()                             # no close(), no atexit: only the pipe EOF tells
+        parent.wait(5)
+        wait_for(lambda: not pid_alive(child), timeout=5.0)
+    finally:
+        parent.kill()
+        parent.wait(5)
+
+
+def test_open_with_an_unpicklable_clock_is_refused_for_the_process_poller(server):
+    d = FTSensorSet(bus("left"), {"left": server.endpoints["left"]}, clock=lambda: 0.0)
+    with pytest.raises(ValueError, match="picklable"):
+        d.open()
+    assert not multiprocessing.active_children()
+
+
+# --------------------------------------------------------------------------- shared-memory seqlock
+def _pub(v: float, cause: str = "", n: int = 0) -> _Published:
+    return _Published(Wrench(v, v, v, v, v, v), v, cause, None, n, n, n,
+                      (("samples", n), ("connects", 1), ("connect_failures", 0), ("disconnects", 0)))
+
+
+class _Holder:
+    def __init__(self) -> None:
+        self.pub = None
+
+
+def _make(w6, *rest):
+    return _Published(None if w6 is None else Wrench(*w6), *rest)
+
+
+def test_seqlock_slot_round_trip_and_rejected_copies():
+    shm = shared_memory.SharedMemory(create=True, size=2 * SLOT_SIZE)
+    try:
+        shm.buf[:] = bytes(2 * SLOT_SIZE)
+        holders = (_Holder(), _Holder())
+        reader, writer = SlotReader(shm.buf, holders, _make), SlotWriter(shm.buf)
+        reader.refresh()
+        assert holders[0].pub is None                     # nothing published yet
+        p = _Published(W_LEFT, 12.5, "ünïcode " + "x" * 400, 4, 1, 2, 3,
+                       (("samples", 7), ("connects", 2), ("connect_failures", 1), ("disconnects", 1)))
+        writer.write(1, p)
+        reader.refresh()
+        got = holders[1].pub
+        assert got.wrench == W_LEFT and got.t == 12.5 and got.exc_code == 4
+        assert (got.timeouts, got.errors, got.bad_frames) == (1, 2, 3) and got.counters == p.counters
+        assert got.cause == p.cause.encode()[:240].decode("utf-8", "ignore")
+        assert holders[0].pub is None
+        # a writer caught mid-write (odd sequence) and a payload that does not match its CRC
+        # are both rejected; the previous state stays
+        writer.write(1, _pub(1.0))
+        shm.buf[SLOT_SIZE] |= 1
+        reader.refresh()
+        assert holders[1].pub is got and reader.rejected == 1
+        shm.buf[SLOT_SIZE] &= 0xFE
+        shm.buf[SLOT_SIZE + 40] ^= 0xFF
+        reader.refresh()
+        assert holders[1].pub is got and reader.rejected == 2
+        shm.buf[SLOT_SIZE + 40] ^= 0xFF
+        reader.refresh()
+        assert holders[1].pub.wrench == Wrench(1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
+    finally:
+        shm.close()
+        shm.unlink()
+
+
+def _hammer(name: str, seconds: float) -> None:
+    """Writer process for the torn-read test: every slot write has six equal components."""
+    shm = shared_memory.SharedMemory(name=name)
+    w = SlotWriter(shm.buf)
+    end = time.monotonic() + seconds
+    k = 0
+    while time.monotonic() < end:
+        k += 1
+        w.write(0, _pub(float(k), cause="c" * (k % 200), n=k))
+    shm.close()
+
+
+def test_seqlock_reader_never_sees_a_torn_sample_from_another_process():
+    shm = shared_memory.SharedMemory(create=True, size=SLOT_SIZE)
+    try:
+        shm.buf[:] = bytes(SLOT_SIZE)
+        proc = multiprocessing.get_context("spawn").Process(target=_hammer, args=(shm.name, 1.0))
+        proc.start()
+        h = _Holder()
+        reader = SlotReader(shm.buf, (h,), _make)
+        seen = set()
+        while proc.is_alive() or h.pub is None:
+            reader.refresh()
+            p = h.pub
+            if p is not None and p.t not in seen:
+                seen.add(p.t)
+                k = int(p.t)
+                assert p.wrench.as_tuple() == (p.t,) * 6
+                assert p.cause == "c" * (k % 200) and p.timeouts == k and p.counters[0] == ("samples", k)
+        proc.join(5)
+        assert len(seen) > 10
+    finally:
+        shm.close()
+        shm.unlink()
 
 
 # --------------------------------------------------------------------------- RTU on a pty
@@ -353,13 +622,21 @@ class _PlainPymodbusServer:
         self.loop.close()
 
 
-def test_driver_reads_a_plain_pymodbus_server():
+@pytest.mark.parametrize("mode", ["lockstep", "process", "thread"])
+def test_driver_reads_a_plain_pymodbus_server(mode):
     peer = _PlainPymodbusServer([-1234, 50, 981, -250, -500, 1500])
     try:
-        d = FTSensorSet(bus("left"), {"left": ("127.0.0.1", peer.port)})
-        d.open(start_thread=False)
+        d = FTSensorSet(bus("left"), {"left": ("127.0.0.1", peer.port)},
+                        poller="thread" if mode == "lockstep" else mode)
+        d.open(start_thread=mode != "lockstep")
         try:
             assert d.poll(time.monotonic())["left"].wrench == W_LEFT
+            if mode == "lockstep":
+                d.poll_devices_once()
+                h = d.poll(time.monotonic())["left"].health
+            else:
+                h = wait_for(lambda: (x := d.poll(time.monotonic())["left"].health).counters["samples"] >= 3 and x)
+            assert h.fresh and h.bad_frames == h.timeouts == h.errors == 0
         finally:
             d.close()
     finally:
@@ -377,5 +654,39 @@ def test_plain_pymodbus_client_reads_the_virtual_server(server):
         signed = client.convert_from_registers(rr.registers, client.DATATYPE.INT16)
         assert signed == [-1234, 50, 981, -250, -500, 1500]
         assert client.read_holding_registers(REG_START, count=REG_COUNT, device_id=9).registers == REGS_LEFT
+        assert client.read_holding_registers(182, count=2, device_id=9).registers == REGS_LEFT[2:4]
+        # what the server refuses, pymodbus reads as the exception response it is
+        assert client.read_holding_registers(100, count=6, device_id=9).exception_code == 2
+        assert client.write_register(180, 1, device_id=9).exception_code == 2
+        assert client.read_holding_registers(180, count=6, device_id=3).exception_code == 11
+        server.inject("left", "out_of_range", code=4)
+        rr = client.read_holding_registers(180, count=6, device_id=9)
+        assert rr.isError() and rr.exception_code == 4
+        server.clear("left")
+        assert client.read_holding_registers(180, count=6, device_id=9).registers == REGS_LEFT
     finally:
         client.close()
+
+
+def test_wrong_unit_id_is_an_init_error_like_behind_a_gateway(server):
+    cfg = bus(sensors=(FTSensor(name="left", unit_id=5),))
+    d = FTSensorSet(cfg, {"left": server.endpoints["left"]})
+    with pytest.raises(DeviceInitError, match=r"ft left .*unit 5 not reachable.*exception 11"):
+        d.open(start_thread=False)
+
+
+def test_modbus_tcp_codec_checks_what_it_decodes():
+    req = encode_read_request(0x1234, 9, 180, 6)
+    assert req == bytes.fromhex("1234 0000 0006 09 03 00b4 0006")
+    reply = bytes.fromhex("1234 0000 000f 09 03 0c") + b"".join(r.to_bytes(2, "big") for r in REGS_LEFT)
+    assert frame_length(reply[:5]) is None and frame_length(reply) == len(reply) == 21
+    assert decode_read_response(reply, 0x1234, 9, 6) == (tuple(REGS_LEFT), None)
+    assert decode_read_response(bytes.fromhex("1234 0000 0003 09 83 04"), 0x1234, 9, 6) == (None, 4)
+    with pytest.raises(ValueError, match="transaction id"):
+        decode_read_response(reply, 0x1235, 9, 6)
+    with pytest.raises(ValueError, match="unit id"):
+        decode_read_response(reply, 0x1234, 8, 6)
+    with pytest.raises(ValueError, match="byte count 255"):
+        decode_read_response(reply[:8] + b"\xff" + reply[9:], 0x1234, 9, 6)
+    with pytest.raises(ValueError, match="length field"):
+        frame_length(bytes.fromhex("1234 0000 0000"))

@@ -1,0 +1,315 @@
+"""The F/T poll process: ``drivers.ft300``'s polling code in its own OS process, publishing
+into shared memory that the control loop reads without locks, waits or system calls.
+
+Why: pymodbus calls (and any Python work of the pollers) hold the interpreter lock; in a
+thread of the runtime process they delayed the 5 ms loop thread by up to ~1 ms. In a
+separate process they cannot.
+
+* Start: ``multiprocessing`` with the ``spawn`` context (the runtime may run SCHED_FIFO and
+  have threads, so it must not fork). The parent moves the child to SCHED_OTHER right after
+  the start and the child does it again itself (it inherits the parent's policy, CPU
+  affinity optional via ``cpus``). The child ignores SIGINT (Ctrl-C goes to the whole process
+  group; the runtime stops the rig on it and still needs the sensors meanwhile).
+* Handshake: the child connects and reads every sensor exactly as an in-process ``open()``
+  does and reports success, or the ``DeviceInitError`` (device, message, OS error), over a
+  pipe before ``PollProcess.start()`` returns; the parent re-raises it.
+* Lifetime: the child stops on a ``"stop"`` message, on EOF of the pipe (the parent is gone,
+  however it died) or when its parent pid changes; ``close()`` asks, joins, then terminates
+  (then kills) after ``timeout_s + 2`` s.
+* Shared memory: one fixed-size slot per sensor, written by exactly one poll thread of the
+  child, read by the loop. Seqlock: the writer makes the slot's sequence number odd, writes
+  the payload and its CRC-32, makes it even again; the reader copies the payload between two
+  reads of the sequence number and accepts it only if both are equal and even and the CRC
+  matches (the CRC also guards against store/load reordering on weakly ordered CPUs, which
+  Python code cannot fence). A rejected read keeps the previous state; the next ``poll()``
+  retries — the reader never waits.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import multiprocessing.connection
+import os
+import pickle
+import signal
+import struct
+import zlib
+from multiprocessing import shared_memory
+from typing import Any, Callable, Optional
+
+from rig_runtime.config import FTBus
+
+from .base import DeviceInitError
+
+__all__ = ["PollProcess", "SlotWriter", "SlotReader", "SLOT_SIZE", "CAUSE_BYTES"]
+
+CAUSE_BYTES = 240
+# t, fx..mz | has_wrench, timeouts, errors, bad_frames, samples, connects, connect_failures,
+# disconnects | exception code (-1: none), cause length | cause (UTF-8, truncated)
+_PAYLOAD = struct.Struct(f"<7d8QiH2x{CAUSE_BYTES}s")
+_HEAD = struct.Struct("<QI4x")              # sequence number, CRC-32 of the payload
+SLOT_SIZE = _HEAD.size + _PAYLOAD.size      # a multiple of 8: every slot's sequence is aligned
+_CRC = struct.Struct("<I")
+_SEQ = struct.Struct("<Q")
+_START_GRACE_S = 30.0                       # interpreter start + imports on a loaded machine
+_WATCH_S = 0.2                              # how often the child looks at its parent
+
+
+class SlotWriter:
+    """Child side: publish ``_Published`` states into the slots (one writer per slot)."""
+
+    def __init__(self, buf: memoryview) -> None:
+        self._buf = buf                     # the SharedMemory's own view: no extra buffer exports
+
+    def write(self, k: int, p: Any) -> None:
+        w = p.wrench
+        vals = (0.0,) * 6 if w is None else (w.fx, w.fy, w.fz, w.mx, w.my, w.mz)
+        counters = dict(p.counters)
+        cause = p.cause.encode("utf-8", "replace")[:CAUSE_BYTES]
+        payload = _PAYLOAD.pack(p.t, *vals, w is not None, p.timeouts, p.errors, p.bad_frames,
+                                counters.get("samples", 0), counters.get("connects", 0),
+                                counters.get("connect_failures", 0), counters.get("disconnects", 0),
+                                -1 if p.exc_code is None else p.exc_code, len(cause), cause)
+        buf = self._buf
+        off = k * SLOT_SIZE
+        seq = _SEQ.unpack_from(buf, off)[0] | 1
+        _SEQ.pack_into(buf, off, seq)            # odd: being written
+        buf[off + _HEAD.size: off + SLOT_SIZE] = payload
+        _CRC.pack_into(buf, off + 8, zlib.crc32(payload))
+        _SEQ.pack_into(buf, off, seq + 1)        # even: complete
+
+
+class SlotReader:
+    """Loop side: ``refresh()`` sets ``sensors[k].pub`` from every slot whose sequence
+    number moved and whose copy is consistent; costs one 8-byte read per sensor otherwise."""
+
+    def __init__(self, buf: memoryview, sensors: tuple, make_pub: Callable[..., Any]) -> None:
+        self._buf = buf
+        self._sensors = sensors
+        self._make = make_pub
+        self._offs = tuple(k * SLOT_SIZE for k in range(len(sensors)))
+        self._last = [0] * len(sensors)     # 0: nothing published yet (a published slot is ≥ 2)
+        self._ks = tuple(range(len(sensors)))
+        self.rejected = 0                   # torn or inconsistent copies seen (retried next time)
+
+    def refresh(self) -> None:
+        buf, last, seq_of = self._buf, self._last, _SEQ.unpack_from
+        for k, off in zip(self._ks, self._offs):
+            if seq_of(buf, off)[0] != last[k]:
+                self._load(k, off)
+
+    def _load(self, k: int, off: int) -> None:
+        buf = self._buf
+        s1 = _SEQ.unpack_from(buf, off)[0]
+        if s1 & 1:
+            self.rejected += 1
+            return
+        crc = _CRC.unpack_from(buf, off + 8)[0]
+        payload = bytes(buf[off + _HEAD.size: off + SLOT_SIZE])
+        if _SEQ.unpack_from(buf, off)[0] != s1 or zlib.crc32(payload) != crc:
+            self.rejected += 1
+            return
+        (t, fx, fy, fz, mx, my, mz, has_w, timeouts, errors, bad_frames, samples, connects,
+         connect_failures, disconnects, exc, n, cause) = _PAYLOAD.unpack(payload)
+        self._sensors[k].pub = self._make(
+            (fx, fy, fz, mx, my, mz) if has_w else None, t, cause[:n].decode("utf-8", "ignore"),
+            None if exc < 0 else exc, timeouts, errors, bad_frames,
+            (("samples", samples), ("connects", connects), ("connect_failures", connect_failures),
+             ("disconnects", disconnects)))
+        self._last[k] = s1
+
+
+class PollProcess:
+    """Parent side: the child process, its pipe and the shared memory it publishes into."""
+
+    def __init__(self, cfg: FTBus, endpoints: dict[str, tuple[str, int]], core: Any,
+                 cpus: Optional[tuple[int, ...]] = None) -> None:
+        self._cfg = cfg
+        self._endpoints = dict(endpoints)
+        self._core = core                   # the parent's _PollCore: its sensors receive the states
+        self._cpus = cpus
+        self.process: Optional[multiprocessing.process.BaseProcess] = None
+        self._conn: Optional[multiprocessing.connection.Connection] = None
+        self._shm: Optional[shared_memory.SharedMemory] = None
+        self._reader: Optional[SlotReader] = None
+        self._dead = ""
+
+    # ------------------------------------------------------------------ start
+    def start(self) -> None:
+        """Spawn the child; return once it has read every sensor, else raise DeviceInitError."""
+        try:
+            self._start()
+        except BaseException:
+            self.close()
+            raise
+
+    def _start(self) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        n = len(self._core.sensors)
+        self._shm = shared_memory.SharedMemory(create=True, size=n * SLOT_SIZE)
+        self._shm.buf[:n * SLOT_SIZE] = bytes(n * SLOT_SIZE)
+        here, there = ctx.Pipe(duplex=True)
+        self._conn = here
+        args = (self._cfg, self._endpoints, self._core.clock, self._core.reconnect_s, self._shm.name,
+                there, os.getpid(), self._cpus, logging.getLogger("pymodbus").level)
+        try:
+            pickle.dumps(self._core.clock)
+        except Exception as exc:            # noqa: BLE001 - any pickling failure means the same
+            raise ValueError("poller='process' needs a picklable, system-wide clock "
+                             f"(e.g. time.monotonic), got {self._core.clock!r}") from exc
+        proc = ctx.Process(target=child_main, args=args, name="ft-poll", daemon=True)
+        try:
+            proc.start()
+        finally:
+            there.close()                   # the child has its own copy: EOF here once it is gone
+        self.process = proc
+        _sched_other(proc.pid)              # as early as possible; the child repeats it
+        budget = _START_GRACE_S + sum(
+            self._cfg.timeout_s * (1 + 2 * len(link.sensors) * 3) for link in self._core.links)
+        ready = multiprocessing.connection.wait([here, proc.sentinel], budget)
+        if here in ready:
+            try:
+                msg = here.recv()
+            except (EOFError, OSError):
+                msg = None
+        else:
+            msg = None
+        if msg is None:
+            proc.join(0.5)
+            what = (f"exited with code {proc.exitcode}" if proc.exitcode is not None
+                    else f"did not report within {budget:g} s")
+            raise DeviceInitError("ft", f"poll process {what} before reading the sensors")
+        if msg[0] == "error":
+            _, device, message, cause = msg
+            raise DeviceInitError(device, message) from cause
+        from .ft300 import Wrench, _Published
+
+        def make_pub(w6: Optional[tuple], *rest: Any) -> Any:
+            return _Published(None if w6 is None else Wrench(*w6), *rest)
+
+        self._reader = SlotReader(self._shm.buf, self._core.sensors, make_pub)
+
+    # ------------------------------------------------------------------ running
+    @property
+    def reader(self) -> Optional[SlotReader]:
+        """The loop side of the shared memory (None before a successful start / after close)."""
+        return self._reader
+
+    def death_cause(self) -> str:
+        """"" while the child runs; otherwise why the samples stopped (cheap once dead)."""
+        if not self._dead and self.process is not None and self.process.exitcode is not None:
+            self._dead = f"F/T poll process exited with code {self.process.exitcode}"
+        return self._dead
+
+    # ------------------------------------------------------------------ stop
+    def close(self) -> None:
+        """Stop and join the child (terminate, then kill, if it does not finish in time), take
+        over its last published states, release the shared memory. Idempotent."""
+        proc, conn = self.process, self._conn
+        if conn is not None:
+            try:
+                conn.send("stop")
+            except (OSError, ValueError):
+                pass
+        if proc is not None:
+            proc.join(self._cfg.timeout_s + 2.0)
+            if proc.exitcode is None:
+                proc.terminate()
+                proc.join(1.0)
+            if proc.exitcode is None:
+                proc.kill()
+                proc.join(1.0)
+            self.death_cause()
+        if conn is not None:
+            conn.close()
+            self._conn = None
+        if self._reader is not None:
+            self._reader.refresh()          # the child's last words: poll() keeps them after close
+            self._reader = None
+        if self._shm is not None:
+            self._shm.close()
+            try:
+                self._shm.unlink()
+            except FileNotFoundError:
+                pass
+            self._shm = None
+        if proc is not None:
+            try:
+                proc.close()
+            except ValueError:              # still running after kill: leave it to the OS
+                pass
+            self.process = None
+
+
+def _sched_other(pid: int) -> None:
+    try:
+        os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))
+    except (OSError, AttributeError):
+        pass
+
+
+# --------------------------------------------------------------------------- child
+def child_main(cfg: FTBus, endpoints: dict[str, tuple[str, int]], clock: Callable[[], float],
+               reconnect_s: float, shm_name: str, conn: multiprocessing.connection.Connection,
+               parent_pid: int, cpus: Optional[tuple[int, ...]], pymodbus_log_level: int) -> None:
+    """Entry point of the poll process: open like in-process, report, poll until told to
+    stop or orphaned. (Spawned: the parent's logging setup is not inherited, so the
+    pymodbus logger level — which the runtime lowers — is passed on.)"""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    logging.getLogger("pymodbus").setLevel(pymodbus_log_level)
+    _sched_other(0)
+    if cpus:
+        try:
+            os.sched_setaffinity(0, set(cpus))
+        except (OSError, AttributeError):
+            pass
+    from .ft300 import _PollCore
+
+    shm = shared_memory.SharedMemory(name=shm_name)
+    core = _PollCore(cfg, endpoints, clock, reconnect_s)
+    writer = SlotWriter(shm.buf)
+    for k, s in enumerate(core.sensors):
+        s.sink = (lambda p, k=k: writer.write(k, p))
+    try:
+        try:
+            core.open()
+        except DeviceInitError as exc:
+            conn.send(("error", exc.device, _message(exc), _picklable(exc.__cause__)))
+            return
+        except Exception as exc:            # noqa: BLE001 - reported to the parent, which raises
+            conn.send(("error", "ft", f"poll process: {type(exc).__name__}: {exc}", None))
+            return
+        core.start_threads()
+        conn.send(("ok",))
+        while True:
+            try:
+                if conn.poll(_WATCH_S):
+                    conn.recv()             # "stop"
+                    break
+            except (EOFError, OSError):     # the parent is gone
+                break
+            if os.getppid() != parent_pid:
+                break
+    finally:
+        core.close()
+        shm.close()
+        conn.close()
+
+
+def _message(exc: DeviceInitError) -> str:
+    text = str(exc)
+    prefix = f"{exc.device}: "
+    return text[len(prefix):] if text.startswith(prefix) else text
+
+
+def _picklable(exc: Optional[BaseException]) -> Optional[BaseException]:
+    """The OS error behind a failed open (refused, unreachable, …) survives pickling; anything
+    else is passed on as its text."""
+    if exc is None:
+        return None
+    try:
+        pickle.loads(pickle.dumps(exc))
+        return exc
+    except Exception:                       # noqa: BLE001
+        return RuntimeError(f"{type(exc).__name__}: {exc}")
