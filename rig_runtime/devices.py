@@ -9,6 +9,7 @@ this class's small interface (``loop.DeviceSet``).
 from __future__ import annotations
 
 import math
+import os
 from typing import Mapping, Optional, Sequence
 
 from drivers.base import Freshness
@@ -66,6 +67,10 @@ class RigDevices:
         if dcfg.ft.sensors:
             cls = driver_class("ft", dcfg.ft.driver, "devices.ft.driver")
             kw = {"clock": ft_clock} if ft_clock is not None else {}
+            loop_cpus = set(cfg.realtime.cpu_affinity or ())
+            others = sorted(set(os.sched_getaffinity(0)) - loop_cpus) if loop_cpus and ft_thread else []
+            if others:
+                kw["poller_cpus"] = others      # keep the F/T poll process off the loop's CPU
             self.ft = cls(dcfg.ft, endpoints=dict(ft_endpoints) if ft_endpoints else None, **kw)
         self._ft_thread = ft_thread
         self.ft_names = [s.name for s in dcfg.ft.sensors]
