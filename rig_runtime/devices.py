@@ -68,7 +68,7 @@ class RigDevices:
             cls = driver_class("ft", dcfg.ft.driver, "devices.ft.driver")
             kw = {"clock": ft_clock} if ft_clock is not None else {}
             loop_cpus = set(cfg.realtime.cpu_affinity or ())
-            others = sorted(set(os.sched_getaffinity(0)) - loop_cpus) if loop_cpus and ft_thread else []
+            others = sorted(set(range(os.cpu_count() or 1)) - loop_cpus) if loop_cpus and ft_thread else []
             if others:
                 kw["poller_cpus"] = others      # keep the F/T poll process off the loop's CPU
             self.ft = cls(dcfg.ft, endpoints=dict(ft_endpoints) if ft_endpoints else None, **kw)
