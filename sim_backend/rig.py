@@ -28,7 +28,7 @@ from .plant import Plant
 from .simconfig import sim_config
 from .virtual_drive import VirtualDriveSet
 from .virtual_ft import VirtualFTServer
-from .virtual_laser import VirtualLaser, emit_all
+from .virtual_laser import LaserGroup, VirtualLaser
 
 _channel_ids = itertools.count()
 
@@ -72,10 +72,13 @@ class SimulatedRig:
                               seed=self.seed * 101 + i, output_rate_hz=sc.laser_rate_hz)
             self._closers.append(vl.close)
             self.lasers[lc.role] = vl
-        self._laser_list = list(self.lasers.values())
+        self._laser_group = LaserGroup(list(self.lasers.values()))
         self.s0 = {}
         for lc in cfg.devices.lasers:
             self.s0[lc.role] = (lc.offset_mm + 0.5 * lc.measuring_range_mm) * 1e-3
+        # (laser or None, mid-range offset added to its ideal reading) in LASER_ROLES order
+        self._laser_targets = [(self.lasers.get(r), self.s0.get(r, 0.0) if r.startswith("s") else 0.0)
+                               for r in LASER_ROLES]
         self.can_channel = f"rig-sim-{next(_channel_ids)}-{id(self)}"
         if self._drive_bus is not None:      # e.g. the far side of an emulated SLCAN adapter
             self.bus = self._drive_bus
@@ -83,6 +86,8 @@ class SimulatedRig:
             self.bus = self._new_bus()
             self._closers.append(self.bus.shutdown)
         self.drives = VirtualDriveSet(cfg.devices.can, self.bus, seed=self.seed)
+        wd = [self.drives.drives.get(w) for w in WHEELS]
+        self._wheel_drives = None if None in wd else wd     # None: current_A(wheel) raises for the missing one
         self._closers.append(self.drives.close)
         names = [s.name for s in cfg.devices.ft.sensors]
         self.ft = VirtualFTServer(names).start() if names else None
@@ -188,30 +193,49 @@ class SimulatedRig:
 
     # ------------------------------------------------------------------ lockstep
     def advance(self, t: float) -> None:
-        """Integrate the plant to ``t`` and let every virtual device emit up to ``t``."""
+        """Integrate the plant to ``t`` and let every virtual device emit up to ``t``.
+
+        Ordered for the wall clock: the drives' frames wait in their outbox while the plant
+        steps and the laser frames are written, then go out while the kernel delivers the
+        pty bytes; the wait for delivery (the runtime must see all of them) comes last."""
         h, plant, drives = self.h, self.plant, self.drives
-        drives.service(self.t)          # SYNC/RPDOs the runtime sent last cycle; TPDOs back
-        running = not math.isnan(self.t_run0)
-        while self.t < t - 1e-12:
-            dt = t - self.t
-            if dt >= h - 1e-9:       # float residue of t0 + k h must not change the step size
-                dt = h
-            tau = self.t - self.t_run0 if running else -1.0
-            if running:
-                self._update_faults(tau)
-            Ff, Fr, Mf, Mr = self._forces(tau) if running else (0.0, 0.0, 0.0, 0.0)
-            du_f = drives.current_A("fl") - drives.current_A("fr")
-            du_r = drives.current_A("rl") - drives.current_A("rr")
-            plant.step(dt, du_f, du_r, Ff, Fr, Mf, Mr)
-            self.t += dt
-            if self.t < t - 1e-12:
-                drives.service(self.t)   # watchdog and heartbeats keep time during a stall
-        self._publish(t)
+        drives.hold()
+        try:
+            drives.service(self.t)      # SYNC/RPDOs the runtime sent last cycle; TPDOs back
+            running = not math.isnan(self.t_run0)
+            while self.t < t - 1e-12:
+                dt = t - self.t
+                if dt >= h - 1e-9:       # float residue of t0 + k h must not change the step size
+                    dt = h
+                tau = self.t - self.t_run0 if running else -1.0
+                if running:
+                    self._update_faults(tau)
+                Ff, Fr, Mf, Mr = self._forces(tau) if running else (0.0, 0.0, 0.0, 0.0)
+                wd = self._wheel_drives
+                fl, fr, rl, rr = ([d.current_A() for d in wd] if wd is not None
+                                  else [drives.current_A(w) for w in WHEELS])
+                du_f = fl - fr
+                du_r = rl - rr
+                plant.step(dt, du_f, du_r, Ff, Fr, Mf, Mr)
+                self.t += dt
+                if self.t < t - 1e-12:
+                    drives.service(self.t)   # watchdog and heartbeats keep time during a stall
+            self.set_laser_distances()
+            self._laser_group.emit(t)
+        finally:
+            drives.release()
+        self._publish_rest(t)
+        self._laser_group.wait()
 
     def _publish(self, t: float) -> None:
         """Physical values -> virtual devices (their own codecs), frames up to ``t``."""
         self.set_laser_distances()
-        emit_all(self._laser_list, t)
+        self._laser_group.emit(t)
+        self._publish_rest(t)
+        self._laser_group.wait()
+
+    def _publish_rest(self, t: float) -> None:
+        """Wheel speeds and, when due, F/T registers (and the lockstep F/T poll)."""
         self.set_wheel_speeds()
         if self.ft is not None and t >= self._next_ft - 1e-12:
             self._next_ft = t + self.ft_period
@@ -224,10 +248,9 @@ class SimulatedRig:
         p, geo = self.plant, self.cfg.geometry
         pose = pose_from_carriers(p.y_f, p.y_r, p.psi_af, p.psi_ar, geo)
         r = ideal_readings(pose, geo, s0=0.0)
-        for role, v in zip(LASER_ROLES, (r.b_f, r.b_r, r.s_fl, r.s_fr, r.s_rl, r.s_rr)):
-            vl = self.lasers.get(role)
+        for (vl, s0), v in zip(self._laser_targets, (r.b_f, r.b_r, r.s_fl, r.s_fr, r.s_rl, r.s_rr)):
             if vl is not None:
-                vl.set_distance(v + (self.s0[role] if role.startswith("s") else 0.0))
+                vl.set_distance(v + s0)
 
     def set_wheel_speeds(self) -> None:
         """The plant's wheel speeds, with encoder noise, to the virtual drives."""

@@ -33,6 +33,7 @@ simulated time ``t``; realtime, ``start_realtime()`` runs a thread on wall time 
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import random
 import threading
@@ -69,7 +70,12 @@ FAULT_KINDS: dict[str, dict[str, Any]] = {
 _ALIASES = {("offset", "amount"): "omega_rad_s"}
 
 _POWER_ON = (SWITCHED_ON, OPERATION_ENABLED, QUICK_STOP_ACTIVE)
+# the 402 transition is a pure function of (state, controlword, previous controlword), and a
+# cyclic RPDO repeats the same few: memoised
+_transition = functools.lru_cache(maxsize=1024)(drive_transition)
+_Message = can.Message
 _CODEC_RPDO_MAP = tuple(mapping_entry(*m) for m in RPDO1_MAPPING)
+_RPDO1_SIZE, _unpack_rpdo, _pack_tpdo = RPDO1.size, RPDO1.unpack_from, TPDO1.pack
 _CODEC_TPDO_MAP = tuple(mapping_entry(*m) for m in TPDO1_MAPPING)
 # error register 0x1001 bits per EMCY class (CiA 301 object 0x1001): generic | current / communication
 _ERROR_REGISTER = {0x23: 0x03, 0x81: 0x11, 0x82: 0x11}
@@ -166,6 +172,11 @@ class VirtualDrive:
         entry = self._od(0x1016, 1)
         self.consumer_node = (entry >> 16) & 0x7F
         self.consumer_s = (entry & 0xFFFF) / 1000.0
+        # derived for the cyclic path
+        self._codec_rpdo = self.rpdo_map == _CODEC_RPDO_MAP
+        self._codec_tpdo = self.tpdo_map == _CODEC_TPDO_MAP
+        self._sync_rpdo = self.rpdo_type <= 240
+        self._tpdo_every = self.tpdo_type if self.tpdo_cob is not None and 1 <= self.tpdo_type <= 240 else 0
         self.owner._routes_dirty = True
 
     @property
@@ -174,8 +185,9 @@ class VirtualDrive:
 
     def current_A(self) -> float:
         """Current the power stage applies now."""
-        self._load_config()
-        if self.state != OPERATION_ENABLED or self.nmt != NMT_OPERATIONAL or self.mode != MODE_CST:
+        if self._cfg_dirty:
+            self._load_config()
+        if self.state != OPERATION_ENABLED or self.node.nmt._state != NMT_OPERATIONAL or self.mode != MODE_CST:
             return 0.0
         return self._effective_permille() * self.rated_A / 1000.0
 
@@ -229,7 +241,7 @@ class VirtualDrive:
 
     # ------------------------------------------------------------------ 402 state machine
     def apply_controlword(self, cw: int) -> None:
-        new = drive_transition(self.state, cw, self.cw)
+        new = _transition(self.state, cw, self.cw)
         self.cw = cw
         if self.state == FAULT and new != FAULT:
             if self._persistent_fault():
@@ -257,28 +269,32 @@ class VirtualDrive:
 
     # ------------------------------------------------------------------ frames in
     def on_sync(self, t: float) -> None:
-        if self.nmt != NMT_OPERATIONAL:
+        if self.node.nmt._state != NMT_OPERATIONAL:
             return
-        self._load_config()
+        if self._cfg_dirty:
+            self._load_config()
         self.counters["sync"] += 1
-        self._arm(t)
+        if not self.wd_armed:
+            self._arm(t)
         self.wd_sync = t
-        if self.rpdo_type <= 240:
+        if self._sync_rpdo:
             self.target = self.pending
-        if self.tpdo_cob is None or not 1 <= self.tpdo_type <= 240:
+        every = self._tpdo_every
+        if not every:
             return
         self.sync_count += 1
-        if self.sync_count % self.tpdo_type == 0:
+        if self.sync_count % every == 0:
             self._send_tpdo()
 
     def on_rpdo(self, data: bytearray, t: float) -> None:
-        if self.nmt != NMT_OPERATIONAL:
+        if self.node.nmt._state != NMT_OPERATIONAL:
             return
-        self._load_config()
-        if self.rpdo_map == _CODEC_RPDO_MAP and len(data) == RPDO1.size:
-            cw, tq = RPDO1.unpack_from(data)
+        if self._cfg_dirty:
+            self._load_config()
+        if self._codec_rpdo and len(data) == _RPDO1_SIZE:
+            cw, tq = _unpack_rpdo(data)
             self.pending = tq
-            if self.rpdo_type > 240:
+            if not self._sync_rpdo:
                 self.target = tq
             self.apply_controlword(cw)
         elif not self._unpack_generic(data):
@@ -286,7 +302,8 @@ class VirtualDrive:
             self._emcy(EMCY_PDO_LENGTH, 0x11)
             return
         self.counters["rpdo"] += 1
-        self._arm(t)
+        if not self.wd_armed:
+            self._arm(t)
         self.wd_rpdo = t
 
     def _unpack_generic(self, data: bytearray) -> bool:
@@ -356,6 +373,23 @@ class VirtualDrive:
 
     def _send_tpdo(self) -> None:
         f = self.faults
+        if not f and self._codec_tpdo:
+            # the cyclic case: statusword(), _velocity_raw() and torque_actual() inlined
+            st = self.state
+            sw = STATUSWORD_OF_STATE[st]
+            tq = 0
+            if st == OPERATION_ENABLED and self.mode == MODE_CST:
+                sw |= 0x1000
+                if self.node.nmt._state == NMT_OPERATIONAL:
+                    e = self._effective_permille()
+                    if e * self.rated_A / 1000.0 != 0.0:
+                        tq = e
+            payload = _pack_tpdo(sw, velocity_to_raw(self.omega, self.cfg.velocity_factor), tq)
+            self.last_tpdo = payload
+            self.counters["tpdo"] += 1
+            # _tx without a bus_error fault: can.Message(arbitration_id=cob, data=payload, is_extended_id=False)
+            self.owner._put(_Message(0.0, self.tpdo_cob, False, False, False, None, len(payload), bytearray(payload)))
+            return
         if "dropout" in f:
             return
         if "stuck" in f and self.last_tpdo is not None:
@@ -374,19 +408,23 @@ class VirtualDrive:
     # ------------------------------------------------------------------ timers
     def timers(self, t: float) -> None:
         """Injected overcurrent, heartbeat consumer, watchdog, heartbeat producer at time t."""
-        self._load_config()
-        if self._persistent_fault() and self.state in _POWER_ON:
+        if self._cfg_dirty:
+            self._load_config()
+        if self.faults and self._persistent_fault() and self.state in _POWER_ON:
             self.fault(EMCY_OVERCURRENT)
-        if self.consumer_last is not None and t - self.consumer_last > self.consumer_s:
+        last = self.consumer_last
+        if last is not None and t - last > self.consumer_s:
             self.consumer_last = None                   # re-armed by the next heartbeat
             self.counters["heartbeat_events"] += 1
             self.fault(EMCY_HEARTBEAT)
-        if (self.wd_armed and self.nmt == NMT_OPERATIONAL and self.state in _POWER_ON
-                and t - min(self.wd_sync, self.wd_rpdo) > self.owner.watchdog_s):
-            self.counters["watchdog_trips"] += 1
-            self.wd_armed = False
-            self.fault(EMCY_RPDO_TIMEOUT)
-        self._heartbeat(t)
+        if self.wd_armed and self.state in _POWER_ON and self.node.nmt._state == NMT_OPERATIONAL:
+            ws, wr = self.wd_sync, self.wd_rpdo
+            if t - (ws if ws < wr else wr) > self.owner.watchdog_s:
+                self.counters["watchdog_trips"] += 1
+                self.wd_armed = False
+                self.fault(EMCY_RPDO_TIMEOUT)
+        if self.hb_next <= t:
+            self._heartbeat(t)
 
     def _heartbeat(self, t: float) -> None:
         """Producer: one heartbeat when due (after a long gap, one — missed ones are not replayed)."""
@@ -420,6 +458,9 @@ class VirtualDriveSet:
         self._routes: dict[int, tuple[int, VirtualDrive]] = {}
         self._routes_dirty = True
         self.tx_errors = 0
+        self._outbox: list[can.Message] | None = None    # hold(): frames kept until release()
+        # a LockstepBus takes our fresh messages without copying them
+        self._send = getattr(bus, "send_owned", None) or bus.send
         path = Path(eds_path) if eds_path is not None else resolve_config_path(cfg.eds)
         self._network = _SimNetwork(self, bus)
         self._by_sdo_tx: dict[int, VirtualDrive] = {}
@@ -429,6 +470,7 @@ class VirtualDriveSet:
             self._network.add_node(d.node)
             self._by_sdo_tx[node_cob_id(COB_SDO_TX, d.node_id)] = d
             self.drives[d.wheel] = d
+        self._drive_list = list(self.drives.values())
         for d in self.drives.values():          # power on: boot-up, then PRE-OPERATIONAL
             cob, data = heartbeat_frame(d.node_id, NMT_INITIALISING)
             self._tx(cob, data, d)
@@ -501,20 +543,42 @@ class VirtualDriveSet:
             return False
         d.counters[direction] += 1
         if f["error_frames"]:
-            try:
-                self.bus.send(can.Message(is_error_frame=True, arbitration_id=0, dlc=0))
-            except can.CanError:
-                self.tx_errors += 1
+            self._put(can.Message(is_error_frame=True, arbitration_id=0, dlc=0))
         return True
 
     # ------------------------------------------------------------------ frames
     def _tx(self, cob: int, data: bytes, d: VirtualDrive | None) -> None:
-        if self._dropped(d, "tx_dropped"):
+        if d is not None and "bus_error" in d.faults and self._dropped(d, "tx_dropped"):
+            return
+        # positional: can.Message(arbitration_id=cob, data=data, is_extended_id=False), cheaper
+        self._put(_Message(0.0, cob, False, False, False, None, len(data), bytearray(data)))
+
+    def _put(self, msg: can.Message) -> None:
+        """Send a fresh message now, or keep it for ``release()`` while held."""
+        if self._outbox is not None:
+            self._outbox.append(msg)
             return
         try:
-            self.bus.send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+            self._send(msg)
         except can.CanError:
             self.tx_errors += 1
+
+    def hold(self) -> None:
+        """Keep the frames the drives send until ``release()``, in order (lockstep: the
+        simulated rig writes the laser frames before it spends time on these sends)."""
+        if self._outbox is None:
+            self._outbox = []
+
+    def release(self) -> None:
+        """Send the frames kept since ``hold()``, in order, and send directly again."""
+        box, self._outbox = self._outbox, None
+        if box:
+            send = self._send
+            for msg in box:
+                try:
+                    send(msg)
+                except can.CanError:
+                    self.tx_errors += 1
 
     def _route_table(self) -> dict[int, tuple[int, VirtualDrive]]:
         """COB-ID -> (kind, drive) for the frames a single drive consumes."""
@@ -533,8 +597,8 @@ class VirtualDriveSet:
             return
         cob, data = msg.arbitration_id, msg.data
         if cob == COB_SYNC:
-            for d in self.drives.values():
-                if not self._dropped(d, "rx_dropped"):
+            for d in self._drive_list:
+                if not ("bus_error" in d.faults and self._dropped(d, "rx_dropped")):
                     d.on_sync(t)
             return
         if cob == COB_NMT:
@@ -553,7 +617,7 @@ class VirtualDriveSet:
         if entry is None:
             return
         kind, d = entry
-        if self._dropped(d, "rx_dropped"):
+        if "bus_error" in d.faults and self._dropped(d, "rx_dropped"):
             return
         if kind == 0:
             d.node.sdo.on_request(cob, data, t)
@@ -562,10 +626,10 @@ class VirtualDriveSet:
 
     def _drain_and_tick(self, t: float) -> None:
         self._now = t
-        recv = self.bus.recv
+        recv, handle = self.bus.recv, self._handle
         while (msg := recv(0.0)) is not None:
-            self._handle(msg, t)
-        for d in self.drives.values():
+            handle(msg, t)
+        for d in self._drive_list:
             d.timers(t)
 
     # ------------------------------------------------------------------ running

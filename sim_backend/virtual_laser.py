@@ -7,7 +7,8 @@ the pty master. The driver opens ``port_name`` (the slave) with pyserial like a 
 
 Time: frame k (k = 1, 2, …) is sampled at k/rate and written at k/rate + latency, so after
 ``emit_until(t)`` exactly ``floor((t − latency)·rate)`` frames have been produced —
-independent of how the calls are spaced. Lockstep backends call ``emit_until`` each step;
+independent of how the calls are spaced. Lockstep backends call ``emit_until`` each step
+(or emit all lasers at once through a :class:`LaserGroup`, which writes the same bytes);
 ``start_realtime`` runs the same on a thread against the monotonic clock.
 
 Faults (``inject(kind, **params)``, ``clear(kind)``):
@@ -32,7 +33,7 @@ from __future__ import annotations
 import fcntl
 import math
 import os
-import struct
+import select
 import termios
 import threading
 import time
@@ -42,10 +43,13 @@ from typing import Any
 
 import numpy as np
 
-from drivers.laser import MAX_X, encode_list, encode_values, x_from_distance_mm, xs_from_distance_mm
+from drivers.laser import (
+    _X_PER_PERCENT, MAX_DISTANCE_X, MAX_X, encode_list, encode_value, encode_values, x_from_distance_mm,
+    xs_from_distance_mm,
+)
 from rig_runtime.config import LaserDevice
 
-__all__ = ["VirtualLaser", "FAULT_KINDS"]
+__all__ = ["FAULT_KINDS", "LaserGroup", "VirtualLaser", "emit_all"]
 
 FAULT_KINDS = ("dropout", "corrupt", "stuck", "offset", "out_of_range")
 PEAK_BEFORE_RANGE = 262077
@@ -54,6 +58,10 @@ NO_PEAK = 262076
 _EPS = 1e-9     # k/rate computed in floats: 0.005·4000 may land just below 20
 _SMALL = 48         # up to this many frames per call: scalar Python (numpy's per-call cost dominates)
 _LDISC_CAP = 4095   # bytes the Linux n_tty line discipline holds; more waits in the flip buffer
+_NOISE_BLOCK = 4096  # standard normals drawn from the generator at a time
+_SPIN_S = 20e-6      # waiting for pty delivery: spin this long, then sleep in poll()
+_FIONREAD = termios.FIONREAD
+_ioctl = fcntl.ioctl
 
 
 class VirtualLaser:
@@ -75,8 +83,11 @@ class VirtualLaser:
         self.quantization_m = quantization_m
         self.latency_frames = round(latency_s * self.rate_hz)
         self._noise_rng, self._fault_rng = _rngs(seed)
-        self._nbuf: list[float] = []
-        self._ni = 0
+        # noise block, read position, number of refills (a LaserGroup caches the scaled block)
+        self._nbuf = np.empty(_NOISE_BLOCK)
+        self._ni = _NOISE_BLOCK         # exhausted: the first draw fills the block
+        self._nfill = 0
+        self._qbuf = bytearray(4)       # FIONREAD result, reused
         self._distance_m = cfg.offset_mm / 1000.0 + cfg.measuring_range_mm / 2000.0  # mid-range
         self._faults: dict[str, dict[str, Any]] = {}
         self._last_x: int | None = None
@@ -218,14 +229,16 @@ class VirtualLaser:
 
     def _standard_normals(self, n: int) -> list[float]:
         """n standard normal draws from blocks of the seeded generator (the same sequence
-        however the frames are split into calls)."""
+        however the frames are split into calls, and whether a LaserGroup draws them)."""
         out: list[float] = []
+        buf = self._nbuf
         while n > 0:
-            if self._ni >= len(self._nbuf):
-                self._nbuf = self._noise_rng.standard_normal(4096).tolist()
+            if self._ni >= _NOISE_BLOCK:
+                self._noise_rng.standard_normal(out=buf)
                 self._ni = 0
-            take = min(n, len(self._nbuf) - self._ni)
-            out += self._nbuf[self._ni:self._ni + take]
+                self._nfill += 1
+            take = min(n, _NOISE_BLOCK - self._ni)
+            out += buf[self._ni:self._ni + take].tolist()
             self._ni += take
             n -= take
         return out
@@ -305,24 +318,17 @@ class VirtualLaser:
         return n
 
     def _slave_queued(self) -> int:
-        """Bytes readable at the slave end now (FIONREAD)."""
+        """Bytes readable at the slave end now (FIONREAD into a reused buffer)."""
+        b = self._qbuf
         try:
-            raw = fcntl.ioctl(self._slave, termios.FIONREAD, b"\0\0\0\0")
+            _ioctl(self._slave, _FIONREAD, b, True)
         except OSError:
             return 0
-        return struct.unpack("i", raw)[0]
+        return int.from_bytes(b, "little", signed=True)
 
     def _wait_delivered(self, target: int, timeout_s: float = 0.05) -> None:
         """Spin (then nap) until ``target`` bytes are readable at the slave, or time out."""
-        deadline = time.perf_counter() + timeout_s
-        spins = 0
-        while self._slave_queued() < target:
-            if time.perf_counter() > deadline:
-                self.delivery_timeouts += 1
-                return
-            spins += 1
-            if spins > 50:
-                time.sleep(20e-6)   # let the kernel worker run on a single CPU
+        _await_delivery([(self, target)], timeout_s)
 
     # ------------------------------------------------------------------ lifetime
     def close(self) -> None:
@@ -364,8 +370,8 @@ def emit_all(lasers: "list[VirtualLaser]", t: float) -> int:
     """Lockstep: emit every laser's frames up to t, then wait until all are readable.
 
     Writing all first and waiting once lets the kernel deliver the ptys in parallel
-    (one wait instead of six)."""
-    targets = []
+    (one wait instead of six). :class:`LaserGroup` does the same with less Python."""
+    pending = []
     total = 0
     for vl in lasers:
         with vl._lock:
@@ -373,9 +379,185 @@ def emit_all(lasers: "list[VirtualLaser]", t: float) -> int:
             n = vl._emit(t)
         total += n
         if n:
-            targets.append((vl, min(q0 + n, _LDISC_CAP)))
-    for vl, target in targets:
-        with vl._lock:
-            vl._wait_delivered(target)
+            pending.append((vl, min(q0 + n, _LDISC_CAP)))
+    _await_delivery(pending)
     return total
 
+
+def _await_delivery(pending: list[tuple[VirtualLaser, int]], timeout_s: float = 0.05) -> None:
+    """Wait until each laser's slave end holds its target byte count, or time out (counted
+    in ``delivery_timeouts``). Lockstep only: nobody reads the slaves meanwhile.
+
+    Spins for up to ``_SPIN_S`` (the kernel worker usually delivers within tens of µs on
+    the other CPU), then sleeps in ``poll()`` on the slaves that have nothing yet: an idle
+    CPU lets the scheduler run the worker here when the other CPU is busy."""
+    t0 = 0.0
+    while True:
+        left = []
+        empty = []
+        for p in pending:
+            q = p[0]._slave_queued()
+            if q < p[1]:
+                left.append(p)
+                if q == 0:
+                    empty.append(p[0]._slave)
+        if not left:
+            return
+        pending = left
+        now = time.perf_counter()
+        if not t0:
+            t0 = now
+        elif now - t0 > timeout_s:
+            for vl, _ in pending:
+                vl.delivery_timeouts += 1
+            return
+        if now - t0 > _SPIN_S:
+            if empty:
+                poller = select.poll()
+                for fd in empty:
+                    poller.register(fd, select.POLLIN)
+                poller.poll(1)
+            else:
+                time.sleep(20e-6)
+
+
+_WIRE = b""
+
+
+def _wire_bytes() -> bytes:
+    """Wire bytes of every distance value 0..65520 in a row (value x at 3x), built once with
+    the codec."""
+    global _WIRE
+    if not _WIRE:
+        _WIRE = encode_values(np.arange(MAX_DISTANCE_X + 1))
+    return _WIRE
+
+
+class LaserGroup:
+    """Lockstep emission of several virtual lasers: ``emit(t)`` samples, encodes and writes
+    every laser's frames due by ``t``; ``wait()`` returns once the kernel delivered them to
+    the slave ends. pty delivery runs on a kernel worker, so the caller does other work in
+    between.
+
+    A laser without faults, latency, quantization or real-time thread takes a lean path:
+    its frames are computed in plain Python from a cached copy of its noise block scaled
+    by the noise level (cheaper than numpy for a few frames in a busy cycle, where the
+    caches are cold) and encoded from a table; all such lasers' frames are written back to
+    back (the first pty write of a burst wakes the kernel worker and costs most). The bytes
+    are exactly those of ``emit_until`` (same noise sequence, same arithmetic as
+    ``x_from_distance_mm``). Any other laser emits through ``emit_until``'s own path.
+    """
+
+    def __init__(self, lasers: list[VirtualLaser]):
+        self.lasers = list(lasers)
+        self._lean = []         # per laser: (laser, offset mm, MR mm, low, high bound of the span) or None
+        for vl in self.lasers:
+            mr = vl.cfg.measuring_range_mm
+            ok = vl.latency_frames == 0 and vl.quantization_m == 0
+            self._lean.append((vl, vl.cfg.offset_mm, mr, -0.01 * mr, 1.01 * mr) if ok else None)
+        self._scaled: list[list[float] | None] = [None] * len(self.lasers)   # noise_std_m · block
+        self._nmax = [0.0] * len(self.lasers)                               # max |sd·e| of the block
+        self._fill = [-1] * len(self.lasers)
+        self._poller = select.poll()
+        self._by_fd: dict[int, VirtualLaser] = {}
+        for vl in self.lasers:
+            self._poller.register(vl._slave, select.POLLIN)
+            self._by_fd[vl._slave] = vl
+        self._pending: list[tuple[VirtualLaser, int]] = []
+        if any(self._lean):
+            _wire_bytes()
+
+    def emit(self, t: float) -> int:
+        """Write every laser's frames due by ``t`` (not waiting for delivery); bytes written."""
+        pend: list[tuple[VirtualLaser, int]] = []
+        self._pending = pend
+        lean: list[tuple[VirtualLaser, bytes, int, int]] = []
+        total = 0
+        rate = -1.0
+        k = 0
+        enc = _WIRE
+        xpp = _X_PER_PERCENT
+        for i, c in enumerate(self._lean):
+            vl = c[0] if c is not None else self.lasers[i]
+            if vl.rate_hz != rate:
+                rate = vl.rate_hz
+                k = math.floor(t * rate + _EPS)
+            n = k - vl._sampled
+            d0 = vl._distance_m
+            sd = vl.noise_std_m
+            if (c is None or n <= 0 or vl._faults or vl._released != vl._sampled or vl._thread is not None
+                    or (sd > 0 and vl._ni + n > _NOISE_BLOCK) or not math.isfinite(d0)):
+                if c is not None and n <= 0 and vl._released == vl._sampled:
+                    continue                # nothing due (latency-free: nothing queued either)
+                with vl._lock:
+                    q0 = vl._slave_queued()
+                    w = vl._emit(t)
+                total += w
+                if w:
+                    pend.append((vl, min(q0 + w, _LDISC_CAP)))
+                continue
+            _, off, mr, lo, hi = c
+            if sd > 0:
+                if self._fill[i] != vl._nfill:
+                    sc = sd * vl._nbuf                  # sd·e, as the scalar path computes it
+                    self._scaled[i] = sc.tolist()
+                    self._nmax[i] = float(np.abs(sc).max())
+                    self._fill[i] = vl._nfill
+                ni = vl._ni
+                noise = self._scaled[i][ni:ni + n]
+                vl._ni = ni + n
+                nmax = self._nmax[i]
+            else:
+                noise = [0.0] * n       # d0 + 0.0 == d0: the scalar path's noise-free value
+                nmax = 0.0
+            # VirtualLaser._x_of, operation for operation. Rounded float operations are
+            # monotonic, so if the extreme noise of the block stays inside the span every
+            # frame does, and no frame needs the out-of-span branches
+            if (d0 - nmax) * 1000.0 - off >= lo and (d0 + nmax) * 1000.0 - off <= hi:
+                xs = [round((((d0 + ne) * 1000.0 - off) * 100.0 / mr + 1.0) * xpp) for ne in noise]
+                x = xs[-1]
+                data = b"".join([enc[3 * v:3 * v + 3] for v in xs])
+            else:
+                parts = []
+                for ne in noise:
+                    rel = (d0 + ne) * 1000.0 - off
+                    if rel < lo:
+                        x = PEAK_BEFORE_RANGE
+                        parts.append(_PEAK_BEFORE_BYTES)
+                    elif rel > hi:
+                        x = PEAK_AFTER_RANGE
+                        parts.append(_PEAK_AFTER_BYTES)
+                    else:               # in the span this lies within 0..65520
+                        x = round((rel * 100.0 / mr + 1.0) * xpp)
+                        parts.append(enc[3 * x:3 * x + 3])
+                data = b"".join(parts)
+            vl._sampled = vl._released = k
+            vl._last_x = x
+            vl.frames_sent += n
+            lean.append((vl, data, n, x))
+        if lean:
+            # unread bytes at the slaves (the runtime normally drained them): one poll for all
+            q0s = {fd: self._by_fd[fd]._slave_queued() for fd, _ in self._poller.poll(0)}
+            write = os.write
+            for vl, data, n, x in lean:
+                try:
+                    w = write(vl._master, data)
+                except OSError:
+                    w = 0
+                total += w
+                vl.bytes_written += w
+                if w != len(data):
+                    vl.bytes_dropped += len(data) - w
+                if w:
+                    pend.append((vl, min(q0s.get(vl._slave, 0) + w, _LDISC_CAP)))
+        return total
+
+    def wait(self) -> None:
+        """Return once the bytes of the last ``emit`` are readable at every slave end."""
+        pending, self._pending = self._pending, []
+        if pending:
+            _await_delivery(pending)
+
+
+_PEAK_BEFORE_BYTES = encode_value(PEAK_BEFORE_RANGE)
+_PEAK_AFTER_BYTES = encode_value(PEAK_AFTER_RANGE)
