@@ -1,13 +1,20 @@
 """What one cycle's ``poll()`` + ``write()`` costs for all devices together, against the
-virtual devices: six lasers at 4 kHz on ptys, four CiA 402 drives on a python-can bus,
-the F/T hand-off (four sensors polled by the driver's own thread over Modbus TCP).
+virtual devices: six lasers at 4 kHz on ptys, four CiA 402 drives on a python-can bus
+(``LockstepBus``, the in-process bus of the lockstep dry run; ``--can virtual`` uses
+python-can's ``virtual`` bus instead, which deep-copies every frame for every receiver),
+the F/T hand-off (four sensors polled over Modbus TCP by the driver's poll process; the
+simulated sensors' server runs in a process of its own, as with ``rig sim``, so that no
+simulator thread competes with the measured calls for the interpreter lock).
 
 The virtual devices produce one period's worth of frames between cycles (not timed), so
 every timed poll drains what a real 5 ms period brings (20 frames per laser, 4 TPDOs,
 heartbeats). Baseline, same run: the bare transport floor — one non-blocking ``os.read``
 per pty and the same CAN frames sent and received with no codec or driver logic.
 
-    python benchmarks/driver_cost.py [--cycles N] [--json]
+    python benchmarks/driver_cost.py [--cycles N] [--can lockstep|virtual] [--fifo PRIO] [--json]
+
+``--fifo P`` runs the measuring thread SCHED_FIFO P, as the control loop runs on the rig
+(when the OS permits; reported either way).
 """
 
 from __future__ import annotations
@@ -16,6 +23,7 @@ import argparse
 import gc
 import json
 import logging
+import multiprocessing
 import os
 import sys
 import time
@@ -31,6 +39,7 @@ from rig_runtime.config import WHEELS  # noqa: E402
 from drivers.canopen402 import DriveBus  # noqa: E402
 from drivers.ft300 import FTSensorSet, Wrench  # noqa: E402
 from drivers.laser import LaserDriver  # noqa: E402
+from sim_backend.lockstep_bus import LockstepBus  # noqa: E402
 from sim_backend.virtual_drive import VirtualDriveSet  # noqa: E402
 from sim_backend.virtual_ft import VirtualFTServer  # noqa: E402
 from sim_backend.virtual_laser import VirtualLaser, emit_all  # noqa: E402
@@ -41,9 +50,25 @@ def dist(a) -> dict:
     return {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)), "max": float(a.max())}
 
 
+def _serve_ft(names, conn) -> None:
+    """Child process: the simulated F/T sensors' Modbus TCP server until told to stop."""
+    srv = VirtualFTServer(names).start()
+    for n in names:
+        srv.set_wrench(n, Wrench(1.0, 2.0, 3.0, 0.1, 0.2, 0.3))
+    conn.send(dict(srv.endpoints))
+    try:
+        conn.recv()
+    except EOFError:
+        pass
+    srv.close()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cycles", type=int, default=4000)
+    ap.add_argument("--can", choices=("lockstep", "virtual"), default="lockstep",
+                    help="python-can bus between the drives and the driver (default lockstep)")
+    ap.add_argument("--fifo", type=int, help="SCHED_FIFO priority of the measuring thread (if permitted)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
@@ -55,20 +80,31 @@ def main() -> int:
         lasers.append(vl)
         drivers.append(LaserDriver(lc, port=vl.port_name, stale_after_s=4 * h))
     chan = f"bench-{os.getpid()}"
-    sim_bus = can.Bus(interface="virtual", channel=chan)
+    new_bus = (lambda: LockstepBus(channel=chan)) if args.can == "lockstep" else \
+        (lambda: can.Bus(interface="virtual", channel=chan))
+    sim_bus = new_bus()
     vdrives = VirtualDriveSet(cfg.devices.can, sim_bus)
-    drive_bus = DriveBus(cfg.devices.can, bus=can.Bus(interface="virtual", channel=chan), period_s=h)
+    drv_can = new_bus()
+    drive_bus = DriveBus(cfg.devices.can, bus=drv_can, period_s=h)
     names = [s.name for s in cfg.devices.ft.sensors]
-    ft_srv = VirtualFTServer(names).start()
-    for n in names:
-        ft_srv.set_wrench(n, Wrench(1.0, 2.0, 3.0, 0.1, 0.2, 0.3))
-    ft = FTSensorSet(cfg.devices.ft, endpoints=ft_srv.endpoints)
+    ctx = multiprocessing.get_context("spawn")
+    parent_end, child_end = ctx.Pipe()
+    ft_srv = ctx.Process(target=_serve_ft, args=(names, child_end), name="ft-server", daemon=True)
+    ft_srv.start()
+    ft = FTSensorSet(cfg.devices.ft, endpoints=parent_end.recv(), poller="process")
     try:
         for d in drivers:
             d.open()
         with vdrives.serving(0.0):
             drive_bus.open()
         ft.open()
+        fifo = "not requested"
+        if args.fifo:
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.fifo))
+                fifo = f"SCHED_FIFO {args.fifo}: applied"
+            except (OSError, AttributeError) as e:
+                fifo = f"SCHED_FIFO {args.fifo}: not applied ({e})"
         currents = [0.1, -0.1, 0.5, -0.5]
         t = 0.0
         cyc, base = [], []
@@ -84,7 +120,7 @@ def main() -> int:
             for d in drivers:
                 d.poll(t)
             drive_bus.poll(t)
-            ft.poll(t)
+            ft.poll(time.monotonic())   # the poll process stamps samples on the monotonic clock
             drive_bus.write(currents, t)
             t1 = time.perf_counter()
             if k >= 200:
@@ -116,21 +152,24 @@ def main() -> int:
         for fd in fds:
             os.close(fd)
     finally:
-        ft.close(); ft_srv.close()
-        drive_bus.close(); vdrives.close(); sim_bus.shutdown()
+        ft.close()
+        parent_end.send("stop")
+        ft_srv.join(5.0)
+        drive_bus.close(); vdrives.close(); sim_bus.shutdown(); drv_can.shutdown()
         for d in drivers:
             d.close()
         for vl in lasers:
             vl.close()
     out = {"cycle_us": dist(cyc), "baseline_us": dist(base),
            "ratio_p50": float(np.percentile(cyc, 50) / np.percentile(base, 50)),
-           "cycles": args.cycles, "lasers_hz": 4000, "drives": 4, "ft_sensors": len(names)}
+           "cycles": args.cycles, "can": args.can, "fifo": fifo, "lasers_hz": 4000, "drives": 4, "ft_sensors": len(names)}
     if args.json:
         print(json.dumps(out))
     else:
         c, b = out["cycle_us"], out["baseline_us"]
         print(f"poll()+write(), all devices: p50 {c['p50']:.1f} us, p99 {c['p99']:.1f} us, max {c['max']:.1f} us")
         print(f"transport floor (same run):  p50 {b['p50']:.1f} us, p99 {b['p99']:.1f} us -> ratio p50 {out['ratio_p50']:.2f}")
+        print(f"measuring thread: {out['fifo']}")
     return 0
 
 
