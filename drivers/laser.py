@@ -57,6 +57,7 @@ _FLAG_L, _FLAG_M, _FLAG_H = 0x00, 0x40, 0x80
 _FLAG_SUM = (_FLAG_M << 6) + (_FLAG_H << 12)
 # Each byte -> one flag letter, so frame search runs on bytes in C (X = flag 11, never valid).
 _FLAG_TABLE = bytes(b"LMHX"[b >> 6] for b in range(256))
+_H_SAFE = _FLAG_H | 14          # an H byte up to this: the value is < 15·4096 = 61440 <= 65520
 _FRAME_RUN = re.compile(rb"(?:LMH)+")
 _CLEAN = b"LMH" * 1024          # flags of a gap-free stream of up to 1024 frames
 _LDISC_FULL = 4095              # Linux n_tty holds this many unread bytes; more wait behind
@@ -142,6 +143,16 @@ class FrameDecoder:
     def pending(self) -> int:
         """Bytes of an incomplete frame held for the next call."""
         return len(self._pending)
+
+    def clean_frames(self, data: bytes) -> int:
+        """If ``data`` is whole, clean frames and nothing is pending: count them as decoded
+        and return how many (the caller reads the values from ``data``); else 0 and
+        nothing consumed — use :meth:`feed`. The usual poll takes this path."""
+        n = len(data)
+        if self._pending or n == 0 or n % 3 or not _CLEAN.startswith(data.translate(_FLAG_TABLE)):
+            return 0
+        self.frames += n // 3
+        return n // 3
 
     def reset(self) -> None:
         """Forget a partial frame (after a read error); its bytes count as discarded."""
@@ -231,7 +242,8 @@ class LaserDriver(Driver):
     def _reset_state(self) -> None:
         """Fresh decoder, counters and latest-value memory (each open starts a session)."""
         self._decoder = FrameDecoder()
-        self.last_values: list[int] = []        # raw values of the latest poll (recorder, tests)
+        self._last_list: list[int] | None = []  # raw values of the latest poll (None: not decoded yet)
+        self._last_chunk = b""                  # ... or the clean frames they are decoded from
         self._health = Health(cause="no data yet",
                               counters={"values": 0, "error_frames": 0, "read_errors": 0, "bytes": 0})
         self._value = math.nan          # latest valid value (or cycle mean), m; reported only
@@ -301,19 +313,45 @@ class LaserDriver(Driver):
         except Exception as exc:  # noqa: BLE001 - poll must not raise inside the loop
             h.errors += 1
             h.counters["read_errors"] += 1
-            self.last_values = []
+            self._last_list = []
             self._decoder.reset()
             h.bad_frames = self._decoder.discarded
             return self._reading(Freshness.INVALID, f"read error: {type(exc).__name__}: {exc}", math.nan, 0)
         n_valid = 0
-        self.last_values = []
+        self._last_chunk = b""
+        self._last_list = []
         if data:
             h.counters["bytes"] += len(data)
-            values = self.last_values = self._decoder.feed(data)
-            h.bad_frames = self._decoder.discarded
-            if values:
-                n_valid = self._take(values, now)
+            dec = self._decoder
+            n = dec.clean_frames(data)
+            # whole clean frames whose H bytes rule out any value above 65520 (an error code
+            # or beyond the range end): only the latest value is needed, decoded here; the
+            # list of all values is made only if someone reads last_values
+            if n and max(data[2::3]) <= _H_SAFE and not self.cfg.average:
+                self._last_chunk = data
+                self._last_list = None
+                last = data[-3] + (data[-2] << 6) + (data[-1] << 12) - _FLAG_SUM
+                self._raw_x = last
+                self._last_rx_t = now
+                h.counters["values"] += n
+                self._latest_error = None
+                self._value = self._gain * last + self._bias
+                self._value_t = now
+                n_valid = n
+            else:
+                values = _values(data, 0, len(data)) if n else dec.feed(data)
+                self._last_list = values
+                h.bad_frames = dec.discarded
+                if values:
+                    n_valid = self._take(values, now)
         return self._classify(now, n_valid)
+
+    @property
+    def last_values(self) -> list[int]:
+        """Raw values (distances and error codes) decoded by the latest poll."""
+        if self._last_list is None:
+            self._last_list = _values(self._last_chunk, 0, len(self._last_chunk))
+        return self._last_list
 
     def _take(self, values: list[int], now: float) -> int:
         """Update the latest value/error from this cycle's values; return how many are valid."""

@@ -22,6 +22,7 @@ from drivers.laser import (
     LaserDriver,
     distance_mm_from_x,
     encode_value,
+    encode_list,
     encode_values,
     error_reason,
     x_from_distance_mm,
@@ -549,3 +550,33 @@ def test_device_gone_is_invalid(rig):
     vl.close()                                        # the far end disappears (cable pulled)
     r = drv.poll(2 * H)
     assert r.health.state is Freshness.INVALID and "read error" in r.health.cause
+
+
+@settings(max_examples=150, deadline=None)
+@given(xs=st.lists(st.one_of(st.integers(0, MAX_X), st.integers(60000, MAX_X), st.sampled_from(sorted(ERROR_CODES))),
+                   min_size=1, max_size=40),
+       average=st.booleans())
+def test_fast_and_general_decoding_agree(xs, average):
+    """The poll's shortcut for clean frames gives what the general decoder gives."""
+    import os as _os
+
+    r, w = _os.pipe()
+    _os.set_blocking(r, False)
+    try:
+        drv = LaserDriver(_cfg(average=average), port="/dev/null")
+        drv._ser = type("Port", (), {"fd": r})()
+        _os.write(w, encode_list(xs))
+        got = drv.poll(1.0)
+        assert drv.last_values == xs
+        ref = FrameDecoder().feed(encode_list(xs))
+        valid = [x for x in ref if x <= MAX_DISTANCE_X]
+        assert got.raw_x == xs[-1] and got.n_values == len(valid)
+        if xs[-1] > MAX_DISTANCE_X:
+            assert got.health.state is Freshness.INVALID and math.isnan(got.value_m)
+        else:
+            x = sum(valid) / len(valid) if average else xs[-1]
+            assert got.health.state is Freshness.FRESH
+            assert got.value_m == pytest.approx(drv._gain * x + drv._bias, abs=1e-12)
+    finally:
+        _os.close(r)
+        _os.close(w)
