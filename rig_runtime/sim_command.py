@@ -43,7 +43,8 @@ def _cpus(text: str) -> list[int]:
                                            "every --status-period")
 @arg("--status-period", type=float, default=0.05, metavar="S", help="status file period, s (default 0.05)")
 @arg("--duration", type=float, metavar="S", help="stop after S seconds (default: serve until SIGINT/SIGTERM)")
-@arg("--rt-priority", type=int, metavar="N", help="SCHED_FIFO priority of the simulator's threads (when permitted)")
+@arg("--rt-priority", type=int, metavar="N", help="SCHED_FIFO priority of the CAN responder; the plant side's "
+                                                 "threads get N-1 (when permitted)")
 @arg("--cpu-affinity", type=_cpus, metavar="CPUS", help="CPUs for the simulator, e.g. 0 or 0,2 (when permitted)")
 @arg("--runtime-rt-priority", type=int, metavar="N",
      help="write realtime.sched_fifo_priority: N into the generated config (for the rig run that uses it)")
@@ -53,10 +54,13 @@ def _cpus(text: str) -> list[int]:
      help="python-can interface the generated config uses for the SLCAN pty: rig_slcan (default: the "
           "project's buffer-reading client, measured drive poll 0.12 ms p50) or slcan (python-can's own "
           "client, reads byte by byte: 1.8 ms p50)")
+@arg("--can-responder", default="process", choices=("process", "thread"),
+     help="where the emulated SLCAN adapter and the virtual drives run: process (default: a child "
+          "process of their own, so no plant-side thread delays a TPDO) or thread (in this process)")
 def cmd_sim(args: argparse.Namespace) -> int:
     from sim_backend.process import serve
     return serve(args.config, args.scenario, args.seed, write_config=args.write_config,
                  status_file=args.status_file, status_period_s=args.status_period, duration_s=args.duration,
                  rt_priority=args.rt_priority, cpu_affinity=args.cpu_affinity,
                  runtime_rt_priority=args.runtime_rt_priority, runtime_cpu_affinity=args.runtime_cpu_affinity,
-                 can_interface=args.can_interface)
+                 can_interface=args.can_interface, can_responder=args.can_responder)

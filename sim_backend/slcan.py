@@ -47,10 +47,23 @@ The host side never blocks the adapter: the pty master is non-blocking; bytes th
 not read in time are kept up to ``backlog_bytes`` and then whole frames are dropped
 (counted in ``counters["tx_dropped"]``, status bit 3). The adapter keeps the slave end open
 itself, so a host that closes — or is killed — does not hang up the pty.
+
+Two ways to connect the CAN side:
+
+* **bridge** — ``SlcanAdapter(bus)``: frames go to and come from any python-can bus (e.g.
+  python-can's ``virtual`` bus), on two threads (pty → bus, bus → pty).
+* **direct** — ``SlcanAdapter(None, service=fn)``: the devices use ``adapter.device_bus``
+  (a python-can bus with no thread of its own) and are served by the adapter's one thread:
+  it waits in ``epoll`` on the pty, hands every frame of what it read to the devices, calls
+  ``service(t)`` at once (and every ``service_period_s`` for their timers), and writes what
+  the devices sent meanwhile in ONE ``write`` — a SYNC is answered by the thread that read
+  it, with no hand-over between threads (``rig sim``: its SYNC → TPDO path).
 """
 
 from __future__ import annotations
 
+import collections
+import math
 import os
 import select
 import termios
@@ -63,7 +76,7 @@ import can
 
 from drivers.slcan_bus import encode_frame, parse_frame  # one SLCAN codec for both ends
 
-__all__ = ["SlcanAdapter", "encode_frame", "parse_frame"]
+__all__ = ["SlcanAdapter", "DeviceSideBus", "encode_frame", "parse_frame"]
 
 _OK = b"\r"
 _ERR = b"\x07"
@@ -73,22 +86,64 @@ FLAG_OVERRUN = 0x08
 FLAG_BUS_ERROR = 0x80
 
 
+class DeviceSideBus(can.BusABC):
+    """The CAN side of a direct-mode :class:`SlcanAdapter` as a python-can bus, for the
+    devices behind it: ``send`` goes to the host (within the adapter's thread: collected and
+    written once the devices are served), ``recv`` returns the host's frames."""
+
+    def __init__(self, adapter: "SlcanAdapter") -> None:
+        self._adapter = adapter
+        self._rx: collections.deque[can.Message] = collections.deque()
+        self._cond = threading.Condition()
+        self.channel_info = f"SLCAN adapter on {adapter.port_name} (device side)"
+        super().__init__(channel=adapter.port_name)
+
+    def send(self, msg: can.Message, timeout: Optional[float] = None) -> None:
+        self._adapter._from_device(msg)
+
+    def _push(self, msg: can.Message) -> None:
+        self._rx.append(msg)
+        if self._adapter.service is None:           # a device thread may be waiting in recv
+            with self._cond:
+                self._cond.notify()
+
+    def _recv_internal(self, timeout: Optional[float]):
+        rx = self._rx
+        if not rx and timeout != 0:
+            with self._cond:
+                self._cond.wait_for(lambda: rx, timeout)
+        try:
+            return rx.popleft(), False
+        except IndexError:
+            return None, False
+
+
 class SlcanAdapter:
-    """An SLCAN adapter on a pty, bridged to ``bus`` (see the module docstring).
+    """An SLCAN adapter on a pty, bridged to ``bus`` — or, with ``bus=None``, serving the
+    devices on :attr:`device_bus` from its own thread (see the module docstring).
 
     ``on_frame(msg, t_monotonic)`` is called (from the adapter's reader thread, keep it short)
-    for every frame the host transmits, before it goes onto the bus; ``on_host_frames(msgs,
-    t_monotonic)`` (from the bus thread) for the frames just written to the host, ``t`` taken
-    after the write.
+    for every frame the host transmits, before the devices get it (``t``: when it was read);
+    ``on_host_frames(msgs, t_monotonic)`` for the frames just written to the host, ``t`` taken
+    after the write. Direct mode: ``service(t)`` (adapter thread) after every read that
+    brought frames and every ``service_period_s``; ``on_thread_start()`` runs first in the
+    adapter's thread(s) (e.g. to give only that thread a real-time priority).
     """
 
-    def __init__(self, bus: can.BusABC, *, on_frame: Optional[Callable[[can.Message, float], None]] = None,
+    def __init__(self, bus: Optional[can.BusABC] = None, *,
+                 on_frame: Optional[Callable[[can.Message, float], None]] = None,
                  on_host_frames: Optional[Callable[[list, float], None]] = None,
+                 service: Optional[Callable[[float], None]] = None, service_period_s: float = 0.001,
+                 on_thread_start: Optional[Callable[[], None]] = None,
                  ack_transmit: bool = False, serial_number: str = "RIG0", version: str = "1013",
                  backlog_bytes: int = 65536) -> None:
-        self.bus = bus
+        if bus is not None and service is not None:
+            raise ValueError("service() is for the direct mode (bus=None)")
         self.on_frame = on_frame
         self.on_host_frames = on_host_frames
+        self.service = service
+        self.service_period_s = service_period_s
+        self.on_thread_start = on_thread_start
         self.ack_transmit = ack_transmit
         self.serial_number = serial_number
         self.version = version
@@ -110,31 +165,68 @@ class SlcanAdapter:
         self._wake_r, self._wake_w = os.pipe()
         self._wlock = threading.Lock()
         self._backlog = bytearray()
+        self._out = bytearray()                 # direct mode: lines for the host, written after service
+        self._out_msgs: list[can.Message] = []
+        self._frames_in = 0                     # direct mode: host frames since the last service
+        self._loop_ident: Optional[int] = None
+        self._watches: dict[int, Callable[[float], None]] = {}
+        # direct mode: after_write(t, served_host_frames) ends every turn of the loop, after the
+        # devices' answers were written (the place for work that must not delay them)
+        self.after_write: Optional[Callable[[float, bool], None]] = None
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._closed = False
+        self.bus: can.BusABC = bus if bus is not None else DeviceSideBus(self)
+        self.device_bus: Optional[DeviceSideBus] = None if bus is not None else self.bus
 
     # ------------------------------------------------------------------ lifetime
     def start(self) -> "SlcanAdapter":
-        """Start the two bridge threads (pty → bus, bus → pty); returns self."""
+        """Start the thread(s): direct mode one, bridge mode two (pty → bus, bus → pty)."""
         if self._threads:
             return self
-        for target, name in ((self._pty_loop, "slcan pty->bus"), (self._bus_loop, "slcan bus->pty")):
-            th = threading.Thread(target=target, name=name, daemon=True)
+        loops = [(self._pty_loop, "slcan pty->bus" if self.device_bus is None else "slcan adapter")]
+        if self.device_bus is None:
+            loops.append((self._bus_loop, "slcan bus->pty"))
+        for target, name in loops:
+            th = threading.Thread(target=self._thread_main, args=(target,), name=name, daemon=True)
             th.start()
             self._threads.append(th)
         return self
 
-    def close(self) -> None:
-        """Stop the threads and close the pty (the bus stays open: it is the caller's). Idempotent."""
-        if self._closed:
-            return
-        self._closed = True
+    def run(self) -> None:
+        """Direct mode: serve in the calling thread until :meth:`stop` (then :meth:`close`)."""
+        if self.device_bus is None:
+            raise RuntimeError("run() is for the direct mode (bus=None); start() bridges")
+        self._thread_main(self._pty_loop)
+
+    def stop(self) -> None:
+        """Ask the loop(s) to end (safe from a callback inside the loop)."""
         self._stop.set()
         try:
             os.write(self._wake_w, b"x")
         except OSError:
             pass
+
+    def watch(self, fd: int, callback: Callable[[float], None]) -> None:
+        """Direct mode: also wait for ``fd``; ``callback(t)`` runs in the adapter's thread
+        when it is readable (after the host's bytes of the same wake-up). Before start/run."""
+        self._watches[fd] = callback
+
+    def _thread_main(self, target: Callable[[], None]) -> None:
+        if self.on_thread_start is not None:
+            try:
+                self.on_thread_start()
+            except Exception:  # noqa: BLE001 - a refused priority must not stop the adapter
+                pass
+        target()
+
+    def close(self) -> None:
+        """Stop the threads and close the pty (a bridged bus stays open: it is the caller's;
+        the direct mode's device bus is shut down). Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self.stop()
         for th in self._threads:
             th.join(2.0)
         self._threads.clear()
@@ -143,6 +235,8 @@ class SlcanAdapter:
                 os.close(fd)
             except OSError:
                 pass
+        if self.device_bus is not None:
+            self.device_bus.shutdown()
 
     def __enter__(self) -> "SlcanAdapter":
         return self.start()
@@ -180,6 +274,7 @@ class SlcanAdapter:
         del self._backlog[:n]
 
     def _bus_loop(self) -> None:
+        """Bridge mode: frames from the bus to the host, up to 64 lines per write."""
         recv = self.bus.recv
         while not self._stop.is_set():
             try:
@@ -212,11 +307,38 @@ class SlcanAdapter:
                 if line:
                     out += line
                     sent.append(msg)
-            if out and self._write_frames(bytes(out)) and self.on_host_frames is not None:
-                try:
-                    self.on_host_frames(sent, time.monotonic())
-                except Exception:  # noqa: BLE001 - an observer must not break the adapter
-                    pass
+            if out:
+                self._to_host(bytes(out), sent)
+
+    def _from_device(self, msg: can.Message) -> None:
+        """Direct mode: a device sent ``msg``. In the adapter's thread it waits for the write
+        after ``service``; from any other thread it is written at once."""
+        line = self._encode(msg)
+        if not line:
+            return
+        if threading.get_ident() == self._loop_ident:
+            self._out += line
+            self._out_msgs.append(msg)
+        else:
+            self._to_host(line, [msg])
+
+    def _flush_out(self) -> None:
+        """Direct mode: write what the devices sent during the last service, in one write."""
+        if self._out:
+            data, msgs = bytes(self._out), self._out_msgs
+            self._out.clear()
+            self._out_msgs = []
+            self._to_host(data, msgs)
+        elif self._backlog:
+            with self._wlock:
+                self._flush_backlog()
+
+    def _to_host(self, data: bytes, msgs: list) -> None:
+        if self._write_frames(data) and self.on_host_frames is not None:
+            try:
+                self.on_host_frames(msgs, time.monotonic())
+            except Exception:  # noqa: BLE001 - an observer must not break the adapter
+                pass
 
     def _encode(self, msg: can.Message) -> bytes:
         if msg.is_error_frame:
@@ -243,46 +365,81 @@ class SlcanAdapter:
 
     # ------------------------------------------------------------------ host -> adapter
     def _pty_loop(self) -> None:
+        """Wait for the host's bytes (epoll), execute every complete line; in direct mode
+        serve the devices right after (and on their timer period) and write their answers."""
+        self._loop_ident = threading.get_ident()
         buf = bytearray()
-        poller = select.poll()
-        poller.register(self._master, select.POLLIN)
-        poller.register(self._wake_r, select.POLLIN)
-        while not self._stop.is_set():
-            try:
-                events = poller.poll(1000)
-            except InterruptedError:
-                continue
-            if self._stop.is_set():
-                return
-            if not events:
-                continue
-            try:
-                chunk = os.read(self._master, 4096)
-            except BlockingIOError:
-                continue
-            except OSError:
-                # EIO: no slave open anywhere (cannot happen while we hold it) — back off
-                time.sleep(0.01)
-                continue
-            buf += chunk
-            while True:
-                i = _line_end(buf)
-                if i < 0:
-                    break
-                line = bytes(buf[:i])
-                del buf[:i + 1]
-                self._command(line)
-            if len(buf) > 1024:          # no terminator in sight: garbage, resynchronise
-                buf.clear()
-                self.counters["bad_commands"] += 1
+        master, mono = self._master, time.monotonic
+        ep = select.epoll()
+        ep.register(master, select.EPOLLIN)
+        ep.register(self._wake_r, select.EPOLLIN)
+        watches = self._watches
+        for fd in watches:
+            ep.register(fd, select.EPOLLIN)
+        service, period = self.service, self.service_period_s
+        next_service = mono() + period if service is not None else math.inf
+        try:
+            while not self._stop.is_set():
+                if service is not None:
+                    timeout = next_service - mono()
+                else:
+                    timeout = 0.1 if self._backlog else 1.0
+                events = ep.poll(timeout) if timeout > 0 else ()
+                if self._stop.is_set():
+                    return
+                t = mono()
+                ready = [fd for fd, _ in events]
+                if master in ready:
+                    try:
+                        chunk = os.read(master, 65536)
+                    except BlockingIOError:
+                        chunk = b""
+                    except OSError:
+                        # EIO: no slave open anywhere (cannot happen while we hold it) — back off
+                        time.sleep(0.01)
+                        continue
+                    if chunk:
+                        buf += chunk
+                        while True:
+                            i = _line_end(buf)
+                            if i < 0:
+                                break
+                            line = bytes(buf[:i])
+                            del buf[:i + 1]
+                            self._command(line, t)
+                        if len(buf) > 1024:          # no terminator in sight: garbage, resynchronise
+                            buf.clear()
+                            self.counters["bad_commands"] += 1
+                for fd in ready:
+                    cb = watches.get(fd)
+                    if cb is not None:
+                        cb(t)
+                if service is None:
+                    continue
+                served = self._frames_in
+                if served or t >= next_service:
+                    self._frames_in = 0
+                    if t >= next_service:
+                        next_service += period
+                        if next_service <= t:
+                            next_service = t + period
+                    try:
+                        service(t)
+                    except Exception:  # noqa: BLE001 - a device error must not stop the adapter
+                        pass
+                self._flush_out()
+                if self.after_write is not None:
+                    self.after_write(t, bool(served))
+        finally:
+            ep.close()
 
-    def _command(self, line: bytes) -> None:
+    def _command(self, line: bytes, t: float) -> None:
         line = line.strip(b"\n ")
         if not line:
             return
         c = line[:1]
         if c in (b"t", b"T", b"r", b"R"):
-            return self._transmit(line)
+            return self._transmit(line, t)
         arg = line[1:].decode("ascii", "replace")
         if c == b"O" or c == b"L":
             if self.is_open:            # python-can opens twice (set_bitrate, then __init__)
@@ -333,11 +490,10 @@ class SlcanAdapter:
             return self._ok()
         return self._error()
 
-    def _transmit(self, line: bytes) -> None:
+    def _transmit(self, line: bytes, t: float) -> None:
         msg = parse_frame(line)
         if msg is None or not self.is_open or self.listen_only:
             return self._error()
-        t = time.monotonic()
         msg.timestamp = t
         self.counters["host_frames"] += 1
         cb = self.on_frame
@@ -346,10 +502,14 @@ class SlcanAdapter:
                 cb(msg, t)
             except Exception:  # noqa: BLE001 - an observer must not break the adapter
                 pass
-        try:
-            self.bus.send(msg)
-        except can.CanError:
-            self.flags |= FLAG_BUS_ERROR
+        if self.device_bus is not None:
+            self.device_bus._push(msg)
+            self._frames_in += 1
+        else:
+            try:
+                self.bus.send(msg)
+            except can.CanError:
+                self.flags |= FLAG_BUS_ERROR
         if self.ack_transmit:
             self._reply("Z\r" if msg.is_extended_id else "z\r")
 

@@ -1,6 +1,8 @@
 """``rig sim`` — the simulated rig served in its own process — and ``rig run`` against it.
 
-1. The SLCAN adapter alone: python-can's own ``slcan`` client <-> adapter <-> virtual bus.
+1. The SLCAN adapter alone: python-can's own ``slcan`` client <-> adapter <-> virtual bus
+   (bridge mode), or devices served by the adapter's own thread (direct mode); the CAN
+   responder (adapter + virtual drives) in this process or in a child process.
 2. End to end: ``rig sim`` in one subprocess, ``rig run --config <generated>`` in another.
 3. Signals: SIGINT/SIGTERM stop ``rig run`` cleanly (the simulated drives end at zero
    current, disabled); after SIGKILL the simulated converters' own watchdog cuts the current.
@@ -18,6 +20,7 @@ import select
 import signal
 import subprocess
 import sys
+import threading
 import time
 import warnings
 
@@ -27,7 +30,7 @@ import pytest
 
 from rig_runtime import config, schema
 from rig_runtime.export import read_log
-from sim_backend.process import start_sim_process
+from sim_backend.process import Histogram, RealtimeSim, start_sim_process
 from sim_backend.slcan import SlcanAdapter, encode_frame, parse_frame
 
 WHEELS = ("fl", "fr", "rl", "rr")
@@ -191,6 +194,102 @@ def test_slcan_codec_roundtrip():
         assert parse_frame(bad) is None
 
 
+def test_slcan_direct_mode_answers_in_the_reading_thread():
+    """Direct mode: the devices behind the adapter are served by the thread that read the
+    host's frames; what they send meanwhile goes to the host in one write."""
+    seen: list = []
+    written: list = []
+
+    def service(t):
+        while (m := adapter.device_bus.recv(0.0)) is not None:
+            seen.append((m.arbitration_id, threading.get_ident()))
+            if m.arbitration_id == 0x080:                 # SYNC -> two "TPDOs"
+                for node in (1, 2):
+                    adapter.device_bus.send(can.Message(arbitration_id=0x180 + node, is_extended_id=False,
+                                                        data=bytes([node] * 8)))
+
+    adapter = SlcanAdapter(None, service=service, on_host_frames=lambda msgs, t: written.append(len(msgs)))
+    adapter.start()
+    client = can.Bus(interface="slcan", channel=adapter.port_name, bitrate=1_000_000, sleep_after_open=0)
+    try:
+        deadline = time.monotonic() + 2.0
+        while not adapter.is_open and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert adapter.is_open and adapter.bitrate == 1_000_000
+        client.send(can.Message(arbitration_id=0x080, is_extended_id=False, data=b""), timeout=0)
+        got = [_recv(client), _recv(client)]
+        assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(0x181, b"\x01" * 8), (0x182, b"\x02" * 8)]
+        assert written == [2]                                   # both TPDOs in one write
+        assert [cid for cid, _ in seen] == [0x080]
+        assert seen[0][1] == adapter._threads[0].ident          # served by the adapter's own thread
+        assert adapter.counters["bad_commands"] == 0
+    finally:
+        client.shutdown()
+        adapter.close()
+    assert adapter.device_bus is not None
+
+
+def test_histogram_percentiles():
+    h = Histogram(bin_s=1e-5)
+    xs = np.random.default_rng(1).exponential(0.3e-3, 20000)
+    for x in xs:
+        h.add(float(x))
+    d = h.summary(1e3)
+    assert d["n"] == xs.size and d["max"] == pytest.approx(xs.max() * 1e3)
+    for q, key in ((50, "p50"), (99, "p99"), (99.9, "p999")):
+        assert d[key] == pytest.approx(np.percentile(xs, q) * 1e3, abs=0.011)   # 10 µs bins
+    w = Histogram(window_s=1.0)
+    w.add(5.0, 0.0)
+    w.add(0.001, 1.5)                       # a new window: the first one still counts
+    assert w.summary()["n"] == 2
+    w.add(0.001, 2.6)                       # and now it is gone
+    assert w.summary()["n"] == 2 and w.summary()["max"] == pytest.approx(0.001)
+    assert Histogram().summary() == {"n": 0, "p50": None, "p99": None, "p999": None, "max": None}
+
+
+@pytest.mark.parametrize("mode", ["process", "thread"])
+def test_can_responder_serves_the_drives(mode):
+    """RealtimeSim with the CAN responder in a child process or on a thread of its own: the
+    runtime's drive driver (over rig_slcan) starts the drives, every SYNC gets its TPDOs,
+    the commanded currents reach the plant side, an NMT stop ends the session."""
+    from drivers.canopen402 import DriveBus
+    cfg = config.load()
+    with RealtimeSim(cfg, seed=0, can_responder=mode) as rt:
+        cc = cfg.devices.can
+        bus = can.Bus(interface="rig_slcan", channel=rt.can_port, bitrate=cc.bitrate)
+        db = DriveBus(cc, bus=bus, period_s=cfg.controller.h)
+        try:
+            db.open()
+            t_end = time.monotonic() + 0.5
+            while time.monotonic() < t_end:
+                now = time.monotonic()
+                db.poll(now)
+                db.write({"fl": 1.0, "fr": -1.0, "rl": 0.0, "rr": 0.5}, now)
+                time.sleep(cfg.controller.h)
+            st = rt.status()
+            assert st["can_responder"]["mode"] == mode and st["error"] == ""
+            assert (mode == "process") == (st["can_responder"]["pid"] != os.getpid())
+            assert st["session"]["active"] and st["session"]["count"] == 1
+            assert st["currents"]["fl"] == pytest.approx(1.0, abs=0.01)
+            assert st["currents"]["rr"] == pytest.approx(0.5, abs=0.01)
+            assert rt.can.currents[0] == pytest.approx(1.0, abs=0.01)          # what the plant integrates
+            assert all(st["drives"][w]["state"] == "OPERATION ENABLED" for w in WHEELS)
+            lat = st["session_stats"]["tpdo_latency_ms"]
+            assert lat["n"] > 50 and lat["max"] < 100
+            r = db.poll(time.monotonic())
+            assert all(x.health.state.value == "fresh" for x in r), r
+        finally:
+            db.disable(time.monotonic())
+            db.close()
+            bus.shutdown()
+        deadline = time.monotonic() + 2.0
+        while rt.session_active and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert not rt.session_active
+        st = rt.status()
+        assert all(v == 0.0 for v in st["currents"].values())
+
+
 # ============================================================================ 2./3. processes
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
@@ -348,6 +447,8 @@ def test_generated_config_points_at_the_simulator(sim):
     assert sim.lines[-1] == "ready"
     st = sim.wait_status(lambda s: s["timing"]["steps"] > 10, timeout_s=5.0)
     assert st["error"] == "" and not st["session"]["active"]
+    # the SLCAN adapter and the drives answer from a process of their own
+    assert st["can_responder"]["mode"] == "process" and st["can_responder"]["pid"] != st["pid"]
 
 
 def test_generated_config_matches_the_shipped_template(sim):
