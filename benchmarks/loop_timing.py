@@ -106,6 +106,10 @@ def main() -> int:
         finally:
             runner.StatusLine = orig
         rss["end"] = rss_mb()
+        try:        # the simulator's side of the SYNC -> TPDO path, to tell whose fault a gap was
+            sim_stats = sp.status().get("session_stats", {})
+        except (OSError, ValueError):
+            sim_stats = {}
         t = summary["timing"]
         runtime = {"release_lateness_us": t["release_lateness_us"], "cycle_work_us": t["cycle_work_us"],
                    "deadline_misses": t["deadline_misses"], "final_state": summary["final_state"],
@@ -114,7 +118,7 @@ def main() -> int:
            "ratio": {"lateness_p99": runtime["release_lateness_us"]["p99"] / max(bare["release_lateness_us"]["p99"], 1e-9),
                      "lateness_p999": runtime["release_lateness_us"]["p999"] / max(bare["release_lateness_us"]["p999"], 1e-9)},
            "rss_mb": rss, "duration_s": args.duration, "bare_duration_s": args.bare_duration or args.duration,
-           "realtime": rt}
+           "realtime": rt, "sim_session_stats": sim_stats}
     if args.json:
         print(json.dumps(out))
     else:
