@@ -59,7 +59,10 @@ def prepare(sim, dev, clock) -> None:
     if sim.ft is not None:
         wrap(sim.ft, "set_wrench", "sim:   F/T registers")
     if dev.ft is not None:
-        wrap(dev.ft, "poll_devices_once", "sim:   F/T Modbus polls (lockstep)")
+        wrap(dev.ft, "poll_devices_start", "sim:   F/T Modbus round: requests sent")
+        wrap(dev.ft, "poll_devices_finish", "sim:   F/T Modbus round: replies collected")
+    if sim.ft is not None:
+        wrap(sim.ft, "serve_inline", "sim:   F/T Modbus round: simulated sensors answer")
     wrap(dev, "poll", "runtime: devices.poll (all below)")
     for d in dev.lasers:
         wrap(d, "poll", "runtime:   laser polls")

@@ -626,6 +626,7 @@ class FTSensorSet(Driver):
         self._stale_s = cfg.stale_s
         self._start_thread = True
         self._proc: Any = None              # ft_process.PollProcess while the poll process runs
+        self._inflight: list = []              # lockstep: links whose reply poll_devices_finish collects
         self._refresh: Optional[Callable[[], None]] = None
 
     @property
@@ -702,11 +703,36 @@ class FTSensorSet(Driver):
     # ------------------------------------------------------------------ polling side
     def poll_devices_once(self) -> None:
         """Poll every sensor once, synchronously (lockstep simulation; no poller running)."""
+        self.poll_devices_start()
+        self.poll_devices_finish()
+
+    def poll_devices_start(self) -> None:
+        """Lockstep, first half of :meth:`poll_devices_once`: send every sensor's request
+        (one TCP sensor per connection, the usual layout) and return; the simulator can
+        answer them in its own thread before :meth:`poll_devices_finish` collects the
+        replies. Other layouts (RTU, several sensors on one gateway) do the whole round here."""
         if not self._open:
-            raise RuntimeError("FTSensorSet.poll_devices_once() before open()")
+            raise RuntimeError("FTSensorSet.poll_devices_start() before open()")
         if self._proc is not None or self._core.threads_running:
-            raise RuntimeError("FTSensorSet.poll_devices_once() while the poller runs")
-        self._core.round(self._core.links, force_connect=True)
+            raise RuntimeError("FTSensorSet.poll_devices_start() while the poller runs")
+        core = self._core
+        links = core.links
+        self._inflight = []
+        if any(link.rtu or len(link.sensors) != 1 for link in links):
+            core.round(links, force_connect=True)
+            return
+        for link in links:
+            if not link.connected and not core._reconnect(link, True):
+                continue
+            if core._send(link, link.sensors[0]):       # type: ignore[arg-type]
+                self._inflight.append(link)
+
+    def poll_devices_finish(self) -> None:
+        """Lockstep, second half: wait for the replies of :meth:`poll_devices_start`'s
+        requests (at most the configured timeout) and publish them."""
+        inflight, self._inflight = self._inflight, []
+        if inflight:
+            self._core._collect(inflight)
 
 
 # --------------------------------------------------------------------------- helpers

@@ -235,13 +235,18 @@ class SimulatedRig:
         self._laser_group.wait()
 
     def _publish_rest(self, t: float) -> None:
-        """Wheel speeds and, when due, F/T registers (and the lockstep F/T poll)."""
+        """Wheel speeds and, when due, F/T registers (and the lockstep F/T poll: the
+        driver sends its requests, the simulated sensors answer them in this thread, the
+        driver collects the replies — no thread hand-over in the round)."""
         self.set_wheel_speeds()
         if self.ft is not None and t >= self._next_ft - 1e-12:
             self._next_ft = t + self.ft_period
             self.set_wrenches()
-            if self.ft_driver is not None:
-                self.ft_driver.poll_devices_once()
+            drv = self.ft_driver
+            if drv is not None:
+                drv.poll_devices_start()
+                self.ft.serve_inline()
+                drv.poll_devices_finish()
 
     def set_laser_distances(self) -> None:
         """The distances the six lasers see for the plant's pose (no frames are emitted)."""

@@ -137,6 +137,17 @@ class VirtualFTServer:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    def serve_inline(self) -> bool:
+        """Lockstep: answer what the TCP sensors' clients sent, in the caller's thread.
+
+        The first call stops the selector thread (its sockets stay open), so every later
+        request is answered only here — no thread hand-over per round. Returns False if
+        there is no TCP server (then nothing changes)."""
+        if self._tcp is None:
+            return False
+        self._tcp.serve_inline()
+        return True
+
     @property
     def running(self) -> bool:
         return ((self._tcp is not None and self._tcp.running)
@@ -354,6 +365,7 @@ class _TcpServer:
         self._listeners: list[socket.socket] = []
         self._conns: dict[int, _Conn] = {}
         self._stopping = False
+        self._inline = False            # serve_inline() took over from the thread
         self.endpoints: dict[str, tuple[str, int]] = {}
         try:
             for name in names:
@@ -377,40 +389,67 @@ class _TcpServer:
     def start(self) -> None:
         self._thread.start()
 
-    def close(self) -> None:
-        """Stop the thread; every socket is closed (clients see EOF, ports are free)."""
-        self._stopping = True
+    def serve_inline(self) -> None:
+        """Detach the thread on first use, then one pass over everything ready (accepts,
+        requests, replies) until nothing is left, without waiting."""
+        if not self._inline:
+            self._inline = True
+            self._wake()
+            if self._thread.is_alive():
+                self._thread.join(_START_TIMEOUT_S)
+        for _ in range(8):              # a new connection's request is read in the next pass
+            if not self._serve_ready(0.0):
+                break
+
+    def _wake(self) -> None:
         try:
             self._wake_w.send(b"x")
         except OSError:
             pass
+
+    def close(self) -> None:
+        """Stop the thread; every socket is closed (clients see EOF, ports are free)."""
+        self._stopping = True
+        self._wake()
         if self._thread.is_alive():
             self._thread.join(_START_TIMEOUT_S)
         else:
             self._close_sockets()
 
     def _run(self) -> None:
+        """Serve until closed (or detached for :meth:`serve_inline`; the sockets then stay)."""
+        try:
+            while not self._stopping and not self._inline:
+                self._serve_ready(None)
+        finally:
+            if self._stopping or not self._inline:
+                self._close_sockets()
+
+    def _serve_ready(self, timeout: Optional[float]) -> bool:
         """Read every ready request first, then send the replies: in lockstep the driver
         wakes at the first reply and competes for the interpreter lock, so the replies go
-        out back to back instead of interleaved with the reads."""
-        try:
-            while not self._stopping:
-                replying = []
-                for key, events in self._sel.select():
-                    data = key.data
-                    if data is None:                    # wake-up
-                        continue
-                    if isinstance(data, str):           # a listening socket: data = sensor name
-                        self._accept(key.fileobj, data)  # type: ignore[arg-type]
-                        continue
-                    if events & selectors.EVENT_READ:
-                        self._receive(data)
-                    if data.tx and data.sock.fileno() >= 0:
-                        replying.append(data)
-                for conn in replying:
-                    self._send(conn)
-        finally:
-            self._close_sockets()
+        out back to back instead of interleaved with the reads. Returns whether anything
+        was ready."""
+        replying = []
+        events = self._sel.select(timeout)
+        for key, ev in events:
+            data = key.data
+            if data is None:                    # wake-up
+                try:
+                    self._wake_r.recv(64)
+                except OSError:
+                    pass
+                continue
+            if isinstance(data, str):           # a listening socket: data = sensor name
+                self._accept(key.fileobj, data)  # type: ignore[arg-type]
+                continue
+            if ev & selectors.EVENT_READ:
+                self._receive(data)
+            if data.tx and data.sock.fileno() >= 0:
+                replying.append(data)
+        for conn in replying:
+            self._send(conn)
+        return bool(events)
 
     def _accept(self, ls: socket.socket, name: str) -> None:
         try:

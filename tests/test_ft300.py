@@ -690,3 +690,26 @@ def test_modbus_tcp_codec_checks_what_it_decodes():
         decode_read_response(reply[:8] + b"\xff" + reply[9:], 0x1234, 9, 6)
     with pytest.raises(ValueError, match="length field"):
         frame_length(bytes.fromhex("1234 0000 0000"))
+
+
+def test_lockstep_round_answered_inline():
+    """Lockstep: requests sent, the simulated sensors answer in the caller's thread (their
+    selector thread is detached), replies collected — the values arrive, the ports stay."""
+    cfg = bus("ft_fl", "ft_fr", "ft_rl", "ft_rr")
+    names = [s.name for s in cfg.sensors]
+    with VirtualFTServer(names) as srv:
+        ft = FTSensorSet(cfg, endpoints=srv.endpoints, clock=lambda: 1.0)
+        ft.open(start_thread=False)
+        try:
+            for k in range(3):
+                w = Wrench(10.0 + k, -2.0, 3.0, 0.1, -0.2, 0.3)
+                for n in names:
+                    srv.set_wrench(n, w)
+                ft.poll_devices_start()
+                assert srv.serve_inline()
+                ft.poll_devices_finish()
+                r = ft.poll(1.0)
+                assert all(r[n].wrench is not None and r[n].wrench.fx == pytest.approx(10.0 + k) for n in names)
+            assert not srv._tcp.running                 # the thread handed over for good
+        finally:
+            ft.close()
