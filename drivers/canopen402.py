@@ -1099,19 +1099,25 @@ class DriveBus(Driver):
 
     def _readings(self, now: float) -> DriveReadings:
         wheels: dict[str, WheelReading] = {}
-        ready = self._bus is not None and self._want_enabled
+        is_open = self._bus is not None
+        ready = is_open and self._want_enabled
+        classify = self._classify
+        nan = math.nan
         for d in self._nodes:
             h = d.health
-            if self._bus is None:
-                state, cause = Freshness.INVALID, "driver not open"
+            if is_open:
+                state, cause = classify(d, now)
             else:
-                state, cause = self._classify(d, now)
-            h.state, h.cause = state, cause
-            snap = Health(state, cause, h.bad_frames, h.timeouts, h.errors, dict(h.counters))
-            t = d.tpdo_t if d.tpdo_t is not None else math.nan
-            wheels[d.wheel] = WheelReading(d.wheel, d.node_id, d.omega, d.current, max(d.sw, 0),
-                                           d.state, d.nmt, t, snap)
-            ready = ready and state is Freshness.FRESH and d.state == OPERATION_ENABLED
+                state, cause = Freshness.INVALID, "driver not open"
+            h.state = state
+            h.cause = cause
+            snap = Health(state, cause, h.bad_frames, h.timeouts, h.errors, h.counters.copy())
+            t = d.tpdo_t
+            sw = d.sw
+            wheels[d.wheel] = WheelReading(d.wheel, d.node_id, d.omega, d.current, sw if sw > 0 else 0,
+                                           d.state, d.nmt, nan if t is None else t, snap)
+            if ready and (state is not _FRESH or d.state != OPERATION_ENABLED):
+                ready = False
         self._ready = ready
         b = self._bus_health
         if now - self._bus_err_t <= self.cfg.tpdo_timeout_periods * self.period_s:
@@ -1120,5 +1126,5 @@ class DriveBus(Driver):
             b.state, b.cause = Freshness.INVALID, "driver not open"
         else:
             b.state, b.cause = Freshness.FRESH, ""
-        bus = Health(b.state, b.cause, b.bad_frames, b.timeouts, b.errors, dict(b.counters))
+        bus = Health(b.state, b.cause, b.bad_frames, b.timeouts, b.errors, b.counters.copy())
         return DriveReadings(now, wheels, bus, ready)

@@ -57,6 +57,7 @@ _FLAG_L, _FLAG_M, _FLAG_H = 0x00, 0x40, 0x80
 _FLAG_SUM = (_FLAG_M << 6) + (_FLAG_H << 12)
 # Each byte -> one flag letter, so frame search runs on bytes in C (X = flag 11, never valid).
 _FLAG_TABLE = bytes(b"LMHX"[b >> 6] for b in range(256))
+_FRESH = Freshness.FRESH
 _H_SAFE = _FLAG_H | 14          # an H byte up to this: the value is < 15·4096 = 61440 <= 65520
 _FRAME_RUN = re.compile(rb"(?:LMH)+")
 _CLEAN = b"LMH" * 1024          # flags of a gap-free stream of up to 1024 frames
@@ -231,6 +232,7 @@ class LaserDriver(Driver):
         self.port = port if port is not None else cfg.port
         self.stale_after_s = stale_after_s
         self.name = f"laser {cfg.role}"
+        self._role = cfg.role
         # value_m = _gain·x + _bias  ==  (offset_mm + distance_mm_from_x(x, MR)) / 1000
         mr = cfg.measuring_range_mm
         self._gain = mr / (100.0 * _X_PER_PERCENT * 1000.0)
@@ -335,9 +337,13 @@ class LaserDriver(Driver):
                 self._last_rx_t = now
                 h.counters["values"] += n
                 self._latest_error = None
-                self._value = self._gain * last + self._bias
+                v = self._value = self._gain * last + self._bias
                 self._value_t = now
-                n_valid = n
+                # what _classify concludes for a distance that arrived now: FRESH
+                h.state = _FRESH
+                h.cause = ""
+                return LaserReading(self._role, v, now, Health(_FRESH, "", h.bad_frames, h.timeouts, h.errors,
+                                                                h.counters.copy()), n, last)
             else:
                 values = _values(data, 0, len(data)) if n else dec.feed(data)
                 self._last_list = values
@@ -395,5 +401,5 @@ class LaserDriver(Driver):
     def _reading(self, state: Freshness, cause: str, value: float, n_valid: int) -> LaserReading:
         h = self._health
         h.state, h.cause = state, cause
-        snap = Health(state, cause, h.bad_frames, h.timeouts, h.errors, dict(h.counters))
-        return LaserReading(self.cfg.role, value, self._value_t, snap, n_valid, self._raw_x)
+        snap = Health(state, cause, h.bad_frames, h.timeouts, h.errors, h.counters.copy())
+        return LaserReading(self._role, value, self._value_t, snap, n_valid, self._raw_x)
