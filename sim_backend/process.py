@@ -130,7 +130,21 @@ class Histogram:
         return {"n": n, "p50": pct(0.5), "p99": pct(0.99), "p999": pct(0.999), "max": mx * scale}
 
 
-class CanResponder:
+class _SharedView:
+    """What the plant side reads from a responder's 9 shared floats (layout: CanResponder)."""
+
+    shared: Any
+
+    @property
+    def last_sync_t(self) -> float:
+        return float(self.shared[8])
+
+    @property
+    def currents(self) -> list[float]:
+        return [float(c) for c in self.shared[4:8]]
+
+
+class CanResponder(_SharedView):
     """The CAN side of ``rig sim``: the emulated SLCAN adapter (direct mode) with the virtual
     drives behind it, served by ONE thread — a SYNC is answered by the thread that read it,
     in one write, with no hand-over between threads. Also its share of the session
@@ -183,14 +197,6 @@ class CanResponder:
     @property
     def pid(self) -> int:
         return os.getpid()
-
-    @property
-    def last_sync_t(self) -> float:
-        return float(self.shared[8])
-
-    @property
-    def currents(self) -> list[float]:
-        return [float(c) for c in self.shared[4:8]]
 
     def start(self) -> "CanResponder":
         self.adapter.start()
@@ -308,7 +314,7 @@ class _NullBus(can.BusABC):
 SHARED_FLOATS = 9
 
 
-class ResponderProcess:
+class ResponderProcess(_SharedView):
     """A :class:`CanResponder` in a child process (``python -m sim_backend.process
     --can-responder``), as the plant side sees it: the same interface as CanResponder.
 
@@ -368,14 +374,6 @@ class ResponderProcess:
         self.port_name = reply["port"]
         self._cmd.settimeout(None)
         self.snapshot(timeout_s=timeout_s)          # the status has drives from the start
-
-    @property
-    def last_sync_t(self) -> float:
-        return float(self.shared[8])
-
-    @property
-    def currents(self) -> list[float]:
-        return [float(c) for c in self.shared[4:8]]
 
     def start(self) -> "ResponderProcess":
         return self

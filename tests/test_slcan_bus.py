@@ -45,7 +45,9 @@ def _recv_all(bus, n, timeout=2.0):
     return out
 
 
-def test_against_the_emulated_adapter():
+@pytest.fixture
+def host_and_peer():
+    """``rig_slcan`` on the emulated adapter's pty, and a peer on the adapter's CAN side."""
     chan = f"slcan-test-{time.monotonic_ns()}"
     far = can.Bus(interface="virtual", channel=chan)
     peer = can.Bus(interface="virtual", channel=chan)
@@ -54,24 +56,29 @@ def test_against_the_emulated_adapter():
     try:
         bus = can.Bus(interface="rig_slcan", channel=adapter.port_name, bitrate=1_000_000)
         try:
-            sent = [can.Message(arbitration_id=0x200 + i, data=bytes(range(i)), is_extended_id=False) for i in range(9)]
-            sent.append(can.Message(arbitration_id=0x18FF00AA, data=b"\x01\x02", is_extended_id=True))
-            for m in sent:
-                bus.send(m)
-            got = _recv_all(peer, len(sent))
-            assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(m.arbitration_id, bytes(m.data)) for m in sent]
-            for m in sent:
-                peer.send(m)
-            back = _recv_all(bus, len(sent))
-            assert [(m.arbitration_id, bytes(m.data), m.is_extended_id) for m in back] == \
-                [(m.arbitration_id, bytes(m.data), m.is_extended_id) for m in sent]
-            assert bus.recv(0) is None                    # non-blocking when empty
+            yield bus, peer
         finally:
             bus.shutdown()
     finally:
         adapter.close()
         far.shutdown()
         peer.shutdown()
+
+
+def test_against_the_emulated_adapter(host_and_peer):
+    bus, peer = host_and_peer
+    sent = [can.Message(arbitration_id=0x200 + i, data=bytes(range(i)), is_extended_id=False) for i in range(9)]
+    sent.append(can.Message(arbitration_id=0x18FF00AA, data=b"\x01\x02", is_extended_id=True))
+    for m in sent:
+        bus.send(m)
+    got = _recv_all(peer, len(sent))
+    assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(m.arbitration_id, bytes(m.data)) for m in sent]
+    for m in sent:
+        peer.send(m)
+    back = _recv_all(bus, len(sent))
+    assert [(m.arbitration_id, bytes(m.data), m.is_extended_id) for m in back] == \
+        [(m.arbitration_id, bytes(m.data), m.is_extended_id) for m in sent]
+    assert bus.recv(0) is None                    # non-blocking when empty
 
 
 def test_missing_port_is_an_init_error():
@@ -107,24 +114,11 @@ def test_drain_keeps_split_lines_and_skips_acks_and_garbage():
         os.close(w)
 
 
-def test_send_many_is_one_write_and_reaches_the_bus():
-    chan = f"slcan-many-{time.monotonic_ns()}"
-    far = can.Bus(interface="virtual", channel=chan)
-    peer = can.Bus(interface="virtual", channel=chan)
-    adapter = SlcanAdapter(far)
-    adapter.start()
-    try:
-        bus = can.Bus(interface="rig_slcan", channel=adapter.port_name, bitrate=1_000_000)
-        try:
-            sent = [can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)] + [
-                can.Message(arbitration_id=0x200 + i, data=bytes((i, 0, 0x10, 0)), is_extended_id=False)
-                for i in range(1, 5)]
-            bus.send_many(sent)
-            got = _recv_all(peer, len(sent))
-            assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(m.arbitration_id, bytes(m.data)) for m in sent]
-        finally:
-            bus.shutdown()
-    finally:
-        adapter.close()
-        far.shutdown()
-        peer.shutdown()
+def test_send_many_reaches_the_bus_in_order(host_and_peer):
+    bus, peer = host_and_peer
+    sent = [can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)] + [
+        can.Message(arbitration_id=0x200 + i, data=bytes((i, 0, 0x10, 0)), is_extended_id=False)
+        for i in range(1, 5)]
+    bus.send_many(sent)
+    got = _recv_all(peer, len(sent))
+    assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(m.arbitration_id, bytes(m.data)) for m in sent]
