@@ -38,7 +38,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any, Optional
+from typing import Any, NamedTuple, Optional
 
 from rig_runtime.config import FTBus, FTSensor
 
@@ -123,22 +123,17 @@ def registers_from_wrench(w: Wrench) -> list[int]:
 
 
 # --------------------------------------------------------------------------- readings
-@dataclass(frozen=True, slots=True)
-class FTReading:
+class FTReading(NamedTuple):
     """What :meth:`FTSensorSet.poll` reports for one sensor (a new object per call; its
-    ``health`` is shared between calls while nothing changed — treat it as read-only)."""
+    ``health`` is shared between calls while nothing changed — treat it as read-only).
+    A named tuple, like the other drivers' readings: built every 5 ms, it costs a third
+    of a frozen dataclass."""
 
     wrench: Optional[Wrench]    # latest valid sample (kept while STALE/INVALID); None before the first
     t: float                    # clock time the sample was received (nan if none)
     age: float                  # now - t (inf if none)
     health: Health
 
-
-# poll() builds one FTReading per sensor per call: bypass the frozen __init__ (≈0.6 µs)
-# by setting the slots directly (≈0.3 µs).
-_new_reading = object.__new__
-_set_wrench, _set_t, _set_age, _set_health = (FTReading.wrench.__set__, FTReading.t.__set__,  # type: ignore[attr-defined]
-                                              FTReading.age.__set__, FTReading.health.__set__)  # type: ignore[attr-defined]
 
 
 @dataclass(frozen=True, slots=True)
@@ -686,12 +681,7 @@ class FTSensorSet(Driver):
                 h = v.fresh if age <= stale_s else self._stale(p, age)
             else:
                 age = now - p.t if v.has_sample else math.inf
-            r = _new_reading(FTReading)
-            _set_wrench(r, p.wrench)
-            _set_t(r, p.t)
-            _set_age(r, age)
-            _set_health(r, h)
-            out[v.name] = r
+            out[v.name] = FTReading(p.wrench, p.t, age, h)
         return out
 
     def _stale(self, p: _Published, age: float) -> Health:
