@@ -30,7 +30,6 @@ Written against pymodbus 3.16 for RTU (``device_id=`` keyword, ``trace_packet`` 
 from __future__ import annotations
 
 import math
-import os
 import select
 import socket
 import struct
@@ -40,6 +39,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple, Optional
 
+from rig_runtime.clock import as_background_thread
 from rig_runtime.config import FTBus, FTSensor
 
 from .base import ConfigError, DeviceInitError, Driver, Freshness, Health
@@ -357,7 +357,7 @@ class _PollCore:
         """Poll thread of one connection: a round at ``poll_hz`` on absolute deadlines (no
         catch-up burst after a timeout). Runs SCHED_OTHER: a thread inherits its creator's
         policy, and the runtime may already run SCHED_FIFO."""
-        _run_sched_other()
+        as_background_thread()
         period = 1.0 / self.cfg.poll_hz
         deadline = time.monotonic()
         links = [link]
@@ -551,15 +551,6 @@ def _flush(link: _Link) -> None:
     client already discards stale input before each request."""
     if not link.rtu:
         link.close()
-
-
-def _run_sched_other() -> None:
-    """Run the calling thread SCHED_OTHER (Linux applies this to the calling thread only)."""
-    try:
-        if os.sched_getscheduler(0) != os.SCHED_OTHER:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    except (OSError, AttributeError):
-        pass
 
 
 # --------------------------------------------------------------------------- loop side

@@ -38,6 +38,7 @@ import zlib
 from multiprocessing import shared_memory
 from typing import Any, Callable, Optional
 
+from rig_runtime.clock import as_background_thread
 from rig_runtime.config import FTBus
 
 from .base import DeviceInitError
@@ -258,7 +259,7 @@ def child_main(cfg: FTBus, endpoints: dict[str, tuple[str, int]], clock: Callabl
     pymodbus logger level — which the runtime lowers — is passed on.)"""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     logging.getLogger("pymodbus").setLevel(pymodbus_log_level)
-    _sched_other(0)
+    as_background_thread()
     if cpus:
         try:
             os.sched_setaffinity(0, set(cpus))

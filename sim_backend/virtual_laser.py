@@ -371,17 +371,23 @@ def emit_all(lasers: "list[VirtualLaser]", t: float) -> int:
 
     Writing all first and waiting once lets the kernel deliver the ptys in parallel
     (one wait instead of six). :class:`LaserGroup` does the same with less Python."""
-    pending = []
+    pending: list[tuple[VirtualLaser, int]] = []
     total = 0
     for vl in lasers:
-        with vl._lock:
-            q0 = vl._slave_queued()
-            n = vl._emit(t)
-        total += n
-        if n:
-            pending.append((vl, min(q0 + n, _LDISC_CAP)))
+        total += _emit_noting(vl, t, pending)
     _await_delivery(pending)
     return total
+
+
+def _emit_noting(vl: VirtualLaser, t: float, pending: list) -> int:
+    """``vl``'s frames up to ``t`` by its own path; notes in ``pending`` how many bytes its
+    slave end must then hold (for :func:`_await_delivery`). Returns the bytes written."""
+    with vl._lock:
+        q0 = vl._slave_queued()
+        n = vl._emit(t)
+    if n:
+        pending.append((vl, min(q0 + n, _LDISC_CAP)))
+    return n
 
 
 def _await_delivery(pending: list[tuple[VirtualLaser, int]], timeout_s: float = 0.05) -> None:
@@ -489,12 +495,7 @@ class LaserGroup:
                     or (sd > 0 and vl._ni + n > _NOISE_BLOCK) or not math.isfinite(d0)):
                 if c is not None and n <= 0 and vl._released == vl._sampled:
                     continue                # nothing due (latency-free: nothing queued either)
-                with vl._lock:
-                    q0 = vl._slave_queued()
-                    w = vl._emit(t)
-                total += w
-                if w:
-                    pend.append((vl, min(q0 + w, _LDISC_CAP)))
+                total += _emit_noting(vl, t, pend)
                 continue
             _, off, mr, lo, hi = c
             if sd > 0:
