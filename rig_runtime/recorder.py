@@ -50,6 +50,15 @@ the writer then stops writing, trims the datasets back to the last flushed lengt
 flushes that; if even this fails, the file descriptor is pointed at /dev/null so that
 closing writes nothing more to the failing device.
 
+Inline writer (``writer="inline"``, lockstep dry runs)
+------------------------------------------------------
+With a simulated clock there are no deadlines, and a writer thread only costs: every
+HDF5 call holds the interpreter lock, and each hand-over between the threads stalls the
+loop. Inline, ``append`` stores the pending rows itself (same batches, same checks, same
+failure handling) once half the ring is pending or a flush is due, and ``close`` writes
+the rest — the file is identical, the loop thread does the I/O. Real-time runs keep the
+thread.
+
 File layout: see ``docs/log-format.md``.
 """
 
@@ -129,12 +138,13 @@ class Recorder:
 
     ``columns`` names the row's values in order (SI units; see ``docs/log-format.md``);
     ``attrs`` become root attributes (strings as UTF-8). The file must not exist yet:
-    a log is never overwritten.
+    a log is never overwritten. ``writer``: ``"thread"`` (a background writer; ``append``
+    never does I/O) or ``"inline"`` (``append`` writes a batch now and then; for lockstep).
     """
 
     def __init__(self, path: str | Path, columns: Sequence[str], *, attrs: Mapping[str, object],
                  buffer_cycles: int = 4096, flush_s: float = 0.5, event_capacity: int = 1024,
-                 min_free_bytes: int = 32 * 2**20):
+                 min_free_bytes: int = 32 * 2**20, writer: str = "thread"):
         self.path = Path(path)
         cols = tuple(columns)
         if not cols:
@@ -149,6 +159,8 @@ class Recorder:
             raise ValueError(f"recorder: buffer_cycles >= 2, got {buffer_cycles!r}")
         if not flush_s > 0:
             raise ValueError(f"recorder: flush_s > 0, got {flush_s!r}")
+        if writer not in ("thread", "inline"):
+            raise ValueError(f"recorder: writer 'thread' or 'inline', got {writer!r}")
         if int(event_capacity) < 1:
             raise ValueError(f"recorder: event_capacity >= 1, got {event_capacity!r}")
         self.columns: tuple[str, ...] = cols
@@ -197,6 +209,12 @@ class Recorder:
         self._opened = False
         self._closed = False
         self._close_lock = threading.Lock()
+        # inline writer: the appending thread stores a batch itself once half the ring is
+        # pending or a flush is due (lockstep runs: no deadlines, no GIL hand-overs)
+        self.writer = writer
+        self._inline = writer == "inline"
+        self._inline_batch = max(1, self.buffer_cycles // 2)
+        self._next_flush = math.inf
 
     # ------------------------------------------------------------------ status
     @property
@@ -295,9 +313,12 @@ class Recorder:
             raise DeviceInitError(dev, f"cannot initialise log file: {exc}") from exc
         self._file = f
         self._opened = True
+        atexit.register(self.close)
+        if self._inline:
+            self._next_flush = time.monotonic() + self.flush_period
+            return
         self._thread = threading.Thread(target=self._run, name=f"recorder:{self.path.name}", daemon=True)
         self._thread.start()
-        atexit.register(self.close)
 
     # ------------------------------------------------------------------ loop side
     def append(self, row: Sequence[float]) -> bool:
@@ -315,7 +336,18 @@ class Recorder:
         except struct.error as e:
             raise ValueError(f"recorder row: expected {self._ncols} numbers in column order {self.columns} ({e})") from None
         self._w = w + 1                   # publish: the writer may now read slot w
+        if self._inline and (w + 1 - self._r >= self._inline_batch or time.monotonic() >= self._next_flush):
+            self._write_inline()
         return True
+
+    def _write_inline(self) -> None:
+        """Inline writer: store (and, when due, flush) what is pending, in the caller's thread."""
+        now = time.monotonic()
+        flush = now >= self._next_flush
+        if flush:
+            self._next_flush = now + self.flush_period
+        if not self._dead:
+            self._service(flush)
 
     def _reject(self) -> bool:
         if self._refuse:
@@ -387,9 +419,11 @@ class Recorder:
         self._r = w                       # slots copied: release them to the loop
         start = self._rows_written
         end = start + n
+        yield_gil = not self._inline
         for j, d in enumerate(self._cyc):
             self._store_column(d, start, block[j])
-            time.sleep(0)                 # offer the GIL to the loop between HDF5 calls
+            if yield_gil:
+                time.sleep(0)             # offer the GIL to the loop between HDF5 calls
         self._rows_written = end
 
     @staticmethod
@@ -535,6 +569,10 @@ class Recorder:
             self._thread.join(timeout)
             if self._thread.is_alive():
                 self._fail(f"recorder close timed out after {timeout} s; file valid up to row {self._rows_flushed}")
+        elif self._inline and self._opened:
+            if not self._dead:
+                self._service(flush=True)
+            self._finish()
         try:
             atexit.unregister(self.close)
         except Exception:  # noqa: BLE001

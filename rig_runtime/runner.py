@@ -52,8 +52,10 @@ class StatusLine:
 
 def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenario], duration_s: Optional[float],
             log_path: Path, status: bool, in_cycle=None, on_running=None, extra_attrs: dict | None = None,
-            arm_timeout_s: float = 2.0, open_context=None) -> tuple[dict, int, ControlLoop | None]:
-    """Run one session; returns (summary, exit code, loop). Devices are closed on return."""
+            arm_timeout_s: float = 2.0, open_context=None,
+            recorder_writer: str = "thread") -> tuple[dict, int, ControlLoop | None]:
+    """Run one session; returns (summary, exit code, loop). Devices are closed on return.
+    ``recorder_writer="inline"`` lets the loop thread write the log (lockstep runs)."""
     reference = Reference(scenario.reference) if scenario else (lambda t: 0.0)
     open_loop = (scenario.open_loop.carrier, open_loop_input(scenario.open_loop)) if scenario and scenario.open_loop else None
     duration = duration_s if duration_s is not None else (scenario.duration_s if scenario else math.inf)
@@ -76,7 +78,7 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
                  "scenario_source": scenario.source if scenario else ""}
         attrs.update(extra_attrs or {})
         rec = Recorder(log_path, loop.columns, attrs=attrs, buffer_cycles=cfg.recorder.buffer_cycles,
-                       flush_s=cfg.recorder.flush_s)
+                       flush_s=cfg.recorder.flush_s, writer=recorder_writer)
         rec.open()
         loop.recorder = rec
 

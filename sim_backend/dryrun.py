@@ -35,7 +35,8 @@ def run_lockstep(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *
             cfg, devices, clock, scenario=scenario, duration_s=duration_s, log_path=log_path,
             status=False, in_cycle=sim.in_cycle(clock), on_running=sim.on_running,
             extra_attrs={"mode": "dry-run lockstep", "seed": sim.seed},
-            open_context=lambda: sim.drives.serving(0.0))
+            open_context=lambda: sim.drives.serving(0.0),
+            recorder_writer="inline")       # simulated time: no deadlines, no writer thread
         summary["sim_time_s"] = clock.now()
         summary["seed"] = sim.seed
     finally:

@@ -57,8 +57,9 @@ def log(tmp_path):
     return tmp_path / "run.h5"
 
 
-def test_round_trip(log):
-    rec = Recorder(log, COLS, attrs=ATTRS, buffer_cycles=2048, flush_s=0.2)
+@pytest.mark.parametrize("writer", ["thread", "inline"])
+def test_round_trip(log, writer):
+    rec = Recorder(log, COLS, attrs=ATTRS, buffer_cycles=2048, flush_s=0.2, writer=writer)
     rec.open()
     n = 10_000                                    # several times the ring
     feed(rec, 0, n // 2)
@@ -189,6 +190,73 @@ def test_disk_almost_full_stops_cleanly(log, monkeypatch):
     assert not log.with_name("next.h5").exists()
 
 
+def test_inline_writer_stores_batches_in_the_callers_thread(log, monkeypatch):
+    threads = {}
+    real = Recorder._store_column
+
+    def store(d, start, data):
+        threads[threading.get_ident()] = True
+        real(d, start, data)
+
+    monkeypatch.setattr(Recorder, "_store_column", staticmethod(store))
+    n_threads = threading.active_count()
+    rec = Recorder(log, COLS, attrs={}, buffer_cycles=64, flush_s=60.0, writer="inline")
+    rec.open()
+    assert threading.active_count() == n_threads      # no writer thread
+    for i in range(31):
+        assert rec.append(row(i))
+    assert rec.rows_written == 0 and rec.pending == 31
+    assert rec.append(row(31))                        # half the ring pending: stored now
+    assert rec.rows_written == 32 and rec.pending == 0 and rec.rows_flushed == 0
+    rec.event(0.1, "state", message="x")
+    for i in range(32, 40):
+        rec.append(row(i))
+    rec.close()                                       # the rest, events, flush, attributes
+    assert list(threads) == [threading.get_ident()]
+    d = read_log(log)
+    np.testing.assert_array_equal(d["columns"]["y"], [row(i)[3] for i in range(40)])
+    assert list(d["events"]["message"]) == ["x"] and d["attrs"]["rows_written"] == 40
+
+
+def test_inline_writer_flushes_every_flush_s(log):
+    rec = Recorder(log, COLS, attrs={}, buffer_cycles=4096, flush_s=0.05, writer="inline")
+    rec.open()
+    rec.append(row(0))
+    assert rec.rows_flushed == 0
+    time.sleep(0.06)
+    rec.append(row(1))                                # a flush is due: stored and flushed
+    assert rec.rows_flushed == 2 and rec.flushes == 1
+    rec.close()
+
+
+def test_inline_write_failure_keeps_flushed_data(log, monkeypatch):
+    fail = []
+    real = Recorder._store_column
+
+    def store(d, start, data):
+        if fail:
+            raise OSError(errno.EIO, "Input/output error")
+        real(d, start, data)
+
+    monkeypatch.setattr(Recorder, "_store_column", staticmethod(store))
+    rec = Recorder(log, COLS, attrs={}, buffer_cycles=64, flush_s=60.0, writer="inline")
+    rec.open()
+    for i in range(32):
+        rec.append(row(i))
+    rec._next_flush = 0.0                             # make the next append flush
+    rec.append(row(32))
+    assert rec.rows_flushed == 33 and rec.healthy
+    fail.append(True)
+    for i in range(33, 65):
+        rec.append(row(i))                            # the batch at row 64 fails
+    assert not rec.healthy and "write failed" in rec.error and "row 33" in rec.error
+    assert rec.append(row(65)) is False               # nothing more is accepted
+    rec.close()
+    d = read_log(log)
+    assert d["rows"] == 33
+    np.testing.assert_array_equal(d["columns"]["t"], [row(i)[0] for i in range(33)])
+
+
 def test_open_errors_name_the_recorder(tmp_path, log):
     log.write_bytes(b"precious")
     rec = Recorder(log, COLS, attrs={})
@@ -209,6 +277,8 @@ def test_input_validation(log):
         Recorder(log, ["t", "a/b"], attrs={})
     with pytest.raises(ValueError, match="reserved"):
         Recorder(log, ["t"], attrs={"columns": "x"})
+    with pytest.raises(ValueError, match="writer 'thread' or 'inline'"):
+        Recorder(log, ["t"], attrs={}, writer="process")
     rec = Recorder(log, COLS, attrs={})
     with pytest.raises(ValueError, match="expected 9 numbers"):
         rec.append((1.0, 2.0))
