@@ -18,6 +18,12 @@ from drivers.base import Freshness
 from .config import Limits
 
 
+_FRESH = Freshness.FRESH
+_INF = math.inf
+_NINF = -math.inf
+_NEVER = 1 << 62         # a count limit that is switched off
+
+
 class State(enum.IntEnum):
     IDLE = 0
     ARMED = 1
@@ -153,16 +159,24 @@ class Supervisor:
         self._psi_prev = psi
         stuck_n = self.limits.stuck_periods or 0
         corrupt_n = self.limits.corrupt_cycles or 0
+        s_lim = stuck_n or _NEVER
+        c_lim = corrupt_n or _NEVER
+        nominal = True          # every channel passes every channel check (known from this one pass)
         for c in channels:
             v, p = c.value, c.prev
             c.prev = v
-            c.delta = v - p
+            d = c.delta = v - p
             if c.stuck_check:
                 c.same = c.same + 1 if v == p else 0
             b = c.bad
             c.bad_run = c.bad_run + 1 if b > c.bad_prev else 0
             c.bad_prev = b
-        if not self.active:
+            if nominal and not (c.state is _FRESH and t - c.t <= c.stale_s and c.lo <= v <= c.hi
+                                and _NINF < v < _INF and -c.step_max <= d <= c.step_max
+                                and c.bad_run < c_lim and c.same < s_lim):
+                nominal = False
+        st = self.state
+        if st is not State.RUNNING and st is not State.ARMED and st is not State.STOPPING:
             return
         lim = self.limits
         # root causes first: a starved loop makes the converters' watchdogs trip too
@@ -173,26 +187,8 @@ class Supervisor:
             return self.trip(t, "recorder", "recorder", math.nan, math.nan, recorder_cause)
         if not converters_ok:
             return self.trip(t, "converters", "converter", math.nan, math.nan, converter_cause)
-        for c in channels:
-            age = t - c.t
-            if c.state is Freshness.INVALID:
-                return self.trip(t, c.name, "invalid", c.value, math.nan, c.cause)
-            if c.state is Freshness.STALE or age > c.stale_s:
-                return self.trip(t, c.name, "stale", age, c.stale_s, c.cause or f"sample {age * 1e3:.1f} ms old")
-            v = c.value
-            if v != v or v in (math.inf, -math.inf):
-                return self.trip(t, c.name, "nan", v, math.nan, "value is not finite")
-            if v < c.lo or v > c.hi:
-                return self.trip(t, c.name, "range", v, c.hi if v > c.hi else c.lo, "raw value outside the sensor range")
-            if corrupt_n and c.bad_run >= corrupt_n:
-                return self.trip(t, c.name, "corrupt", c.bad_run, corrupt_n,
-                                 f"garbled frames in {c.bad_run} consecutive cycles ({c.bad} in total)")
-            if stuck_n and c.same >= stuck_n:
-                return self.trip(t, c.name, "stuck", c.same, stuck_n, f"value repeated bit-identically for {c.same} cycles")
-        for c in channels:
-            if abs(c.delta) > c.step_max:
-                return self.trip(t, c.name, "jump", c.delta, c.step_max,
-                                 "implausible change between two cycles")
+        if not nominal and self._check_channels(t, channels, stuck_n, corrupt_n):
+            return
         if psi != psi or y != y:
             return self.trip(t, "geometry", "nan", math.nan, math.nan, "y or psi is not finite")
         if abs(psi) > lim.psi_max:
@@ -201,6 +197,38 @@ class Supervisor:
             return self.trip(t, "geometry", "y_limit", y, lim.y_max, "lateral displacement beyond limit")
         if lim.psi_rate_max is not None and abs(self._psi_rate) > lim.psi_rate_max:
             return self.trip(t, "geometry", "psi_rate_limit", self._psi_rate, lim.psi_rate_max, "yaw rate beyond limit")
+
+    def _check_channels(self, t: float, channels: Sequence[Channel], stuck_n: int, corrupt_n: int) -> bool:
+        """The channel checks one by one, in order (only when some channel is not nominal);
+        True if one tripped."""
+        for c in channels:
+            age = t - c.t
+            if c.state is Freshness.INVALID:
+                self.trip(t, c.name, "invalid", c.value, math.nan, c.cause)
+                return True
+            if c.state is Freshness.STALE or age > c.stale_s:
+                self.trip(t, c.name, "stale", age, c.stale_s, c.cause or f"sample {age * 1e3:.1f} ms old")
+                return True
+            v = c.value
+            if v != v or v in (math.inf, -math.inf):
+                self.trip(t, c.name, "nan", v, math.nan, "value is not finite")
+                return True
+            if v < c.lo or v > c.hi:
+                self.trip(t, c.name, "range", v, c.hi if v > c.hi else c.lo, "raw value outside the sensor range")
+                return True
+            if corrupt_n and c.bad_run >= corrupt_n:
+                self.trip(t, c.name, "corrupt", c.bad_run, corrupt_n,
+                          f"garbled frames in {c.bad_run} consecutive cycles ({c.bad} in total)")
+                return True
+            if stuck_n and c.same >= stuck_n:
+                self.trip(t, c.name, "stuck", c.same, stuck_n, f"value repeated bit-identically for {c.same} cycles")
+                return True
+        for c in channels:
+            if abs(c.delta) > c.step_max:
+                self.trip(t, c.name, "jump", c.delta, c.step_max,
+                          "implausible change between two cycles")
+                return True
+        return False
 
     # ------------------------------------------------------------------ output limit
     def limit(self, u: float, t: float, i: int = 0) -> float:

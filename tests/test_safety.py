@@ -1,8 +1,11 @@
 """Supervisor unit tests: transitions, latched faults, each check, the output limit."""
 
+import dataclasses
 import math
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from drivers.base import Freshness
 from rig_runtime.safety import Channel, State, Supervisor
@@ -141,3 +144,35 @@ def test_stuck_and_jump(cfg):
     cs[0].value += 0.005
     ok_check(s2, 0.0, cs)
     assert s2.state is State.FAULT and s2.fault.check == "jump"
+
+
+# each field mostly nominal, so that whole channel sets are often nominal but for one detail
+_CH_VALUES = st.sampled_from([0.07, 0.07, 0.07, 0.0701, 0.0701, 0.2, -1.0, math.nan, math.inf, -math.inf])
+_SPEC = st.lists(st.tuples(_CH_VALUES, _CH_VALUES,
+                           st.sampled_from([Freshness.FRESH] * 6 + [Freshness.STALE, Freshness.INVALID]),
+                           st.floats(0.0, 0.025), st.sampled_from([0, 0, 0, 1]), st.integers(0, 4),
+                           st.integers(0, 12)), min_size=1, max_size=4)
+
+
+@settings(max_examples=300, deadline=None)
+@given(spec=_SPEC, counts_on=st.booleans())
+def test_one_pass_check_agrees_with_the_ordered_checks(cfg, spec, counts_on):
+    """The nominal fast path of ``check`` decides exactly like the checks one by one."""
+    lim = dataclasses.replace(cfg.limits, stuck_periods=10 if counts_on else None,
+                              corrupt_cycles=3 if counts_on else None)
+    t = 1.0
+    cs = []
+    for k, (prev, v, state, age, bad_new, bad_run, same) in enumerate(spec):
+        c = Channel(f"c{k}", "laser", 0.045, 0.095, 0.02, step_max=0.01, stuck_check=True)
+        c.prev, c.value, c.state, c.t, c.cause = prev, v, state, t - age, ""
+        c.bad_prev, c.bad, c.bad_run, c.same = 5, 5 + bad_new, bad_run, same
+        cs.append(c)
+    s = Supervisor(lim, H)
+    s.state = State.RUNNING
+    ok_check(s, t, cs)
+    ref = Supervisor(lim, H)         # same channel data, checks one by one
+    ref.state = State.RUNNING
+    tripped = ref._check_channels(t, cs, lim.stuck_periods or 0, lim.corrupt_cycles or 0)
+    assert tripped == s.new_fault
+    if tripped:
+        assert (s.fault.device, s.fault.check) == (ref.fault.device, ref.fault.check)
