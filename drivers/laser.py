@@ -237,6 +237,7 @@ class LaserDriver(Driver):
         mr = cfg.measuring_range_mm
         self._gain = mr / (100.0 * _X_PER_PERCENT * 1000.0)
         self._bias = (cfg.offset_mm - mr / 100.0) / 1000.0
+        self._average = cfg.average
         self._ser: serial.Serial | None = None
         self._poller: select.poll | None = None
         self._reset_state()
@@ -280,25 +281,19 @@ class LaserDriver(Driver):
             except Exception:  # noqa: BLE001 - a vanished device must not stop shutdown
                 pass
 
-    def _read_available(self) -> bytes:
-        """Everything the OS has buffered for us, without waiting: one non-blocking
-        ``read(2)`` on the port pyserial opened (pyserial's ``in_waiting`` + ``read``
-        cost two system calls and ~5 µs more per poll)."""
-        fd = self._ser.fd
-        try:
-            data = _os_read(fd, _READ_CHUNK)
-        except BlockingIOError:
-            return b""
+    def _read_available(self, data: bytes) -> bytes:
+        """Finish a poll's first non-blocking ``read(2)`` (``data``) on the port pyserial
+        opened (pyserial's ``in_waiting`` + ``read`` cost two system calls and ~5 µs more
+        per poll): an empty read may be a hang-up; a read that filled the line discipline
+        has more waiting behind it."""
         if not data:
             # VMIN = VTIME = 0: an empty read means "nothing yet" — unless the port also
             # polls readable, which is a hang-up (the device end is gone)
             if self._poller is not None and any(ev & _HUP for _, ev in self._poller.poll(0)):
                 raise DeviceIOError(self.name, "device disconnected (hang-up on the port)")
             return data
-        if len(data) < _LDISC_FULL:
-            return data
         try:                    # the line discipline was full: more waits behind it
-            return data + _os_read(fd, _READ_CHUNK)
+            return data + _os_read(self._ser.fd, _READ_CHUNK)
         except BlockingIOError:
             return data
 
@@ -308,10 +303,16 @@ class LaserDriver(Driver):
         h = self._health
         if self._first_poll_t is None:
             self._first_poll_t = now
-        if self._ser is None:
+        ser = self._ser
+        if ser is None:
             return self._reading(Freshness.INVALID, "port not open", math.nan, 0)
         try:
-            data = self._read_available()
+            # the usual case read here; an empty or full read is finished by _read_available
+            data = _os_read(ser.fd, _READ_CHUNK)
+            if not data or len(data) >= _LDISC_FULL:
+                data = self._read_available(data)
+        except BlockingIOError:
+            data = b""
         except Exception as exc:  # noqa: BLE001 - poll must not raise inside the loop
             h.errors += 1
             h.counters["read_errors"] += 1
@@ -319,38 +320,38 @@ class LaserDriver(Driver):
             self._decoder.reset()
             h.bad_frames = self._decoder.discarded
             return self._reading(Freshness.INVALID, f"read error: {type(exc).__name__}: {exc}", math.nan, 0)
-        n_valid = 0
-        self._last_chunk = b""
-        self._last_list = []
-        if data:
-            h.counters["bytes"] += len(data)
-            dec = self._decoder
-            n = dec.clean_frames(data)
-            # whole clean frames whose H bytes rule out any value above 65520 (an error code
-            # or beyond the range end): only the latest value is needed, decoded here; the
-            # list of all values is made only if someone reads last_values
-            if n and max(data[2::3]) <= _H_SAFE and not self.cfg.average:
-                self._last_chunk = data
-                self._last_list = None
-                last = data[-3] + (data[-2] << 6) + (data[-1] << 12) - _FLAG_SUM
-                self._raw_x = last
-                self._last_rx_t = now
-                h.counters["values"] += n
-                self._latest_error = None
-                v = self._value = self._gain * last + self._bias
-                self._value_t = now
-                # what _classify concludes for a distance that arrived now: FRESH
-                h.state = _FRESH
-                h.cause = ""
-                return LaserReading(self._role, v, now, Health(_FRESH, "", h.bad_frames, h.timeouts, h.errors,
-                                                                h.counters.copy()), n, last)
-            else:
-                values = _values(data, 0, len(data)) if n else dec.feed(data)
-                self._last_list = values
-                h.bad_frames = dec.discarded
-                if values:
-                    n_valid = self._take(values, now)
-        return self._classify(now, n_valid)
+        if not data:
+            self._last_list = []
+            return self._classify(now, 0)
+        c = h.counters
+        c["bytes"] += len(data)
+        n = len(data) // 3
+        # whole clean frames (the usual poll) whose H bytes rule out any value above 65520 (an
+        # error code or beyond the range end): only the latest value is needed, decoded here;
+        # the list of all values is made only if someone reads last_values
+        if (not len(data) % 3 and not self._decoder._pending and _CLEAN.startswith(data.translate(_FLAG_TABLE))
+                and max(data[2::3]) <= _H_SAFE and not self._average):
+            self._decoder.frames += n
+            self._last_chunk = data
+            self._last_list = None
+            last = data[-3] + (data[-2] << 6) + (data[-1] << 12) - _FLAG_SUM
+            self._raw_x = last
+            self._last_rx_t = now
+            c["values"] += n
+            self._latest_error = None
+            v = self._value = self._gain * last + self._bias
+            self._value_t = now
+            # what _classify concludes for a distance that arrived now: FRESH
+            h.state = _FRESH
+            h.cause = ""
+            return LaserReading(self._role, v, now, Health(_FRESH, "", h.bad_frames, h.timeouts, h.errors, c.copy()),
+                                n, last)
+        dec = self._decoder
+        n = dec.clean_frames(data)
+        values = _values(data, 0, len(data)) if n else dec.feed(data)
+        self._last_list = values
+        h.bad_frames = dec.discarded
+        return self._classify(now, self._take(values, now) if values else 0)
 
     @property
     def last_values(self) -> list[int]:
