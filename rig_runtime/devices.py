@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import os
-from typing import Mapping, Optional, Sequence
+from typing import Callable, Mapping, Optional, Sequence
 
 from drivers.base import Freshness
 from drivers.registry import driver_class
@@ -94,6 +94,7 @@ class RigDevices:
         self.converters_ok = True
         self.converters_ready = False
         self.converter_cause = ""
+        self.before_laser_poll: Optional[Callable[[], None]] = None
         self._opened: list = []
 
     # ------------------------------------------------------------------ lifecycle
@@ -122,24 +123,12 @@ class RigDevices:
 
     # ------------------------------------------------------------------ cycle
     def poll(self, now: float) -> None:
+        """Every device's latest samples into the supervisor channels. The drives and the
+        F/T hand-off first, the lasers last (freshest); ``before_laser_poll`` (a lockstep
+        simulator's "laser bytes delivered" wait) runs just before the lasers are read."""
         # _update inlined: this runs every 5 ms for 14 channels
         ch = self.channels
-        dist = self.dist
         ninf = -math.inf
-        i = 0
-        for d in self.lasers:
-            r = d.poll(now)
-            c = ch[i]
-            hl = r.health
-            v = r.value_m
-            c.value = v
-            t = r.t
-            c.t = t if t == t else ninf
-            c.state = hl.state
-            c.cause = hl.cause
-            c.bad = hl.bad_frames
-            dist[i] = v
-            i += 1
         rd = self.drives.poll(now)
         ok, cause = True, ""
         omega = self.omega
@@ -173,6 +162,23 @@ class RigDevices:
                 _update(ch[10 + k], math.nan if w is None else w.fy, r.t, r.health)
                 if w is not None:
                     ev[6 * k:6 * k + 6] = (w.fx, w.fy, w.fz, w.mx, w.my, w.mz)
+        if self.before_laser_poll is not None:
+            self.before_laser_poll()
+        dist = self.dist
+        i = 0
+        for d in self.lasers:
+            r = d.poll(now)
+            c = ch[i]
+            hl = r.health
+            v = r.value_m
+            c.value = v
+            t = r.t
+            c.t = t if t == t else ninf
+            c.state = hl.state
+            c.cause = hl.cause
+            c.bad = hl.bad_frames
+            dist[i] = v
+            i += 1
 
     def write(self, currents: Sequence[float], now: float) -> None:
         self.drives.write(currents, now)

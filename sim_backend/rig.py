@@ -51,6 +51,7 @@ class SimulatedRig:
         self.plant.reset(y_r=y0)   # psi at rest (K·0 + psi_off), z = psi
         self.t = 0.0
         self._drive_bus = drive_bus
+        self.defer_laser_delivery = False   # advance() waits for the laser bytes itself
         self.ft_driver = None
         self._next_ft = 0.0
         self._closers: list[Callable[[], None]] = []
@@ -197,8 +198,10 @@ class SimulatedRig:
 
         Ordered for the wall clock: the drives' frames wait in their outbox while the plant
         steps and the laser frames are written, then go out while the kernel delivers the
-        pty bytes; the wait for delivery (the runtime must see all of them) comes last."""
+        pty bytes; the wait for delivery (the runtime must see all of them) comes last —
+        or, with ``defer_laser_delivery``, in :meth:`await_laser_delivery`."""
         h, plant, drives = self.h, self.plant, self.drives
+        self._laser_group.wait()        # a deferred delivery nobody awaited (no-op otherwise)
         drives.hold()
         try:
             drives.service(self.t)      # SYNC/RPDOs the runtime sent last cycle; TPDOs back
@@ -225,6 +228,14 @@ class SimulatedRig:
         finally:
             drives.release()
         self._publish_rest(t)
+        if not self.defer_laser_delivery:
+            self._laser_group.wait()
+
+    def await_laser_delivery(self) -> None:
+        """Return once the laser bytes of the latest ``advance`` are readable at the ports.
+        With ``defer_laser_delivery`` the runtime calls this just before it reads the lasers
+        (``RigDevices.before_laser_poll``), so the kernel delivers them while the runtime
+        polls its other devices."""
         self._laser_group.wait()
 
     def _publish(self, t: float) -> None:
@@ -262,8 +273,13 @@ class SimulatedRig:
         p = self.plant
         g = self._rng.gauss
         en = self.sc.encoder_noise_rad_s
-        for w, om in zip(WHEELS, (p.omega_fl, p.omega_fr, p.omega_rl, p.omega_rr)):
-            self.drives.set_wheel_speed(w, om + (g(0.0, en) if en else 0.0))
+        wd = self._wheel_drives
+        for k, om in enumerate((p.omega_fl, p.omega_fr, p.omega_rl, p.omega_rr)):
+            om = om + (g(0.0, en) if en else 0.0)
+            if wd is not None and -math.inf < om < math.inf:
+                wd[k].omega = float(om)     # VirtualDriveSet.set_wheel_speed, without the lookups
+            else:
+                self.drives.set_wheel_speed(WHEELS[k], om)
 
     def set_wrenches(self) -> None:
         """The plant's force–torque readings, with noise on the forces, to the Modbus servers."""
