@@ -47,6 +47,17 @@ class LockstepBus(can.BusABC):
                                msg.is_error_frame, self._channel, msg.dlc, bytearray(msg.data),
                                msg.is_fd, True, msg.bitrate_switch, msg.error_state_indicator))
 
+    def send_many(self, msgs: "list[can.Message]") -> None:
+        """Send several frames in order, each copied as by :meth:`send` (the batch call
+        ``DriveBus.write`` uses for SYNC + RPDOs when a bus offers it)."""
+        if not self._open:
+            raise can.CanOperationError("lockstep bus is shut down")
+        deliver, ch, now = self._deliver, self._channel, _now()
+        for msg in msgs:
+            deliver(_Message(now, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
+                             msg.is_error_frame, ch, msg.dlc, bytearray(msg.data),
+                             msg.is_fd, True, msg.bitrate_switch, msg.error_state_indicator))
+
     def send_owned(self, msg: can.Message) -> None:
         """Send ``msg`` itself, not a copy: the caller must never touch it again."""
         if not self._open:

@@ -183,6 +183,19 @@ def test_lockstep_bus_send_snapshots_the_frame(pair):
     assert a.recv(0.0) is None and b.recv(0.0) is None  # not to itself, nothing more
 
 
+def test_lockstep_bus_send_many_snapshots_in_order(pair):
+    a, b = pair
+    msgs = [can.Message(arbitration_id=0x80, data=b"", is_extended_id=False),
+            can.Message(arbitration_id=0x201, data=[1, 2, 3, 4], is_extended_id=False),
+            can.Message(arbitration_id=0x202, data=[5, 6], is_extended_id=False)]
+    a.send_many(msgs)
+    msgs[1].data[0] = 9
+    got = [b.recv(0.0) for _ in range(3)]
+    assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(0x80, b""), (0x201, b"\x01\x02\x03\x04"),
+                                                                 (0x202, b"\x05\x06")]
+    assert all(g is not m for g, m in zip(got, msgs)) and b.recv(0.0) is None and a.recv(0.0) is None
+
+
 def test_lockstep_bus_send_owned_and_filters(pair):
     a, b = pair
     msg = can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=False)
@@ -211,6 +224,8 @@ def test_lockstep_bus_after_shutdown(pair):
     a.shutdown()
     with pytest.raises(can.CanOperationError):
         a.send(can.Message(arbitration_id=0x80, data=b""))
+    with pytest.raises(can.CanOperationError):
+        a.send_many([can.Message(arbitration_id=0x80, data=b"")])
 
 
 # --------------------------------------------------------------------------- virtual drives
