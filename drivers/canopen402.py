@@ -481,6 +481,7 @@ class DriveReadings:
 # --------------------------------------------------------------------------- driver
 _TPDO, _HEARTBEAT, _EMCY = 1, 2, 3
 _FRESH = Freshness.FRESH
+_INF = math.inf
 _MAX_FRAMES_PER_POLL = 2000       # bound on one drain (a flooding bus must not stall the loop)
 
 
@@ -488,7 +489,7 @@ class _Node:
     """Per-drive state of :class:`DriveBus` (plain attributes: the cycle touches them all)."""
 
     __slots__ = (
-        "cfg", "wheel", "node_id", "A_per_permille", "velocity_factor",
+        "cfg", "wheel", "node_id", "A_per_permille", "rated_A", "velocity_factor",
         "hb_timeout_s", "max_permille", "rpdo_msg", "rpdo_data",
         "sw", "state", "vel_raw", "tq_raw", "omega", "current", "tpdo_t", "saturated",
         "frozen_n", "cmd_changes", "cmd_ref", "last_cmd", "bad_t", "bad_dlc", "timed_out", "frozen_flag",
@@ -501,6 +502,7 @@ class _Node:
         self.node_id = cfg.node_id
         self.hb_timeout_s = cfg.heartbeat_ms * heartbeat_timeout_factor / 1000.0
         self.A_per_permille = cfg.rated_current_A / 1000.0
+        self.rated_A = cfg.rated_current_A
         self.velocity_factor = cfg.velocity_factor
         self.max_permille = INT16_MAX
         self.rpdo_msg = can.Message(arbitration_id=node_cob_id(COB_RPDO1, cfg.node_id),
@@ -575,6 +577,8 @@ class DriveBus(Driver):
         self.sdo_timeout_s = sdo_timeout_s
         self.enable_timeout_s = enable_timeout_s
         self.frozen_periods = frozen_periods
+        self._tpdo_timeout = cfg.tpdo_timeout_periods
+        self._hold = cfg.tpdo_timeout_periods * period_s     # how long a bus/frame event is reported
         self.consumer_time_ms = round(cfg.heartbeat_ms * cfg.heartbeat_timeout_factor)
         if not cfg.heartbeat_ms < self.consumer_time_ms <= 0xFFFF:
             raise ConfigError(None, "devices.can.heartbeat_timeout_factor",
@@ -833,13 +837,29 @@ class DriveBus(Driver):
         out.append(self._sync_msg)
         by_name = hasattr(currents, "get")
         n_given = -1 if by_name else len(currents)
+        command = self._command
+        running = self._want_enabled
+        pack = RPDO1.pack_into
         for i, d in enumerate(self._nodes):
             if by_name:
                 x = currents.get(d.wheel)
             else:
                 x = currents[i] if i < n_given else None
-            cw, tq = self._command(d, x)
-            RPDO1.pack_into(d.rpdo_data, 0, cw, tq)
+            if (running and not d.stepping and d.state == OPERATION_ENABLED and x is not None
+                    and -_INF < x < _INF):
+                # _command's usual case, inlined
+                tq = amps_to_permille(x, d.rated_A)
+                m = d.max_permille
+                if tq > m or tq < -m:
+                    self._bus_health.counters["clipped_commands"] += 1
+                    tq = m if tq > 0 else -m
+                if tq != d.last_cmd:
+                    d.cmd_changes += 1
+                    d.last_cmd = tq
+                cw = CW_ENABLE_OPERATION
+            else:
+                cw, tq = command(d, x)
+            pack(d.rpdo_data, 0, cw, tq)
             d.last_cw = cw
             out.append(d.rpdo_msg)
         if now >= self._hb_next:
@@ -1040,18 +1060,20 @@ class DriveBus(Driver):
 
     def _classify(self, d: _Node, now: float) -> tuple[Freshness, str]:
         """Freshness and cause of one drive: INVALID causes first, then STALE ones."""
-        hold = self.cfg.tpdo_timeout_periods * self.period_s    # how long an event is reported
-        frozen = (self.frozen_periods > 0 and d.frozen_n >= self.frozen_periods
-                  and d.cmd_changes != d.cmd_ref)
+        hold = self._hold                       # how long an event is reported
+        fp = self.frozen_periods
+        frozen = fp > 0 and d.frozen_n >= fp and d.cmd_changes != d.cmd_ref
         if frozen and not d.frozen_flag:
             d.health.counters["frozen"] += 1
         d.frozen_flag = frozen
         tpdo_t, hb_t = d.tpdo_t, d.hb_t
+        # the last term is _periods(now - tpdo_t) < tpdo_timeout_periods (int() of a value
+        # that is < N exactly when the value is)
         if (not frozen and tpdo_t is not None and hb_t is not None and d.nmt == NMT_OPERATIONAL
                 and not d.emcy_code and not d.saturated and now - hb_t <= d.hb_timeout_s
                 and now - self._bus_err_t > hold and now - d.bad_t > hold
                 and d.state not in _FAULT_STATES
-                and self._periods(now - tpdo_t) < self.cfg.tpdo_timeout_periods):
+                and (now - tpdo_t) / self.period_s + 0.5 < self._tpdo_timeout):
             d.timed_out = False
             return _FRESH, ""                   # the usual case, without building any text
         return self._diagnose(d, now, hold, frozen)
@@ -1120,7 +1142,7 @@ class DriveBus(Driver):
                 ready = False
         self._ready = ready
         b = self._bus_health
-        if now - self._bus_err_t <= self.cfg.tpdo_timeout_periods * self.period_s:
+        if now - self._bus_err_t <= self._hold:
             b.state, b.cause = Freshness.INVALID, f"bus error: {self._bus_err_desc}"
         elif self._bus is None:
             b.state, b.cause = Freshness.INVALID, "driver not open"
