@@ -10,7 +10,7 @@ from __future__ import annotations
 import abc
 import enum
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Mapping
 
 from rig_runtime.errors import (  # re-exported: the driver error hierarchy
     ConfigError,
@@ -22,7 +22,7 @@ from rig_runtime.errors import (  # re-exported: the driver error hierarchy
 
 __all__ = [
     "ConfigError", "DeviceError", "DeviceInitError", "DeviceIOError", "DeviceTimeoutError",
-    "Freshness", "Health", "Driver",
+    "Freshness", "Health", "snapshot", "Driver",
 ]
 
 
@@ -34,7 +34,13 @@ class Freshness(enum.Enum):
 
 @dataclass(slots=True)
 class Health:
-    """Health of one device channel; counters only ever increase while the driver is open."""
+    """Health of one device channel; counters only ever increase while the driver is open.
+
+    A driver keeps one live ``Health`` per channel and hands out snapshots with its
+    readings (:func:`snapshot`): state, cause and the three counts as they were at the poll;
+    ``counters`` of a snapshot is a read-only *live* view of the driver's counters, so a
+    snapshot can be handed out again while only counters changed (the usual poll).
+    """
 
     state: Freshness = Freshness.STALE
     cause: str = ""                 # why it is not fresh ("no peak", "TPDO missing", …)
@@ -46,6 +52,16 @@ class Health:
     @property
     def fresh(self) -> bool:
         return self.state is Freshness.FRESH
+
+
+def snapshot(live: Health, counters: Mapping[str, int], prev: Health | None) -> Health:
+    """The snapshot of ``live`` for a reading: ``prev`` again if ``live`` still matches it
+    (state, cause and counts), else a new one. ``counters``: the read-only view of
+    ``live.counters`` (``types.MappingProxyType``) that the snapshots share."""
+    if (prev is not None and prev.state is live.state and prev.bad_frames == live.bad_frames
+            and prev.timeouts == live.timeouts and prev.errors == live.errors and prev.cause == live.cause):
+        return prev
+    return Health(live.state, live.cause, live.bad_frames, live.timeouts, live.errors, counters)  # type: ignore[arg-type]
 
 
 class Driver(abc.ABC):

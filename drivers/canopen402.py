@@ -27,13 +27,14 @@ import struct
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
 from typing import Iterator, Mapping, NamedTuple, Sequence
 
 import can
 
 from rig_runtime.config import WHEELS, CanBus, Drive, resolve_config_path
 
-from .base import ConfigError, DeviceInitError, Driver, Freshness, Health
+from .base import ConfigError, DeviceInitError, Driver, Freshness, Health, snapshot
 
 __all__ = [
     # COB-IDs and protocol constants
@@ -435,9 +436,9 @@ class WheelReading(NamedTuple):
     the first). When the TPDO stops or is garbled the last values and their ``t`` are kept
     (STALE); a velocity at the INT32 limit is reported as NaN. ``statusword``/``state``
     are from the latest TPDO1 (or the start-up SDO read), ``nmt_state`` from the latest
-    heartbeat (None before the first). ``health`` is a snapshot; decide on
-    ``health.state``, not on NaN checks. Immutable; a named tuple because a frozen
-    dataclass costs three times as much to build, every 5 ms.
+    heartbeat (None before the first). ``health`` is a snapshot (its ``counters`` a read-only
+    live view); decide on ``health.state``, not on NaN checks. Immutable; a named tuple
+    because a frozen dataclass costs three times as much to build, every 5 ms.
     """
 
     wheel: str
@@ -493,7 +494,7 @@ class _Node:
         "hb_timeout_s", "max_permille", "rpdo_msg", "rpdo_data",
         "sw", "state", "vel_raw", "tq_raw", "omega", "current", "tpdo_t", "saturated",
         "frozen_n", "cmd_changes", "cmd_ref", "last_cmd", "bad_t", "bad_dlc", "timed_out", "frozen_flag",
-        "hb_t", "nmt", "emcy_code", "emcy_reg", "stepping", "last_cw", "health",
+        "hb_t", "nmt", "emcy_code", "emcy_reg", "stepping", "last_cw", "health", "counters_view", "snap",
     )
 
     def __init__(self, cfg: Drive, heartbeat_timeout_factor: float) -> None:
@@ -533,6 +534,8 @@ class _Node:
         self.last_cw = CW_DISABLE_VOLTAGE
         self.health = Health(cause="not open", counters={
             "tpdo": 0, "heartbeat": 0, "emcy": 0, "frozen": 0, "saturated": 0})
+        self.counters_view = MappingProxyType(self.health.counters)
+        self.snap: Health | None = None         # the latest snapshot handed out
 
 
 class DriveBus(Driver):
@@ -619,6 +622,8 @@ class DriveBus(Driver):
         self._bus_health = Health(state=Freshness.FRESH, counters={
             "send_errors": 0, "error_frames": 0, "rx_frames": 0, "foreign_frames": 0,
             "rx_overflow": 0, "nan_commands": 0, "missing_commands": 0, "clipped_commands": 0})
+        self._bus_view = MappingProxyType(self._bus_health.counters)
+        self._bus_snap: Health | None = None
         self._ready = False
 
     @property
@@ -1133,7 +1138,7 @@ class DriveBus(Driver):
                 state, cause = Freshness.INVALID, "driver not open"
             h.state = state
             h.cause = cause
-            snap = Health(state, cause, h.bad_frames, h.timeouts, h.errors, h.counters.copy())
+            snap = d.snap = snapshot(h, d.counters_view, d.snap)
             t = d.tpdo_t
             sw = d.sw
             wheels[d.wheel] = WheelReading(d.wheel, d.node_id, d.omega, d.current, sw if sw > 0 else 0,
@@ -1148,5 +1153,5 @@ class DriveBus(Driver):
             b.state, b.cause = Freshness.INVALID, "driver not open"
         else:
             b.state, b.cause = Freshness.FRESH, ""
-        bus = Health(b.state, b.cause, b.bad_frames, b.timeouts, b.errors, b.counters.copy())
+        bus = self._bus_snap = snapshot(b, self._bus_view, self._bus_snap)
         return DriveReadings(now, wheels, bus, ready)

@@ -22,6 +22,7 @@ import math
 import os
 import select
 import re
+from types import MappingProxyType
 from typing import Iterable, NamedTuple
 
 import numpy as np
@@ -29,7 +30,7 @@ import serial
 
 from rig_runtime.config import LaserDevice
 
-from .base import DeviceInitError, DeviceIOError, Driver, Freshness, Health
+from .base import DeviceInitError, DeviceIOError, Driver, Freshness, Health, snapshot
 
 __all__ = [
     "MAX_DISTANCE_X", "MAX_X", "ERROR_CODES",
@@ -203,8 +204,8 @@ class LaserReading(NamedTuple):
     measurement; decide on ``health.state``, not on NaN checks. ``n_values`` counts the
     valid distance values decoded in this poll; ``raw_x`` is the latest value received
     (incl. error codes), -1 before the first. ``health`` is a snapshot, not the driver's
-    live object. Immutable; a named tuple because a frozen dataclass costs three times as
-    much to build, every 5 ms.
+    live object (its ``counters`` a read-only live view). Immutable; a named tuple because a
+    frozen dataclass costs three times as much to build, every 5 ms.
     """
 
     role: str
@@ -249,6 +250,8 @@ class LaserDriver(Driver):
         self._last_chunk = b""                  # ... or the clean frames they are decoded from
         self._health = Health(cause="no data yet",
                               counters={"values": 0, "error_frames": 0, "read_errors": 0, "bytes": 0})
+        self._counters_view = MappingProxyType(self._health.counters)
+        self._snap: Health | None = None        # the latest snapshot handed out
         self._value = math.nan          # latest valid value (or cycle mean), m; reported only
                                         # while the latest value is not an error code
         self._value_t = math.nan        # poll time at which it arrived
@@ -344,8 +347,11 @@ class LaserDriver(Driver):
             # what _classify concludes for a distance that arrived now: FRESH
             h.state = _FRESH
             h.cause = ""
-            return LaserReading(self._role, v, now, Health(_FRESH, "", h.bad_frames, h.timeouts, h.errors, c.copy()),
-                                n, last)
+            s = self._snap                      # snapshot(h, …), inlined
+            if (s is None or s.state is not _FRESH or s.cause or s.bad_frames != h.bad_frames
+                    or s.timeouts != h.timeouts or s.errors != h.errors):
+                s = self._snap = Health(_FRESH, "", h.bad_frames, h.timeouts, h.errors, self._counters_view)
+            return LaserReading(self._role, v, now, s, n, last)
         dec = self._decoder
         n = dec.clean_frames(data)
         values = _values(data, 0, len(data)) if n else dec.feed(data)
@@ -402,5 +408,5 @@ class LaserDriver(Driver):
     def _reading(self, state: Freshness, cause: str, value: float, n_valid: int) -> LaserReading:
         h = self._health
         h.state, h.cause = state, cause
-        snap = Health(state, cause, h.bad_frames, h.timeouts, h.errors, h.counters.copy())
+        snap = self._snap = snapshot(h, self._counters_view, self._snap)
         return LaserReading(self._role, value, self._value_t, snap, n_valid, self._raw_x)
