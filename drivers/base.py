@@ -22,7 +22,7 @@ from rig_runtime.errors import (  # re-exported: the driver error hierarchy
 
 __all__ = [
     "ConfigError", "DeviceError", "DeviceInitError", "DeviceIOError", "DeviceTimeoutError",
-    "Freshness", "Health", "snapshot", "Driver",
+    "Freshness", "Health", "CounterView", "snapshot", "Driver",
 ]
 
 
@@ -38,8 +38,9 @@ class Health:
 
     A driver keeps one live ``Health`` per channel and hands out snapshots with its
     readings (:func:`snapshot`): state, cause and the three counts as they were at the poll;
-    ``counters`` of a snapshot is a read-only *live* view of the driver's counters, so a
-    snapshot can be handed out again while only counters changed (the usual poll).
+    ``counters`` of a snapshot is a read-only *live* view of the driver's counters
+    (:class:`CounterView`), so a snapshot can be handed out again while only counters
+    changed (the usual poll).
     """
 
     state: Freshness = Freshness.STALE
@@ -47,21 +48,54 @@ class Health:
     bad_frames: int = 0             # frames/bytes discarded as garbled
     timeouts: int = 0
     errors: int = 0                 # device-reported errors (error codes, exceptions, EMCY)
-    counters: dict[str, int] = field(default_factory=dict)  # anything device specific
+    counters: Mapping[str, int] = field(default_factory=dict)  # anything device specific (live: a dict;
+                                                               # snapshot: a CounterView of it)
 
     @property
     def fresh(self) -> bool:
         return self.state is Freshness.FRESH
 
 
-def snapshot(live: Health, counters: Mapping[str, int], prev: Health | None) -> Health:
+class CounterView(Mapping[str, int]):
+    """Read-only live view of a driver's counters, as a health snapshot holds them. Copies,
+    pickles and deep-copies as a plain dict of the counts at that moment (``dict(view)``
+    too, e.g. for JSON)."""
+
+    __slots__ = ("_d",)
+
+    def __init__(self, counters: dict[str, int]) -> None:
+        self._d = counters
+
+    def __getitem__(self, key: str) -> int:
+        return self._d[key]
+
+    def __iter__(self):
+        return iter(self._d)
+
+    def __len__(self) -> int:
+        return len(self._d)
+
+    def __repr__(self) -> str:
+        return repr(self._d)
+
+    def copy(self) -> dict[str, int]:
+        return dict(self._d)
+
+    def __reduce__(self):
+        return dict, (dict(self._d),)
+
+    def __deepcopy__(self, memo) -> dict[str, int]:
+        return dict(self._d)
+
+
+def snapshot(live: Health, counters: CounterView, prev: Health | None) -> Health:
     """The snapshot of ``live`` for a reading: ``prev`` again if ``live`` still matches it
-    (state, cause and counts), else a new one. ``counters``: the read-only view of
-    ``live.counters`` (``types.MappingProxyType``) that the snapshots share."""
+    (state, cause and counts), else a new one. ``counters``: the view of ``live.counters``
+    that the snapshots share."""
     if (prev is not None and prev.state is live.state and prev.bad_frames == live.bad_frames
             and prev.timeouts == live.timeouts and prev.errors == live.errors and prev.cause == live.cause):
         return prev
-    return Health(live.state, live.cause, live.bad_frames, live.timeouts, live.errors, counters)  # type: ignore[arg-type]
+    return Health(live.state, live.cause, live.bad_frames, live.timeouts, live.errors, counters)
 
 
 class Driver(abc.ABC):

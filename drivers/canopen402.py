@@ -27,14 +27,13 @@ import struct
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from types import MappingProxyType
 from typing import Iterator, Mapping, NamedTuple, Sequence
 
 import can
 
 from rig_runtime.config import WHEELS, CanBus, Drive, resolve_config_path
 
-from .base import ConfigError, DeviceInitError, Driver, Freshness, Health, snapshot
+from .base import ConfigError, CounterView, DeviceInitError, Driver, Freshness, Health, snapshot
 
 __all__ = [
     # COB-IDs and protocol constants
@@ -534,7 +533,7 @@ class _Node:
         self.last_cw = CW_DISABLE_VOLTAGE
         self.health = Health(cause="not open", counters={
             "tpdo": 0, "heartbeat": 0, "emcy": 0, "frozen": 0, "saturated": 0})
-        self.counters_view = MappingProxyType(self.health.counters)
+        self.counters_view = CounterView(self.health.counters)
         self.snap: Health | None = None         # the latest snapshot handed out
 
 
@@ -622,7 +621,7 @@ class DriveBus(Driver):
         self._bus_health = Health(state=Freshness.FRESH, counters={
             "send_errors": 0, "error_frames": 0, "rx_frames": 0, "foreign_frames": 0,
             "rx_overflow": 0, "nan_commands": 0, "missing_commands": 0, "clipped_commands": 0})
-        self._bus_view = MappingProxyType(self._bus_health.counters)
+        self._bus_view = CounterView(self._bus_health.counters)
         self._bus_snap: Health | None = None
         self._ready = False
 

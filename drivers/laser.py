@@ -22,7 +22,6 @@ import math
 import os
 import select
 import re
-from types import MappingProxyType
 from typing import Iterable, NamedTuple
 
 import numpy as np
@@ -30,7 +29,7 @@ import serial
 
 from rig_runtime.config import LaserDevice
 
-from .base import DeviceInitError, DeviceIOError, Driver, Freshness, Health, snapshot
+from .base import CounterView, DeviceInitError, DeviceIOError, Driver, Freshness, Health, snapshot
 
 __all__ = [
     "MAX_DISTANCE_X", "MAX_X", "ERROR_CODES",
@@ -250,7 +249,7 @@ class LaserDriver(Driver):
         self._last_chunk = b""                  # ... or the clean frames they are decoded from
         self._health = Health(cause="no data yet",
                               counters={"values": 0, "error_frames": 0, "read_errors": 0, "bytes": 0})
-        self._counters_view = MappingProxyType(self._health.counters)
+        self._counters_view = CounterView(self._health.counters)
         self._snap: Health | None = None        # the latest snapshot handed out
         self._value = math.nan          # latest valid value (or cycle mean), m; reported only
                                         # while the latest value is not an error code
@@ -384,7 +383,7 @@ class LaserDriver(Driver):
             self._latest_error = error_reason(last)    # _value keeps the last valid value
         else:
             self._latest_error = None
-            x = sum(valid) / len(valid) if self.cfg.average else last
+            x = sum(valid) / len(valid) if self._average else last
             self._value = self._gain * x + self._bias
             self._value_t = now
         return len(valid)

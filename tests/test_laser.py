@@ -3,7 +3,10 @@ virtual device over a real pty."""
 
 from __future__ import annotations
 
+import copy
+import json
 import math
+import pickle
 import time
 
 import pytest
@@ -270,6 +273,22 @@ def test_reading_is_an_immutable_snapshot(rig):
     assert r1.health.state is Freshness.FRESH and r2.health.state is Freshness.INVALID
     with pytest.raises(AttributeError):
         r1.value_m = 0.0  # type: ignore[misc]
+
+
+def test_health_snapshot_is_reused_and_its_counters_are_a_live_read_only_view(rig):
+    vl, drv = rig
+    r1 = _cycle(vl, drv, 1)
+    frozen = copy.deepcopy(r1.health.counters)
+    r2 = _cycle(vl, drv, 2)
+    assert r2.health is r1.health                    # only counters changed: the same snapshot
+    assert frozen == {"values": 20, "error_frames": 0, "read_errors": 0, "bytes": 60}
+    assert type(frozen) is dict and pickle.loads(pickle.dumps(r2.health.counters)) == r2.health.counters
+    assert r1.health.counters["values"] == 40 and json.loads(json.dumps(dict(r1.health.counters)))["bytes"] == 120
+    with pytest.raises(TypeError):
+        r1.health.counters["values"] = 0  # type: ignore[index]
+    vl.inject("out_of_range")
+    r3 = _cycle(vl, drv, 3)
+    assert r3.health is not r2.health and r3.health.state is Freshness.INVALID and r2.health.fresh
 
 
 @pytest.mark.parametrize("average", [False, True])
