@@ -1,6 +1,7 @@
-"""Lossless cycle recorder: the loop appends a row per cycle, a writer thread stores it in HDF5.
+"""Lossless cycle recorder: the loop appends a row per cycle, a writer thread stores it in HDF5
+(in lockstep runs the loop thread itself, see "Inline writer" below).
 
-Loop side (``append``, ``event``) never blocks, never does file I/O and allocates nothing
+Loop side (``append``, ``event``) never blocks, never does file I/O (thread mode) and allocates nothing
 per row beyond the call's own argument tuple: ``append`` packs the row's floats with :func:`struct.Struct.pack_into` straight into
 a preallocated ``numpy`` ring of ``buffer_cycles`` rows and advances a counter. Measured
 (``tests/test_recorder.py::test_append_cost``, timeit, warm cache): ≈0.4 µs for 8 columns,
@@ -54,10 +55,11 @@ Inline writer (``writer="inline"``, lockstep dry runs)
 ------------------------------------------------------
 With a simulated clock there are no deadlines, and a writer thread only costs: every
 HDF5 call holds the interpreter lock, and each hand-over between the threads stalls the
-loop. Inline, ``append`` stores the pending rows itself (same batches, same checks, same
-failure handling) once half the ring is pending or a flush is due, and ``close`` writes
-the rest — the file is identical, the loop thread does the I/O. Real-time runs keep the
-thread.
+loop. Inline, ``append`` stores the pending rows and events itself (same checks, same
+failure handling) once half the ring or a quarter of the event capacity is pending or a
+flush is due, and ``close`` writes the rest — the file is identical, the loop thread does
+the I/O. "Flushed at least once a second" then holds while rows are appended (a lockstep
+run appends continuously). Real-time runs keep the thread.
 
 File layout: see ``docs/log-format.md``.
 """
@@ -214,6 +216,7 @@ class Recorder:
         self.writer = writer
         self._inline = writer == "inline"
         self._inline_batch = max(1, self.buffer_cycles // 2)
+        self._ev_batch = max(1, self.event_capacity // 4)
         self._next_flush = math.inf
 
     # ------------------------------------------------------------------ status
@@ -313,16 +316,17 @@ class Recorder:
             raise DeviceInitError(dev, f"cannot initialise log file: {exc}") from exc
         self._file = f
         self._opened = True
-        atexit.register(self.close)
         if self._inline:
             self._next_flush = time.monotonic() + self.flush_period
-            return
-        self._thread = threading.Thread(target=self._run, name=f"recorder:{self.path.name}", daemon=True)
-        self._thread.start()
+        else:
+            self._thread = threading.Thread(target=self._run, name=f"recorder:{self.path.name}", daemon=True)
+            self._thread.start()
+        atexit.register(self.close)
 
     # ------------------------------------------------------------------ loop side
     def append(self, row: Sequence[float]) -> bool:
-        """Record one cycle: one number per column, in column order. Never blocks.
+        """Record one cycle: one number per column, in column order. Never blocks (thread
+        mode; the inline writer stores a batch in some calls).
 
         Returns False if the row was not recorded (ring full — the recorder turns unhealthy —
         or the recorder is closed/failed). Raises ValueError for a row of the wrong length or
@@ -336,7 +340,8 @@ class Recorder:
         except struct.error as e:
             raise ValueError(f"recorder row: expected {self._ncols} numbers in column order {self.columns} ({e})") from None
         self._w = w + 1                   # publish: the writer may now read slot w
-        if self._inline and (w + 1 - self._r >= self._inline_batch or time.monotonic() >= self._next_flush):
+        if self._inline and (w + 1 - self._r >= self._inline_batch or len(self._ev) >= self._ev_batch
+                             or time.monotonic() >= self._next_flush):
             self._write_inline()
         return True
 
@@ -555,7 +560,7 @@ class Recorder:
         """Drain the ring, write and flush everything, close the file. Idempotent.
 
         Call it after the loop has stopped appending (an ``append`` racing with ``close``
-        may be lost). Afterwards every row ``append`` accepted is in the file, unless the
+        may be lost; with the inline writer, call both from the same thread). Afterwards every row ``append`` accepted is in the file, unless the
         recorder is unhealthy. ``timeout`` bounds the wait for the writer (None: wait).
         """
         with self._close_lock:

@@ -218,6 +218,17 @@ def test_inline_writer_stores_batches_in_the_callers_thread(log, monkeypatch):
     assert list(d["events"]["message"]) == ["x"] and d["attrs"]["rows_written"] == 40
 
 
+def test_inline_writer_stores_events_before_they_overflow(log):
+    rec = Recorder(log, COLS, attrs={}, buffer_cycles=4096, flush_s=60.0, event_capacity=8, writer="inline")
+    rec.open()
+    for k in range(40):                               # 5x the event capacity, one per cycle
+        rec.event(k * 0.005, "operator", message=str(k))
+        rec.append(row(k))
+    assert rec.healthy and rec.events_dropped == 0
+    rec.close()
+    assert list(read_log(log)["events"]["message"]) == [str(k) for k in range(40)]
+
+
 def test_inline_writer_flushes_every_flush_s(log):
     rec = Recorder(log, COLS, attrs={}, buffer_cycles=4096, flush_s=0.05, writer="inline")
     rec.open()
