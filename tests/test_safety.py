@@ -146,12 +146,26 @@ def test_stuck_and_jump(cfg):
     assert s2.state is State.FAULT and s2.fault.check == "jump"
 
 
-# each field mostly nominal, so that whole channel sets are often nominal but for one detail
-_CH_VALUES = st.sampled_from([0.07, 0.07, 0.07, 0.0701, 0.0701, 0.2, -1.0, math.nan, math.inf, -math.inf])
-_SPEC = st.lists(st.tuples(_CH_VALUES, _CH_VALUES,
-                           st.sampled_from([Freshness.FRESH] * 6 + [Freshness.STALE, Freshness.INVALID]),
-                           st.floats(0.0, 0.025), st.sampled_from([0, 0, 0, 1]), st.integers(0, 4),
-                           st.integers(0, 12)), min_size=1, max_size=4)
+# a nominal channel with at most one defect each, so that a whole set is nominal but for one detail
+_DEFECTS = {
+    None: {},
+    "stale_state": {"state": Freshness.STALE},
+    "invalid": {"state": Freshness.INVALID},
+    "old": {"age": 0.03},
+    "nan": {"v": math.nan},
+    "inf": {"v": math.inf},
+    "range": {"prev": 0.2, "v": 0.2},
+    "jump": {"prev": 0.05},
+    "corrupt": {"bad_run": 2, "bad_new": 1},             # a third cycle in a row with garbled frames
+    "corrupt_almost": {"bad_run": 1, "bad_new": 1},
+    "stuck": {"prev": 0.0701, "same": 9},                 # the tenth repetition
+    "stuck_almost": {"prev": 0.0701, "same": 8},
+    "first_cycle": {"prev": math.nan},
+    "inf_in_infinite_bounds": {"v": math.inf, "lo": -math.inf, "hi": math.inf},
+    "inf_unbounded": {"v": math.inf, "lo": -math.inf, "hi": math.inf, "step_max": math.inf},
+    "big_step_unlimited": {"prev": 0.05, "step_max": math.inf},
+}
+_SPEC = st.lists(st.sampled_from([None] * 6 + list(_DEFECTS)), min_size=1, max_size=4)
 
 
 @settings(max_examples=300, deadline=None)
@@ -162,10 +176,12 @@ def test_one_pass_check_agrees_with_the_ordered_checks(cfg, spec, counts_on):
                               corrupt_cycles=3 if counts_on else None)
     t = 1.0
     cs = []
-    for k, (prev, v, state, age, bad_new, bad_run, same) in enumerate(spec):
-        c = Channel(f"c{k}", "laser", 0.045, 0.095, 0.02, step_max=0.01, stuck_check=True)
-        c.prev, c.value, c.state, c.t, c.cause = prev, v, state, t - age, ""
-        c.bad_prev, c.bad, c.bad_run, c.same = 5, 5 + bad_new, bad_run, same
+    for k, defect in enumerate(spec):
+        p = {"prev": 0.07, "v": 0.0701, "state": Freshness.FRESH, "age": 0.0, "bad_new": 0, "bad_run": 0,
+             "same": 0, "step_max": 0.01, "lo": 0.045, "hi": 0.095, **_DEFECTS[defect]}
+        c = Channel(f"c{k}", "laser", p["lo"], p["hi"], 0.02, step_max=p["step_max"], stuck_check=True)
+        c.prev, c.value, c.state, c.t, c.cause = p["prev"], p["v"], p["state"], t - p["age"], ""
+        c.bad_prev, c.bad, c.bad_run, c.same = 5, 5 + p["bad_new"], p["bad_run"], p["same"]
         cs.append(c)
     s = Supervisor(lim, H)
     s.state = State.RUNNING
