@@ -14,7 +14,8 @@ per pty and the same CAN frames sent and received with no codec or driver logic.
     python benchmarks/driver_cost.py [--cycles N] [--can lockstep|virtual] [--fifo PRIO] [--json]
 
 ``--fifo P`` runs the measuring thread SCHED_FIFO P, as the control loop runs on the rig
-(when the OS permits; reported either way).
+(when the OS permits; reported either way). ``cpu_steal_pct``: CPU time the hypervisor
+took away during the measured cycles, in % of their wall time (summed over CPUs).
 """
 
 from __future__ import annotations
@@ -43,6 +44,8 @@ from sim_backend.lockstep_bus import LockstepBus  # noqa: E402
 from sim_backend.virtual_drive import VirtualDriveSet  # noqa: E402
 from sim_backend.virtual_ft import VirtualFTServer  # noqa: E402
 from sim_backend.virtual_laser import VirtualLaser, emit_all  # noqa: E402
+
+from _machine import StealMeter  # noqa: E402
 
 
 def dist(a) -> dict:
@@ -110,6 +113,7 @@ def main() -> int:
         cyc, base = [], []
         fds = [os.open(vl.port_name, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY) for vl in lasers[:1]]
         gc.collect(); gc.freeze(); gc.disable()
+        steal = StealMeter().__enter__()
         for k in range(args.cycles + 200):
             t += h
             for w in WHEELS:
@@ -125,6 +129,7 @@ def main() -> int:
             t1 = time.perf_counter()
             if k >= 200:
                 cyc.append(t1 - t0)
+        steal.__exit__()
         gc.enable(); gc.unfreeze()
         # baseline: the transport floor with the same traffic, no codec/driver logic
         raw_fds = [d._ser.fileno() for d in drivers]
@@ -162,14 +167,15 @@ def main() -> int:
             vl.close()
     out = {"cycle_us": dist(cyc), "baseline_us": dist(base),
            "ratio_p50": float(np.percentile(cyc, 50) / np.percentile(base, 50)),
-           "cycles": args.cycles, "can": args.can, "fifo": fifo, "lasers_hz": 4000, "drives": 4, "ft_sensors": len(names)}
+           "cycles": args.cycles, "can": args.can, "fifo": fifo, "cpu_steal_pct": steal.percent, "lasers_hz": 4000, "drives": 4, "ft_sensors": len(names)}
     if args.json:
         print(json.dumps(out))
     else:
         c, b = out["cycle_us"], out["baseline_us"]
         print(f"poll()+write(), all devices: p50 {c['p50']:.1f} us, p99 {c['p99']:.1f} us, max {c['max']:.1f} us")
         print(f"transport floor (same run):  p50 {b['p50']:.1f} us, p99 {b['p99']:.1f} us -> ratio p50 {out['ratio_p50']:.2f}")
-        print(f"measuring thread: {out['fifo']}")
+        print(f"measuring thread: {out['fifo']}; CPU time stolen by the hypervisor meanwhile: "
+              f"{'n/a' if steal.percent is None else f'{steal.percent:.1f} %'}")
     return 0
 
 

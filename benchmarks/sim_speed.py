@@ -12,7 +12,8 @@
     python benchmarks/sim_speed.py [--plant-seconds T] [--dry-run-seconds T] [--repeat N] [--json]
 
 ``--repeat N`` runs the dry run N times and reports the median (other processes on the
-machine make single runs noisy).
+machine make single runs noisy); ``cpu_steal_pct_runs`` is the CPU time the hypervisor
+took away during each of them, in % of its wall time (summed over CPUs; a shared VM).
 """
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ from rig_runtime import config  # noqa: E402
 from rig_runtime.scenario import load_scenario  # noqa: E402
 from sim_backend import plant as plant_mod  # noqa: E402
 from sim_backend.dryrun import run_lockstep  # noqa: E402
+
+from _machine import StealMeter  # noqa: E402
 
 
 def main() -> int:
@@ -56,9 +59,10 @@ def main() -> int:
 
     runs = []
     for _ in range(max(1, args.repeat)):
-        with tempfile.TemporaryDirectory() as d:
+        with tempfile.TemporaryDirectory() as d, StealMeter() as steal:
             runs.append(run_lockstep(cfg, load_scenario("single-step"), Path(d) / "bench.h5",
                                      duration_s=args.dry_run_seconds)[0])
+        runs[-1]["steal_pct"] = steal.percent
     runs.sort(key=lambda r: r["wall_time_s"] / r["cycles"])
     s = runs[len(runs) // 2]
     full_rtf = s["sim_time_s"] / s["wall_time_s"]
@@ -68,7 +72,8 @@ def main() -> int:
            "plant_us_per_step": t_plant / len(sc.inputs) * 1e6,
            "full_path_us_per_cycle": s["wall_time_s"] / s["cycles"] * 1e6,
            "plant_seconds": args.plant_seconds, "dry_run_sim_seconds": s["sim_time_s"],
-           "full_path_rtf_runs": [r["sim_time_s"] / r["wall_time_s"] for r in runs]}
+           "full_path_rtf_runs": [r["sim_time_s"] / r["wall_time_s"] for r in runs],
+           "cpu_steal_pct_runs": [r["steal_pct"] for r in runs]}
     if args.json:
         print(json.dumps(out))
     else:
