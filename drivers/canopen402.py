@@ -481,7 +481,6 @@ class DriveReadings:
 # --------------------------------------------------------------------------- driver
 _TPDO, _HEARTBEAT, _EMCY = 1, 2, 3
 _FRESH = Freshness.FRESH
-_INF = math.inf
 _MAX_FRAMES_PER_POLL = 2000       # bound on one drain (a flooding bus must not stall the loop)
 
 
@@ -842,27 +841,13 @@ class DriveBus(Driver):
         by_name = hasattr(currents, "get")
         n_given = -1 if by_name else len(currents)
         command = self._command
-        running = self._want_enabled
         pack = RPDO1.pack_into
         for i, d in enumerate(self._nodes):
             if by_name:
                 x = currents.get(d.wheel)
             else:
                 x = currents[i] if i < n_given else None
-            if (running and not d.stepping and d.state == OPERATION_ENABLED and x is not None
-                    and -_INF < x < _INF):
-                # _command's usual case, inlined
-                tq = amps_to_permille(x, d.rated_A)
-                m = d.max_permille
-                if tq > m or tq < -m:
-                    self._bus_health.counters["clipped_commands"] += 1
-                    tq = m if tq > 0 else -m
-                if tq != d.last_cmd:
-                    d.cmd_changes += 1
-                    d.last_cmd = tq
-                cw = CW_ENABLE_OPERATION
-            else:
-                cw, tq = command(d, x)
+            cw, tq = command(d, x)
             pack(d.rpdo_data, 0, cw, tq)
             d.last_cw = cw
             out.append(d.rpdo_msg)
@@ -899,7 +884,7 @@ class DriveBus(Driver):
             d.emcy_code = 0                     # a fault that is reset is no longer active
         if d.state != OPERATION_ENABLED:
             return CW_DISABLE_VOLTAGE, 0        # left OPERATION ENABLED by itself: hold off
-        tq = amps_to_permille(x, d.cfg.rated_current_A)
+        tq = amps_to_permille(x, d.rated_A)
         m = d.max_permille
         if tq > m or tq < -m:
             c["clipped_commands"] += 1

@@ -346,10 +346,7 @@ class LaserDriver(Driver):
             # what _classify concludes for a distance that arrived now: FRESH
             h.state = _FRESH
             h.cause = ""
-            s = self._snap                      # snapshot(h, …), inlined
-            if (s is None or s.state is not _FRESH or s.cause or s.bad_frames != h.bad_frames
-                    or s.timeouts != h.timeouts or s.errors != h.errors):
-                s = self._snap = Health(_FRESH, "", h.bad_frames, h.timeouts, h.errors, self._counters_view)
+            s = self._snap = snapshot(h, self._counters_view, self._snap)
             return LaserReading(self._role, v, now, s, n, last)
         dec = self._decoder
         n = dec.clean_frames(data)

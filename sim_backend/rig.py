@@ -273,13 +273,8 @@ class SimulatedRig:
         p = self.plant
         g = self._rng.gauss
         en = self.sc.encoder_noise_rad_s
-        wd = self._wheel_drives
-        for k, om in enumerate((p.omega_fl, p.omega_fr, p.omega_rl, p.omega_rr)):
-            om = om + (g(0.0, en) if en else 0.0)
-            if wd is not None and -math.inf < om < math.inf:
-                wd[k].omega = float(om)     # VirtualDriveSet.set_wheel_speed, without the lookups
-            else:
-                self.drives.set_wheel_speed(WHEELS[k], om)
+        self.drives.set_wheel_speeds([om + (g(0.0, en) if en else 0.0)
+                                      for om in (p.omega_fl, p.omega_fr, p.omega_rl, p.omega_rr)])
 
     def set_wrenches(self) -> None:
         """The plant's force–torque readings, with noise on the forces, to the Modbus servers."""

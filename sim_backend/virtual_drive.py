@@ -39,7 +39,7 @@ import random
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Sequence
 
 import can
 import canopen
@@ -53,7 +53,7 @@ from drivers.canopen402 import (
     SWITCHED_ON, TPDO1, TPDO1_MAPPING, drive_transition, emcy_frame, heartbeat_frame, mapping_entry,
     node_cob_id, velocity_to_raw,
 )
-from rig_runtime.config import CanBus, Drive, resolve_config_path
+from rig_runtime.config import WHEELS, CanBus, Drive, resolve_config_path
 
 __all__ = ["FAULT_KINDS", "VirtualDrive", "VirtualDriveSet"]
 
@@ -471,6 +471,7 @@ class VirtualDriveSet:
             self._by_sdo_tx[node_cob_id(COB_SDO_TX, d.node_id)] = d
             self.drives[d.wheel] = d
         self._drive_list = list(self.drives.values())
+        self._wheel_order = [self.drives.get(w) for w in WHEELS]
         for d in self.drives.values():          # power on: boot-up, then PRE-OPERATIONAL
             cob, data = heartbeat_frame(d.node_id, NMT_INITIALISING)
             self._tx(cob, data, d)
@@ -479,9 +480,21 @@ class VirtualDriveSet:
     # ------------------------------------------------------------------ plant interface
     def set_wheel_speed(self, wheel: str, omega_rad_s: float) -> None:
         """Wheel angular velocity (rad/s) the drive measures from now on."""
-        if not math.isfinite(omega_rad_s):
-            raise ValueError(f"wheel speed of {wheel} is {omega_rad_s!r}")
-        self.drives[wheel].omega = float(omega_rad_s)
+        self._set_omega(self.drives[wheel], omega_rad_s)
+
+    def set_wheel_speeds(self, omegas: Sequence[float]) -> None:
+        """All four wheel speeds (rad/s) at once, in ``WHEELS`` order (the lockstep
+        simulator's call every step)."""
+        for w, d, om in zip(WHEELS, self._wheel_order, omegas):
+            if d is None:
+                raise KeyError(f"no virtual drive for wheel {w!r}")
+            self._set_omega(d, om)
+
+    @staticmethod
+    def _set_omega(d: VirtualDrive, omega_rad_s: float) -> None:
+        if not -math.inf < omega_rad_s < math.inf:
+            raise ValueError(f"wheel speed of {d.wheel} is {omega_rad_s!r}")
+        d.omega = float(omega_rad_s)
 
     def current_A(self, wheel: str) -> float:
         """Current the converter of ``wheel`` applies (0 unless OPERATION ENABLED and commanded)."""

@@ -558,3 +558,16 @@ def test_startup_against_canopen_localnode(buses, channel):
         for node in peers:
             node.nmt.stop_heartbeat()
         net.notifier.stop(1.0)
+
+
+def test_virtual_wheel_speeds_set_together_or_refused(buses, channel):
+    vds = VirtualDriveSet(can_cfg(channel), buses[1])
+    vds.set_wheel_speeds([BASE_SPEEDS[w] for w in WHEELS])
+    assert [vds.drives[w].omega for w in WHEELS] == [BASE_SPEEDS[w] for w in WHEELS]
+    with pytest.raises(ValueError, match="wheel speed of rl is nan"):
+        vds.set_wheel_speeds([1.0, 2.0, math.nan, 4.0])
+    with pytest.raises(ValueError, match="wheel speed of fr is inf"):
+        vds.set_wheel_speed("fr", math.inf)
+    part = VirtualDriveSet(can_cfg(channel, ids=(1,)), buses[1])
+    with pytest.raises(KeyError, match="no virtual drive for wheel 'fr'"):
+        part.set_wheel_speeds([1.0, 2.0, 3.0, 4.0])
