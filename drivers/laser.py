@@ -327,13 +327,12 @@ class LaserDriver(Driver):
             return self._classify(now, 0)
         c = h.counters
         c["bytes"] += len(data)
-        n = len(data) // 3
+        dec = self._decoder
+        n = dec.clean_frames(data)
         # whole clean frames (the usual poll) whose H bytes rule out any value above 65520 (an
         # error code or beyond the range end): only the latest value is needed, decoded here;
         # the list of all values is made only if someone reads last_values
-        if (not len(data) % 3 and not self._decoder._pending and _CLEAN.startswith(data.translate(_FLAG_TABLE))
-                and max(data[2::3]) <= _H_SAFE and not self._average):
-            self._decoder.frames += n
+        if n and max(data[2::3]) <= _H_SAFE and not self._average:
             self._last_chunk = data
             self._last_list = None
             last = data[-3] + (data[-2] << 6) + (data[-1] << 12) - _FLAG_SUM
@@ -348,8 +347,6 @@ class LaserDriver(Driver):
             h.cause = ""
             s = self._snap = snapshot(h, self._counters_view, self._snap)
             return LaserReading(self._role, v, now, s, n, last)
-        dec = self._decoder
-        n = dec.clean_frames(data)
         values = _values(data, 0, len(data)) if n else dec.feed(data)
         self._last_list = values
         h.bad_frames = dec.discarded
