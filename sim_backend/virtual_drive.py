@@ -197,7 +197,8 @@ class VirtualDrive:
         return m if t > m else -m if t < -m else t
 
     def statusword(self) -> int:
-        self._load_config()
+        if self._cfg_dirty:
+            self._load_config()
         sw = STATUSWORD_OF_STATE[self.state]
         if self.state == OPERATION_ENABLED and self.mode == MODE_CST:
             sw |= 0x1000                    # bit 12 in CST: drive follows the target
@@ -374,17 +375,8 @@ class VirtualDrive:
     def _send_tpdo(self) -> None:
         f = self.faults
         if not f and self._codec_tpdo:
-            # the cyclic case: statusword(), _velocity_raw() and torque_actual() inlined
-            st = self.state
-            sw = STATUSWORD_OF_STATE[st]
-            tq = 0
-            if st == OPERATION_ENABLED and self.mode == MODE_CST:
-                sw |= 0x1000
-                if self.node.nmt._state == NMT_OPERATIONAL:
-                    e = self._effective_permille()
-                    if e * self.rated_A / 1000.0 != 0.0:
-                        tq = e
-            payload = _pack_tpdo(sw, velocity_to_raw(self.omega, self.cfg.velocity_factor), tq)
+            # the cyclic case: no fault to apply, the codec's mapping, no bus_error check
+            payload = _pack_tpdo(self.statusword(), self._velocity_raw(), self.torque_actual())
             self.last_tpdo = payload
             self.counters["tpdo"] += 1
             # _tx without a bus_error fault: can.Message(arbitration_id=cob, data=payload, is_extended_id=False)
