@@ -29,7 +29,8 @@ import serial
 
 from rig_runtime.config import LaserDevice
 
-from .base import CounterView, DeviceInitError, DeviceIOError, Driver, Freshness, Health, snapshot
+from rig_runtime.errors import DeviceInitError, DeviceIOError
+from rig_runtime.hardware import Driver, Freshness, Health, health
 
 __all__ = [
     "MAX_DISTANCE_X", "MAX_X", "ERROR_CODES",
@@ -57,8 +58,6 @@ _FLAG_L, _FLAG_M, _FLAG_H = 0x00, 0x40, 0x80
 _FLAG_SUM = (_FLAG_M << 6) + (_FLAG_H << 12)
 # Each byte -> one flag letter, so frame search runs on bytes in C (X = flag 11, never valid).
 _FLAG_TABLE = bytes(b"LMHX"[b >> 6] for b in range(256))
-_FRESH = Freshness.FRESH
-_H_SAFE = _FLAG_H | 14          # an H byte up to this: the value is < 15·4096 = 61440 <= 65520
 _FRAME_RUN = re.compile(rb"(?:LMH)+")
 _CLEAN = b"LMH" * 1024          # flags of a gap-free stream of up to 1024 frames
 _LDISC_FULL = 4095              # Linux n_tty holds this many unread bytes; more wait behind
@@ -145,16 +144,6 @@ class FrameDecoder:
         """Bytes of an incomplete frame held for the next call."""
         return len(self._pending)
 
-    def clean_frames(self, data: bytes) -> int:
-        """If ``data`` is whole, clean frames and nothing is pending: count them as decoded
-        and return how many (the caller reads the values from ``data``); else 0 and
-        nothing consumed — use :meth:`feed`. The usual poll takes this path."""
-        n = len(data)
-        if self._pending or n == 0 or n % 3 or not _CLEAN.startswith(data.translate(_FLAG_TABLE)):
-            return 0
-        self.frames += n // 3
-        return n // 3
-
     def reset(self) -> None:
         """Forget a partial frame (after a read error); its bytes count as discarded."""
         self.discarded += len(self._pending)
@@ -202,9 +191,8 @@ class LaserReading(NamedTuple):
     ``value_m`` is NaN, so its age still tells how long the channel has been without a
     measurement; decide on ``health.state``, not on NaN checks. ``n_values`` counts the
     valid distance values decoded in this poll; ``raw_x`` is the latest value received
-    (incl. error codes), -1 before the first. ``health`` is a snapshot, not the driver's
-    live object (its ``counters`` a read-only live view). Immutable; a named tuple because a
-    frozen dataclass costs three times as much to build, every 5 ms.
+    (incl. error codes), -1 before the first. ``health`` is an immutable value (the same
+    object poll after poll while nothing changes).
     """
 
     role: str
@@ -245,12 +233,10 @@ class LaserDriver(Driver):
     def _reset_state(self) -> None:
         """Fresh decoder, counters and latest-value memory (each open starts a session)."""
         self._decoder = FrameDecoder()
-        self._last_list: list[int] | None = []  # raw values of the latest poll (None: not decoded yet)
-        self._last_chunk = b""                  # ... or the clean frames they are decoded from
-        self._health = Health(cause="no data yet",
-                              counters={"values": 0, "error_frames": 0, "read_errors": 0, "bytes": 0})
-        self._counters_view = CounterView(self._health.counters)
-        self._snap: Health | None = None        # the latest snapshot handed out
+        self._last_list: list[int] = []         # raw values of the latest poll
+        self._counters = {"values": 0, "error_frames": 0, "read_errors": 0, "bytes": 0}
+        self._errors = 0                # error codes received and read errors
+        self._health = Health(Freshness.STALE, "no data yet")   # the latest value handed out
         self._value = math.nan          # latest valid value (or cycle mean), m; reported only
                                         # while the latest value is not an error code
         self._value_t = math.nan        # poll time at which it arrived
@@ -260,7 +246,10 @@ class LaserDriver(Driver):
         self._raw_x = -1
 
     # ------------------------------------------------------------------ transport
-    def _do_open(self) -> None:
+    def counters(self) -> dict[str, int]:
+        return dict(self._counters)
+
+    def _configure(self) -> None:
         """Open the port 8N1 with ``timeout=0`` and drop bytes buffered before now."""
         self._reset_state()
         try:
@@ -274,7 +263,7 @@ class LaserDriver(Driver):
         self._poller = select.poll()      # POLLHUP tells a vanished device from "no data yet"
         self._poller.register(ser.fd, select.POLLIN)
 
-    def _do_close(self) -> None:
+    def _close(self) -> None:
         self._poller = None
         ser, self._ser = self._ser, None
         if ser is not None:
@@ -302,12 +291,11 @@ class LaserDriver(Driver):
     # ------------------------------------------------------------------ cycle
     def poll(self, now: float) -> LaserReading:
         """Drain the port, decode, and report the latest value with its health."""
-        h = self._health
         if self._first_poll_t is None:
             self._first_poll_t = now
         ser = self._ser
         if ser is None:
-            return self._reading(Freshness.INVALID, "port not open", math.nan, 0)
+            return self._reading(Freshness.INVALID, "port not configured", math.nan, 0)
         try:
             # the usual case read here; an empty or full read is finished by _read_available
             data = _os_read(ser.fd, _READ_CHUNK)
@@ -316,52 +304,25 @@ class LaserDriver(Driver):
         except BlockingIOError:
             data = b""
         except Exception as exc:  # noqa: BLE001 - poll must not raise inside the loop
-            h.errors += 1
-            h.counters["read_errors"] += 1
+            self._errors += 1
+            self._counters["read_errors"] += 1
             self._last_list = []
             self._decoder.reset()
-            h.bad_frames = self._decoder.discarded
             return self._reading(Freshness.INVALID, f"read error: {type(exc).__name__}: {exc}", math.nan, 0)
         if not data:
             self._last_list = []
             return self._classify(now, 0)
-        c = h.counters
-        c["bytes"] += len(data)
-        dec = self._decoder
-        n = dec.clean_frames(data)
-        # whole clean frames (the usual poll) whose H bytes rule out any value above 65520 (an
-        # error code or beyond the range end): only the latest value is needed, decoded here;
-        # the list of all values is made only if someone reads last_values
-        if n and max(data[2::3]) <= _H_SAFE and not self._average:
-            self._last_chunk = data
-            self._last_list = None
-            last = data[-3] + (data[-2] << 6) + (data[-1] << 12) - _FLAG_SUM
-            self._raw_x = last
-            self._last_rx_t = now
-            c["values"] += n
-            self._latest_error = None
-            v = self._value = self._gain * last + self._bias
-            self._value_t = now
-            # what _classify concludes for a distance that arrived now: FRESH
-            h.state = _FRESH
-            h.cause = ""
-            s = self._snap = snapshot(h, self._counters_view, self._snap)
-            return LaserReading(self._role, v, now, s, n, last)
-        values = _values(data, 0, len(data)) if n else dec.feed(data)
-        self._last_list = values
-        h.bad_frames = dec.discarded
+        self._counters["bytes"] += len(data)
+        values = self._last_list = self._decoder.feed(data)
         return self._classify(now, self._take(values, now) if values else 0)
 
     @property
     def last_values(self) -> list[int]:
         """Raw values (distances and error codes) decoded by the latest poll."""
-        if self._last_list is None:
-            self._last_list = _values(self._last_chunk, 0, len(self._last_chunk))
         return self._last_list
 
     def _take(self, values: list[int], now: float) -> int:
         """Update the latest value/error from this cycle's values; return how many are valid."""
-        h = self._health
         last = values[-1]
         self._raw_x = last
         self._last_rx_t = now
@@ -370,9 +331,9 @@ class LaserDriver(Driver):
         else:
             valid = [x for x in values if x <= MAX_DISTANCE_X]
             n_err = len(values) - len(valid)
-            h.errors += n_err
-            h.counters["error_frames"] += n_err
-        h.counters["values"] += len(valid)
+            self._errors += n_err
+            self._counters["error_frames"] += n_err
+        self._counters["values"] += len(valid)
         if last > MAX_DISTANCE_X:
             self._latest_error = error_reason(last)    # _value keeps the last valid value
         else:
@@ -399,7 +360,5 @@ class LaserDriver(Driver):
         return math.nan if self._latest_error is not None else self._value
 
     def _reading(self, state: Freshness, cause: str, value: float, n_valid: int) -> LaserReading:
-        h = self._health
-        h.state, h.cause = state, cause
-        snap = self._snap = snapshot(h, self._counters_view, self._snap)
-        return LaserReading(self._role, value, self._value_t, snap, n_valid, self._raw_x)
+        h = self._health = health(self._health, state, cause, self._decoder.discarded, 0, self._errors)
+        return LaserReading(self._role, value, self._value_t, h, n_valid, self._raw_x)

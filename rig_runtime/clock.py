@@ -48,9 +48,10 @@ class RealtimeClock(Clock):
 
 
 class LockstepClock(Clock):
-    """Simulated time; ``advance(t)`` is called before each release."""
+    """Simulated time; ``advance(t)`` is called before each release and may return a later
+    release time (a simulated stall: the runtime wakes up late, as on a starved machine)."""
 
-    def __init__(self, advance: Callable[[float], None] | None = None, t0: float = 0.0):
+    def __init__(self, advance: Callable[[float], float | None] | None = None, t0: float = 0.0):
         self._t = t0
         self._advance = advance
 
@@ -59,14 +60,9 @@ class LockstepClock(Clock):
 
     def wait_until(self, t: float) -> float:
         if t > self._t:
-            if self._advance is not None:
-                self._advance(t)
-            self._t = t
+            r = self._advance(t) if self._advance is not None else None
+            self._t = t if r is None or r < t else r
         return self._t
-
-    def spend(self, dt: float) -> None:
-        """Let simulated time pass inside a cycle (used to inject a stalled runtime)."""
-        self._t += dt
 
 
 def apply_realtime(rt: Realtime) -> list[str]:

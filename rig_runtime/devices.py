@@ -1,45 +1,45 @@
-"""The rig's devices as the control loop sees them: six lasers, the drive bus (wheel
-speeds in, currents out) and the force–torque sensors, each turned into supervisor
-``Channel``s updated in place every cycle.
+"""The rig's devices as the loop sees them: six lasers, the drive bus (wheel speeds in,
+currents out) and the force–torque sensors, behind one lifecycle (``configure``,
+``activate``, ``poll``, ``write``, ``deactivate``, ``close``).
 
-Drivers are chosen by name from the config (``drivers.registry``); the loop only sees
-this class's small interface (``loop.DeviceSet``).
+Drivers are chosen by name from the config (:mod:`rig_runtime.registry`, imported lazily).
+A backend decides only what is on the other end of each transport: the constructor takes
+the laser ports, a python-can bus object and the F/T endpoints in place of the config's.
 """
 
 from __future__ import annotations
 
 import math
 import os
-from typing import Callable, Mapping, Optional, Sequence
-
-from drivers.base import Freshness
-from drivers.registry import driver_class
+from typing import Mapping, NamedTuple, Optional, Sequence
 
 from .config import LASER_ROLES, WHEELS, RigConfig
 from .errors import ConfigError, DeviceInitError
-from .safety import Channel
+from .hardware import Freshness
+from .registry import driver_class
+from .safety import Channel, Converters, Sample
 
 FT_COMPONENTS = ("fx", "fy", "fz", "mx", "my", "mz")
-_INVALID = Freshness.INVALID
 FT_RANGE = (300.0, 30.0)    # FT 300 class: ±300 N, ±30 N m (rated range)
 
 
-def _update(c: Channel, value: float, t: float, health) -> None:
-    """A supervisor channel from one driver reading (``t`` NaN = nothing received yet)."""
-    c.value = value
-    c.t = t if t == t else -math.inf
-    c.state = health.state
-    c.cause = health.cause
-    c.bad = health.bad_frames
+class CycleInput(NamedTuple):
+    """Everything one poll brought, immutable: a :class:`Sample` per supervisor channel
+    (lasers in LASER_ROLES order, wheels in WHEELS order, F/T sensors), the F/T wrench
+    components (``extra``, ``RigDevices.extra_columns`` order) and the converters."""
+    t: float
+    samples: tuple[Sample, ...]
+    extra: tuple[float, ...]
+    converters: Converters
 
 
 class RigDevices:
-    """Owns the drivers; ``open`` brings everything up (blocking), ``poll``/``write`` are
-    the non-blocking per-cycle calls."""
+    """Owns the drivers. ``configure`` brings everything up without power (blocking);
+    ``activate`` (the supervisor's ARM) enables the power stages; ``poll``/``write`` are the
+    non-blocking per-cycle calls; ``deactivate`` is the safe stop; ``close`` releases all."""
 
     def __init__(self, cfg: RigConfig, *, laser_ports: Optional[Mapping[str, str]] = None,
-                 can_bus=None, ft_endpoints: Optional[Mapping[str, tuple[str, int]]] = None,
-                 ft_clock=None, ft_thread: bool = True):
+                 can_bus=None, ft_endpoints: Optional[Mapping[str, tuple[str, int]]] = None):
         dcfg = cfg.devices
         h = cfg.controller.h
         stale = cfg.limits.stale_periods * h
@@ -52,6 +52,7 @@ class RigDevices:
         if wheels != set(WHEELS):
             raise ConfigError(cfg.source, "devices.can.drives", "one drive for each wheel fl, fr, rl, rr")
         self.cfg = cfg
+        self._stale = stale
         self.lasers = []
         for i, role in enumerate(LASER_ROLES):
             lc = by_role[role]
@@ -66,122 +67,101 @@ class RigDevices:
         self.ft = None
         if dcfg.ft.sensors:
             cls = driver_class("ft", dcfg.ft.driver, "devices.ft.driver")
-            kw = {"clock": ft_clock} if ft_clock is not None else {}
+            kw = {}
             loop_cpus = set(cfg.realtime.cpu_affinity or ())
-            others = sorted(set(range(os.cpu_count() or 1)) - loop_cpus) if loop_cpus and ft_thread else []
+            others = sorted(set(range(os.cpu_count() or 1)) - loop_cpus) if loop_cpus else []
             if others:
-                kw["poller_cpus"] = others      # keep the F/T poll process off the loop's CPU
+                kw["poller_cpus"] = others      # keep an F/T poll process off the loop's CPU
             self.ft = cls(dcfg.ft, endpoints=dict(ft_endpoints) if ft_endpoints else None, **kw)
-        self._ft_thread = ft_thread
         self.ft_names = [s.name for s in dcfg.ft.sensors]
-        # ---- channels the supervisor checks
+        self.extra_columns = [f"{n}_{c}" for n in self.ft_names for c in FT_COMPONENTS]
+        self._no_wrench = (math.nan,) * 6
+        self._configured: list = []
+
+    def channels(self) -> list[Channel]:
+        """The supervisor's channels, in :class:`CycleInput` sample order, with each
+        device's plausible range."""
+        cfg = self.cfg
+        by_role = {l.role: l for l in cfg.devices.lasers}
         step = cfg.limits.laser_step_max or math.inf
-        self.channels: list[Channel] = []
+        out = []
         for role in LASER_ROLES:
             lc = by_role[role]
             lo = lc.offset_mm * 1e-3
-            self.channels.append(Channel(role, "laser", lo, lo + lc.measuring_range_mm * 1e-3, stale,
-                                         step_max=step, stuck_check=True))
+            out.append(Channel(role, "laser", lo, lo + lc.measuring_range_mm * 1e-3, self._stale,
+                               step_max=step, stuck_check=True))
         w_max = 3.0 * abs(cfg.plant.v) / cfg.plant.r0 + 10.0
         for w in WHEELS:
-            self.channels.append(Channel(w, "wheel", -w_max, w_max, stale, stuck_check=True))
+            out.append(Channel(w, "wheel", -w_max, w_max, self._stale, stuck_check=True))
         for n in self.ft_names:
-            self.channels.append(Channel(n, "ft", -FT_RANGE[0], FT_RANGE[0], dcfg.ft.stale_s))
-        self.dist = [math.nan] * 6
-        self.omega = [math.nan] * 4
-        self.extra_columns = [f"{n}_{c}" for n in self.ft_names for c in FT_COMPONENTS]
-        self.extra_values = [math.nan] * len(self.extra_columns)
-        self.converters_ok = True
-        self.converters_ready = False
-        self.converter_cause = ""
-        self.before_laser_poll: Optional[Callable[[], None]] = None
-        self._opened: list = []
+            out.append(Channel(n, "ft", -FT_RANGE[0], FT_RANGE[0], cfg.devices.ft.stale_s))
+        return out
 
     # ------------------------------------------------------------------ lifecycle
-    def open(self) -> None:
-        """Open every device; on failure close what was opened and re-raise (names the device)."""
+    def configure(self) -> None:
+        """Configure every device (no power); on failure close what was configured and
+        re-raise (the error names the device)."""
         try:
             for d in self.lasers:
-                d.open(); self._opened.append(d)
-            self.drives.open(); self._opened.append(self.drives)
+                d.configure(); self._configured.append(d)
+            self.drives.configure(); self._configured.append(self.drives)
             if self.ft is not None:
-                self.ft.open(start_thread=self._ft_thread); self._opened.append(self.ft)
+                self.ft.configure(); self._configured.append(self.ft)
         except Exception as e:
             self.close()
             if isinstance(e, (DeviceInitError, ConfigError)):
                 raise
             raise DeviceInitError("devices", f"{type(e).__name__}: {e}") from e
 
+    def activate(self, now: float) -> None:
+        """Power stages on (non-blocking); called by the supervisor's ARM transition."""
+        self.drives.activate(now)
+
+    def deactivate(self, now: float) -> None:
+        """Zero, quick stop, disable (non-blocking); FAULT and the end of a stop."""
+        self.drives.deactivate(now)
+
     def close(self) -> None:
-        """Zero current, disable the converters, close everything; never raises."""
-        for d in reversed(self._opened):
+        """Deactivate and close everything; never raises."""
+        for d in reversed(self._configured):
             try:
                 d.close()
             except Exception:
                 pass
-        self._opened.clear()
+        self._configured.clear()
 
     # ------------------------------------------------------------------ cycle
-    def poll(self, now: float) -> None:
-        """Every device's latest samples into the supervisor channels. The drives and the
-        F/T hand-off first, the lasers last (freshest); ``before_laser_poll`` (a lockstep
-        simulator's "laser bytes delivered" wait) runs just before the lasers are read."""
-        # _update inlined: this runs every 5 ms for 14 channels
-        ch = self.channels
-        ninf = -math.inf
+    def poll(self, now: float) -> CycleInput:
+        """Every device's latest samples: the drives and the F/T hand-off first, the
+        lasers last (freshest)."""
         rd = self.drives.poll(now)
         ok, cause = True, ""
-        omega = self.omega
-        j = 0
+        wheels = []
         for r in rd.wheels.values():        # WHEELS order (DriveBus sorts its drives so)
-            hl = r.health
-            c = ch[6 + j]
-            v = r.omega
-            c.value = v
-            t = r.t
-            c.t = t if t == t else ninf
-            st = hl.state
-            c.state = st
-            c.cause = hl.cause
-            c.bad = hl.bad_frames
-            omega[j] = v
-            if st is _INVALID and ok:
-                ok, cause = False, f"drive {r.wheel} (node {r.node_id}): {hl.cause}"
-            j += 1
-        if rd.bus.state is _INVALID and ok:
+            wheels.append(Sample(r.omega, r.t, r.health))
+            if ok and r.health.state is Freshness.INVALID:
+                ok, cause = False, f"drive {r.wheel} (node {r.node_id}): {r.health.cause}"
+        if ok and rd.bus.state is Freshness.INVALID:
             ok, cause = False, f"CAN bus: {rd.bus.cause}"
-        self.converters_ok = ok
-        self.converter_cause = cause
-        self.converters_ready = rd.ready
+        ft = []
+        extra: list[float] = []
         if self.ft is not None:
             fr = self.ft.poll(now)
-            ev = self.extra_values
-            for k, n in enumerate(self.ft_names):
+            for n in self.ft_names:
                 r = fr[n]
                 w = r.wrench
-                _update(ch[10 + k], math.nan if w is None else w.fy, r.t, r.health)
-                if w is not None:
-                    ev[6 * k:6 * k + 6] = (w.fx, w.fy, w.fz, w.mx, w.my, w.mz)
-        if self.before_laser_poll is not None:
-            self.before_laser_poll()
-        dist = self.dist
-        i = 0
-        for d in self.lasers:
-            r = d.poll(now)
-            c = ch[i]
-            hl = r.health
-            v = r.value_m
-            c.value = v
-            t = r.t
-            c.t = t if t == t else ninf
-            c.state = hl.state
-            c.cause = hl.cause
-            c.bad = hl.bad_frames
-            dist[i] = v
-            i += 1
+                ft.append(Sample(math.nan if w is None else w.fy, r.t, r.health))
+                extra.extend(self._no_wrench if w is None else (w.fx, w.fy, w.fz, w.mx, w.my, w.mz))
+        lasers = [Sample(r.value_m, r.t, r.health) for r in (d.poll(now) for d in self.lasers)]
+        return CycleInput(now, (*lasers, *wheels, *ft), tuple(extra), Converters(ok, cause, rd.enabled))
 
     def write(self, currents: Sequence[float], now: float) -> None:
         self.drives.write(currents, now)
 
-    def disable(self, now: float) -> None:
-        self.drives.disable(now)
+    def counters(self) -> dict[str, dict[str, int]]:
+        """Each device's statistics (status views, tests)."""
+        out = {d.name: d.counters() for d in self.lasers}
+        out[self.drives.name] = self.drives.counters()
+        if self.ft is not None:
+            out[self.ft.name] = self.ft.counters()
+        return out

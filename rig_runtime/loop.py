@@ -1,9 +1,10 @@
-"""The control loop: one fixed period, read → geometry → safety check → controller →
-safety limit → write → record, with one timestamp per cycle.
+"""The control loop: one fixed period, read → geometry → supervisor → controller → limit
+→ write → record, with one timestamp per cycle.
 
 The loop owns time (a ``Clock``), never blocks on I/O (drivers drain OS buffers), freezes
 and disables the garbage collector while running, times every cycle and skips missed
-periods instead of catching up.
+periods instead of catching up. It asks the supervisor what to do (the supervisor owns
+every state transition and switches the power stages) and does it.
 """
 
 from __future__ import annotations
@@ -12,31 +13,27 @@ import gc
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Optional, Protocol, Sequence
+from operator import attrgetter
+from typing import Callable, Iterable, Optional, Protocol, Sequence
 
 from .clock import Clock
 from .config import LASER_ROLES, WHEELS, RigConfig
 from .control import make_controller
-from .geometry import measure
+from .geometry import Measurement, measure
 from .safety import Channel, State, Supervisor
 from .stats import CycleStats
 
 
 class DeviceSet(Protocol):
-    """What the loop needs from the devices (``devices.py`` builds it from drivers)."""
+    """What the loop needs from the devices (``devices.RigDevices``)."""
 
-    channels: list[Channel]      # lasers (LASER_ROLES order), wheels (WHEELS order), F/T sensors
-    dist: list[float]            # latest laser distances, m, LASER_ROLES order
-    omega: list[float]           # wheel speeds, rad/s, WHEELS order
-    converters_ok: bool
-    converters_ready: bool
-    converter_cause: str
     extra_columns: Sequence[str]     # e.g. F/T wrench components
-    extra_values: list[float]
 
-    def poll(self, now: float) -> None: ...
+    def channels(self) -> list[Channel]: ...
+    def activate(self, now: float) -> None: ...
+    def poll(self, now: float): ...          # -> devices.CycleInput
     def write(self, currents: Sequence[float], now: float) -> None: ...
-    def disable(self, now: float) -> None: ...
+    def deactivate(self, now: float) -> None: ...
 
 
 @dataclass
@@ -52,6 +49,45 @@ class RunResult:
 
 
 CARRIER_INDEX = {"front": 0, "rear": 1}
+CYCLE_FIELDS = ("t", "t_run", "lateness", "work", "state", "y_ref")
+MEASUREMENT_FIELDS = Measurement._fields
+CONTROLLER_FIELDS = ("e_y", "x_I", "psi_ref", "e_psi", "de_psi", "u_unsat")
+
+
+class Cycle:
+    """The values of the cycle being recorded (one object, updated in place)."""
+
+    __slots__ = CYCLE_FIELDS + ("m", "extra", "u_out", "currents")
+
+    def __init__(self) -> None:
+        for f in CYCLE_FIELDS:
+            setattr(self, f, math.nan)
+        self.m: Measurement | None = None
+        self.extra: tuple[float, ...] = ()
+        self.u_out = [0.0, 0.0]          # controller output per carrier index
+        self.currents = [0.0, 0.0, 0.0, 0.0]
+
+
+Getter = Callable[[Cycle], Iterable[float]]
+
+
+def row_spec(channels: Sequence[Channel], extra_columns: Sequence[str], controlled: Sequence[str],
+             controllers: Sequence) -> list[tuple[tuple[str, ...], Getter]]:
+    """The log's columns: (names, getter) groups, each group's names made from the same
+    field list its getter reads, so the header and a row cannot disagree."""
+    spec: list[tuple[tuple[str, ...], Getter]] = [(CYCLE_FIELDS, attrgetter(*CYCLE_FIELDS))]
+    for c in channels[:len(LASER_ROLES) + len(WHEELS)]:
+        name = c.name if c.kind == "laser" else f"omega_{c.name}"
+        spec.append(((name, f"{name}_age"), lambda cy, c=c: (c.value, cy.t - c.t)))
+    spec.append((tuple(extra_columns), attrgetter("extra")))
+    spec.append((MEASUREMENT_FIELDS, attrgetter("m")))
+    for carrier, ctrl in zip(controlled, controllers):
+        i = CARRIER_INDEX[carrier]
+        st = attrgetter(*CONTROLLER_FIELDS)
+        spec.append((tuple(f"{carrier}_{f}" for f in CONTROLLER_FIELDS) + (f"{carrier}_u_cmd", f"{carrier}_u_lim"),
+                     lambda cy, ctrl=ctrl, i=i, st=st: (*st(ctrl.st), cy.u_out[i], 2.0 * cy.currents[2 * i])))
+    spec.append((tuple(f"i_{w}" for w in WHEELS), attrgetter("currents")))
+    return spec
 
 
 class ControlLoop:
@@ -60,9 +96,7 @@ class ControlLoop:
     def __init__(self, cfg: RigConfig, devices: DeviceSet, clock: Clock, *,
                  reference: Callable[[float], float] = lambda t: 0.0,
                  open_loop: Optional[tuple[str, Callable[[float], float]]] = None,
-                 recorder=None, on_event: Callable | None = None,
-                 in_cycle: Callable[[float, float], None] | None = None,
-                 on_running: Callable[[float], None] | None = None):
+                 recorder=None, on_event: Callable | None = None):
         self.cfg = cfg
         self.h = cfg.controller.h
         self.dev = devices
@@ -70,10 +104,10 @@ class ControlLoop:
         self.reference = reference
         self.open_loop = open_loop
         self.recorder = recorder
-        self.in_cycle = in_cycle
-        self.on_running = on_running
         self._events = on_event
-        self.supervisor = Supervisor(cfg.limits, self.h, on_event=self._event)
+        self.channels = devices.channels()
+        self.supervisor = Supervisor(cfg.limits, self.h, self.channels, cfg.controlled, devices,
+                                     on_event=self._event)
         self.carriers = [CARRIER_INDEX[c] for c in cfg.controlled]
         psi_ref_max = cfg.limits.psi_max * 0.8
         self.controllers = [make_controller(cfg.controller, cfg.limits.u_max, psi_ref_max) for _ in self.carriers]
@@ -81,24 +115,17 @@ class ControlLoop:
         self.stop_requested = False
         self.t_start = math.nan
         self.max_abs_current = 0.0
-        self.currents = [0.0, 0.0, 0.0, 0.0]
-        self.columns = self._columns()
-        self.last_measurement = None
-        self.status: dict = {}
+        self.cycle = Cycle()
+        self.spec = row_spec(self.channels, devices.extra_columns, cfg.controlled, self.controllers)
+        self.columns = [n for names, _ in self.spec for n in names]
 
-    # ------------------------------------------------------------------ recorder layout
-    def _columns(self) -> list[str]:
-        cols = ["t", "t_run", "lateness", "work", "state", "y_ref"]
-        for r in LASER_ROLES:
-            cols += [r, f"{r}_age"]
-        for w in WHEELS:
-            cols += [f"omega_{w}", f"omega_{w}_age"]
-        cols += list(self.dev.extra_columns)
-        cols += ["y_m", "psi_m", "y_f", "y_r", "psi_af", "psi_ar", "psi_f", "psi_r", "dw_f", "dw_r"]
-        for c in self.cfg.controlled:
-            cols += [f"{c}_{n}" for n in ("e_y", "x_I", "psi_ref", "e_psi", "de_psi", "u_unsat", "u_cmd", "u_lim")]
-        cols += [f"i_{w}" for w in WHEELS]
-        return cols
+    @property
+    def currents(self) -> list[float]:
+        return self.cycle.currents
+
+    @property
+    def last_measurement(self) -> Measurement | None:
+        return self.cycle.m
 
     def _event(self, t, kind, fault, text) -> None:
         if self.recorder is not None:
@@ -109,14 +136,21 @@ class ControlLoop:
         if self._events is not None:
             self._events(t, kind, fault, text)
 
+    def row(self) -> list[float]:
+        """This cycle's log row, in ``columns`` order."""
+        row: list[float] = []
+        cy = self.cycle
+        for _, get in self.spec:
+            row.extend(get(cy))
+        return row
+
     # ------------------------------------------------------------------ the cycle
     def run(self, duration_s: float, arm_timeout_s: float = 2.0, settle_after_fault_s: float = 0.1,
             status: Callable[["ControlLoop"], None] | None = None, status_period_s: float = 0.2) -> RunResult:
-        """Warm up (IDLE, zero current) until every channel is fresh, arm, run for
-        ``duration_s`` of RUNNING, stop (ramp, disable). Returns the summary."""
+        """Warm up (IDLE, zero current, power stages off) until every channel is fit, arm
+        (power stages on), run for ``duration_s`` of RUNNING, stop (ramp, power stages
+        off). Returns the summary."""
         h, clock, dev, sup = self.h, self.clock, self.dev, self.supervisor
-        channels = dev.channels
-        dist, omega = dev.dist, dev.omega
         geo = self.cfg.geometry
         rec = self.recorder
         ctrls = self.controllers
@@ -124,9 +158,10 @@ class ControlLoop:
         ref = self.reference
         ol = self.open_loop
         ol_idx = CARRIER_INDEX[ol[0]] if ol else -1
-        currents = self.currents
+        cy = self.cycle
+        currents = cy.currents
+        u_out = cy.u_out
         stats = self.stats
-        in_cycle = self.in_cycle
         wall0 = time.perf_counter()
         gc.collect()            # before t0: a collection can take tens of ms
         gc.freeze()
@@ -134,63 +169,44 @@ class ControlLoop:
         gc.disable()
         t0 = clock.now() + h
         k = 0
-        t_arm_deadline = t0 + arm_timeout_s
+        sup.request_arm(t0 + arm_timeout_s)
         t_end = math.inf
         t_fault_end = math.inf
-        arm_blockers: list[str] = []
         next_status = 0.0
-        u_out = [0.0, 0.0]
         try:
             while True:
                 t_k = t0 + k * h
                 t = clock.wait_until(t_k)
-                lateness = t - t_k
+                cy.t = t
+                cy.lateness = t - t_k
                 # ---- read
-                dev.poll(t)
-                m = measure(dist[0], dist[1], dist[2], dist[3], dist[4], dist[5],
-                            omega[0], omega[1], omega[2], omega[3], geo)
-                self.last_measurement = m
+                inp = dev.poll(t)
+                s = inp.samples
+                m = cy.m = measure(s[0].value, s[1].value, s[2].value, s[3].value, s[4].value, s[5].value,
+                                   s[6].value, s[7].value, s[8].value, s[9].value, geo)
+                cy.extra = inp.extra
                 ys = (m.y_f, m.y_r)
                 psis = (m.psi_af, m.psi_ar)
-                # ---- state machine
-                st = sup.state
-                if st is State.IDLE and math.isnan(self.t_start):
-                    arm_blockers = sup.arm_blockers(channels, dev.converters_ready, t)
-                    if stats.overrun_periods:   # warm-up still missing deadlines (first drains, imports)
-                        arm_blockers.append(f"loop: {stats.overrun_periods} periods lost to deadline misses")
-                    if not arm_blockers:
-                        sup.arm(channels, dev.converters_ready, t)
-                    elif t >= t_arm_deadline:
-                        break
-                elif st is State.ARMED:
-                    sup.start(t)
+                # ---- supervisor: requests, transitions, checks
+                if self.stop_requested:
+                    sup.request_stop(t, "stop requested (signal)")
+                elif t >= t_end:
+                    sup.request_stop(t, "duration reached")
+                sup.cycle(t, s, inp.converters, [(ys[i], psis[i]) for i in carriers], stats.overrun_periods,
+                          rec.healthy if rec is not None else True, rec.error if rec is not None else "")
+                if sup.started:
                     self.t_start = t
                     t_end = t + duration_s
                     y_ref0 = ref(0.0)
                     for c, i in zip(ctrls, carriers):
                         c.start(y_ref0, ys[i], psis[i])
-                    if self.on_running is not None:
-                        self.on_running(t)
-                if self.stop_requested and sup.state in (State.ARMED, State.RUNNING):
-                    sup.request_stop(t, "stop requested (signal)")
-                elif t >= t_end and sup.state is State.RUNNING:
-                    sup.request_stop(t, "duration reached")
-                # ---- safety check (main bus position: the carriers the controller uses)
-                ci = carriers[-1]
-                sup.check(t, channels, dev.converters_ok, dev.converter_cause, ys[ci], psis[ci],
-                          stats.overrun_periods, rec.healthy if rec is not None else True,
-                          rec.error if rec is not None else "")
                 # ---- control
-                tr = t - self.t_start if self.t_start == self.t_start else 0.0
-                y_ref = ref(tr)
+                tr = cy.t_run = t - self.t_start if self.t_start == self.t_start else 0.0
+                y_ref = cy.y_ref = ref(tr)
                 running = sup.state is State.RUNNING
                 u_out[0] = u_out[1] = 0.0
                 for c, i in zip(ctrls, carriers):
-                    if running and i != ol_idx:
-                        u = c.step(y_ref, ys[i], psis[i])
-                    else:
-                        u = 0.0
-                    u_out[i] = u
+                    u_out[i] = c.step(y_ref, ys[i], psis[i]) if running and i != ol_idx else 0.0
                 if ol is not None and running:
                     u_out[ol_idx] = ol[1](tr)
                 # ---- limit
@@ -199,39 +215,22 @@ class ControlLoop:
                     half = 0.5 * u_lim
                     currents[2 * i] = half
                     currents[2 * i + 1] = -half
-                    for c, ci_ in zip(ctrls, carriers):
-                        if ci_ == i:
+                    for c, ci in zip(ctrls, carriers):
+                        if ci == i:
                             c.limit_feedback(u_lim)
                     a = abs(u_lim)
                     if a > self.max_abs_current:
                         self.max_abs_current = a
                 sup.end_cycle(t)
+                cy.state = float(sup.state)
                 # ---- write
                 dev.write(currents, t)
-                if sup.new_fault or (sup.state is State.IDLE and not math.isnan(self.t_start)):
-                    dev.disable(t)
-                    if sup.state is State.FAULT:
-                        t_fault_end = t + settle_after_fault_s
-                if in_cycle is not None:
-                    in_cycle(t, tr)
+                if sup.new_fault:
+                    t_fault_end = t + settle_after_fault_s
                 # ---- record
-                work = clock.now() - t
+                cy.work = clock.now() - t
                 if rec is not None:
-                    row = [t, tr, lateness, work, float(sup.state), y_ref]
-                    for j in range(6):
-                        c = channels[j]
-                        row.append(c.value); row.append(t - c.t)
-                    for j in range(4):
-                        c = channels[6 + j]
-                        row.append(c.value); row.append(t - c.t)
-                    row.extend(dev.extra_values)
-                    row.extend((m.y_m, m.psi_m, m.y_f, m.y_r, m.psi_af, m.psi_ar, m.psi_f, m.psi_r, m.dw_f, m.dw_r))
-                    for c, i in zip(ctrls, carriers):
-                        s = c.st
-                        row.extend((s.e_y, s.x_I, s.psi_ref, s.e_psi, s.de_psi, s.u_unsat, u_out[i],
-                                    2.0 * currents[2 * i]))
-                    row.extend(currents)
-                    rec.append(row)
+                    rec.append(self.row())
                 if status is not None and t >= next_status:
                     next_status = t + status_period_s
                     status(self)
@@ -240,15 +239,15 @@ class ControlLoop:
                 work = t_done - t
                 missed = t_done > t_k + h
                 k_next = int((t_done - t0) / h) + 1 if missed else k + 1  # next release still ahead
-                stats.update(lateness, work, missed, k_next - k - 1)
+                stats.update(cy.lateness, work, missed, k_next - k - 1)
                 k = k_next
                 st = sup.state
                 if st is State.FAULT and t >= t_fault_end:
                     break
-                if st is State.IDLE and (not math.isnan(self.t_start) or self.stop_requested):
+                if st is State.IDLE and (sup.ever_armed or sup.arm_failed or self.stop_requested):
                     break
         except BaseException:
-            # anything unexpected inside the loop: zero current and disable before leaving
+            # anything unexpected inside the loop: zero current and power stages off before leaving
             self._safe_off()
             raise
         finally:
@@ -261,18 +260,18 @@ class ControlLoop:
         return RunResult(final_state=sup.state.name, faults=[f.as_dict() for f in sup.faults],
                          cycles=summary.pop("cycles"), max_abs_current_A=self.max_abs_current,
                          timing=summary, t_start=self.t_start, wall_time_s=time.perf_counter() - wall0,
-                         arm_blockers=arm_blockers if math.isnan(self.t_start) else [])
+                         arm_blockers=sup.arm_blockers if math.isnan(self.t_start) else [])
 
     def _safe_off(self) -> None:
-        """Zero current on the wire and converters disabled; never raises."""
+        """Zero current on the wire and power stages off; never raises."""
         t = self.clock.now()
         for i in range(4):
-            self.currents[i] = 0.0
+            self.cycle.currents[i] = 0.0
         try:
-            self.dev.write(self.currents, t)
+            self.dev.write(self.cycle.currents, t)
         except Exception:
             pass
         try:
-            self.dev.disable(t)
+            self.dev.deactivate(t)
         except Exception:
             pass

@@ -1,5 +1,5 @@
 """Lossless cycle recorder: the loop appends a row per cycle, a writer thread stores it in HDF5
-(in lockstep runs the loop thread itself, see "Inline writer" below).
+(the same way in every mode).
 
 Loop side (``append``, ``event``) never blocks, never does file I/O (thread mode) and allocates nothing
 per row beyond the call's own argument tuple: ``append`` packs the row's floats with :func:`struct.Struct.pack_into` straight into
@@ -50,16 +50,6 @@ cleanly (unhealthy, file valid up to the last flush). Any exception while writin
 the writer then stops writing, trims the datasets back to the last flushed length and
 flushes that; if even this fails, the file descriptor is pointed at /dev/null so that
 closing writes nothing more to the failing device.
-
-Inline writer (``writer="inline"``, lockstep dry runs)
-------------------------------------------------------
-With a simulated clock there are no deadlines, and a writer thread only costs: every
-HDF5 call holds the interpreter lock, and each hand-over between the threads stalls the
-loop. Inline, ``append`` stores the pending rows and events itself (same checks, same
-failure handling) once half the ring or a quarter of the event capacity is pending or a
-flush is due, and ``close`` writes the rest — the file is identical, the loop thread does
-the I/O. "Flushed at least once a second" then holds while rows are appended (a lockstep
-run appends continuously). Real-time runs keep the thread.
 
 File layout: see ``docs/log-format.md``.
 """
@@ -140,13 +130,13 @@ class Recorder:
 
     ``columns`` names the row's values in order (SI units; see ``docs/log-format.md``);
     ``attrs`` become root attributes (strings as UTF-8). The file must not exist yet:
-    a log is never overwritten. ``writer``: ``"thread"`` (a background writer; ``append``
-    never does I/O) or ``"inline"`` (``append`` writes a batch now and then; for lockstep).
+    a log is never overwritten. A background writer thread does all file I/O; ``append``
+    never does.
     """
 
     def __init__(self, path: str | Path, columns: Sequence[str], *, attrs: Mapping[str, object],
                  buffer_cycles: int = 4096, flush_s: float = 0.5, event_capacity: int = 1024,
-                 min_free_bytes: int = 32 * 2**20, writer: str = "thread"):
+                 min_free_bytes: int = 32 * 2**20):
         self.path = Path(path)
         cols = tuple(columns)
         if not cols:
@@ -161,8 +151,6 @@ class Recorder:
             raise ValueError(f"recorder: buffer_cycles >= 2, got {buffer_cycles!r}")
         if not flush_s > 0:
             raise ValueError(f"recorder: flush_s > 0, got {flush_s!r}")
-        if writer not in ("thread", "inline"):
-            raise ValueError(f"recorder: writer 'thread' or 'inline', got {writer!r}")
         if int(event_capacity) < 1:
             raise ValueError(f"recorder: event_capacity >= 1, got {event_capacity!r}")
         self.columns: tuple[str, ...] = cols
@@ -211,13 +199,6 @@ class Recorder:
         self._opened = False
         self._closed = False
         self._close_lock = threading.Lock()
-        # inline writer: the appending thread stores a batch itself once half the ring is
-        # pending or a flush is due (lockstep runs: no deadlines, no GIL hand-overs)
-        self.writer = writer
-        self._inline = writer == "inline"
-        self._inline_batch = max(1, self.buffer_cycles // 2)
-        self._ev_batch = max(1, self.event_capacity // 4)
-        self._next_flush = math.inf
 
     # ------------------------------------------------------------------ status
     @property
@@ -316,17 +297,13 @@ class Recorder:
             raise DeviceInitError(dev, f"cannot initialise log file: {exc}") from exc
         self._file = f
         self._opened = True
-        if self._inline:
-            self._next_flush = time.monotonic() + self.flush_period
-        else:
-            self._thread = threading.Thread(target=self._run, name=f"recorder:{self.path.name}", daemon=True)
-            self._thread.start()
+        self._thread = threading.Thread(target=self._run, name=f"recorder:{self.path.name}", daemon=True)
+        self._thread.start()
         atexit.register(self.close)
 
     # ------------------------------------------------------------------ loop side
     def append(self, row: Sequence[float]) -> bool:
-        """Record one cycle: one number per column, in column order. Never blocks (thread
-        mode; the inline writer stores a batch in some calls).
+        """Record one cycle: one number per column, in column order. Never blocks.
 
         Returns False if the row was not recorded (ring full — the recorder turns unhealthy —
         or the recorder is closed/failed). Raises ValueError for a row of the wrong length or
@@ -340,19 +317,7 @@ class Recorder:
         except struct.error as e:
             raise ValueError(f"recorder row: expected {self._ncols} numbers in column order {self.columns} ({e})") from None
         self._w = w + 1                   # publish: the writer may now read slot w
-        if self._inline and (w + 1 - self._r >= self._inline_batch or len(self._ev) >= self._ev_batch
-                             or time.monotonic() >= self._next_flush):
-            self._write_inline()
         return True
-
-    def _write_inline(self) -> None:
-        """Inline writer: store (and, when due, flush) what is pending, in the caller's thread."""
-        now = time.monotonic()
-        flush = now >= self._next_flush
-        if flush:
-            self._next_flush = now + self.flush_period
-        if not self._dead:
-            self._service(flush)
 
     def _reject(self) -> bool:
         if self._refuse:
@@ -424,11 +389,9 @@ class Recorder:
         self._r = w                       # slots copied: release them to the loop
         start = self._rows_written
         end = start + n
-        yield_gil = not self._inline
         for j, d in enumerate(self._cyc):
             self._store_column(d, start, block[j])
-            if yield_gil:
-                time.sleep(0)             # offer the GIL to the loop between HDF5 calls
+            time.sleep(0)                 # offer the GIL to the loop between HDF5 calls
         self._rows_written = end
 
     @staticmethod
@@ -560,7 +523,7 @@ class Recorder:
         """Drain the ring, write and flush everything, close the file. Idempotent.
 
         Call it after the loop has stopped appending (an ``append`` racing with ``close``
-        may be lost; with the inline writer, call both from the same thread). Afterwards every row ``append`` accepted is in the file, unless the
+        may be lost). Afterwards every row ``append`` accepted is in the file, unless the
         recorder is unhealthy. ``timeout`` bounds the wait for the writer (None: wait).
         """
         with self._close_lock:
@@ -574,10 +537,6 @@ class Recorder:
             self._thread.join(timeout)
             if self._thread.is_alive():
                 self._fail(f"recorder close timed out after {timeout} s; file valid up to row {self._rows_flushed}")
-        elif self._inline and self._opened:
-            if not self._dead:
-                self._service(flush=True)
-            self._finish()
         try:
             atexit.unregister(self.close)
         except Exception:  # noqa: BLE001

@@ -1,9 +1,17 @@
-"""Safety supervisor: a state machine with latched faults, the per-cycle checks and the
-output limit.
+"""Safety supervisor: the state machine (it owns every transition), latched faults, the
+per-cycle checks and the output limit.
 
 States ``IDLE → ARMED → RUNNING → STOPPING → IDLE``, and ``FAULT`` (latched) from anywhere
-until an explicit ``reset``. On a fault the output is zero in the same cycle; the loop then
-disables the converters. Limits come from the frozen config and cannot be loosened.
+until an explicit ``reset``. The ARM transition is the only place that activates the
+power stages (``hardware.activate``); FAULT and the end of STOPPING deactivate them. On a
+fault the output is zero in the same cycle. Limits come from the frozen config and cannot
+be loosened.
+
+The checks are one ordered list of small named rules (no second copy of any of them):
+the system rules (loop overruns, recorder, converters), the channel rules (each applied to
+every sensor channel before the next rule), then the pose rules for every controlled
+carrier. The first rule that fails in a cycle trips the fault. Arming asks the same channel
+rules whether every channel is fit.
 """
 
 from __future__ import annotations
@@ -11,16 +19,11 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass
-from typing import Callable, Sequence
-
-from drivers.base import Freshness
+from typing import Callable, NamedTuple, Optional, Protocol, Sequence
 
 from .config import Limits
+from .hardware import Freshness, Health
 
-
-_FRESH = Freshness.FRESH
-_INF = math.inf
-_NINF = -math.inf
 _NEVER = 1 << 62         # a count limit that is switched off
 
 
@@ -48,11 +51,33 @@ class Fault:
                 "value": num(self.value), "limit": num(self.limit), "message": self.message}
 
 
+class Sample(NamedTuple):
+    """One channel's reading in a cycle: value, the time it arrived (NaN: never), health."""
+    value: float
+    t: float
+    health: Health
+
+
+class Converters(NamedTuple):
+    """The converters as a cycle sees them: ``ok`` (no drive or bus INVALID, else ``cause``),
+    ``enabled`` (every power stage OPERATION ENABLED)."""
+    ok: bool
+    cause: str
+    enabled: bool
+
+
+class Hardware(Protocol):
+    """What the supervisor switches: the power stages of the device set."""
+    def activate(self, now: float) -> None: ...
+    def deactivate(self, now: float) -> None: ...
+
+
 class Channel:
-    """One sensor channel as the supervisor sees it (updated in place every cycle)."""
+    """One sensor channel as the supervisor sees it: its limits, and its history (updated
+    in place every cycle by :meth:`Supervisor.cycle`)."""
 
     __slots__ = ("name", "kind", "value", "t", "state", "cause", "lo", "hi", "stale_s",
-                 "step_max", "stuck_check", "prev", "same", "delta", "bad", "bad_prev", "bad_run")
+                 "step_max", "stuck_check", "prev", "same", "delta", "bad", "bad_run")
 
     def __init__(self, name: str, kind: str, lo: float, hi: float, stale_s: float,
                  step_max: float = math.inf, stuck_check: bool = False):
@@ -67,73 +92,161 @@ class Channel:
         self.same = 0
         self.delta = 0.0
         self.bad = 0            # the driver's cumulative count of garbled frames / bytes
-        self.bad_prev = 0
         self.bad_run = 0        # consecutive cycles with new garbled data
+
+    def observe(self, s: Sample) -> None:
+        """This cycle's sample, and the history the rules look at."""
+        v = s.value
+        h = s.health
+        self.delta = v - self.value
+        self.prev = self.value
+        self.value = v
+        self.t = s.t if s.t == s.t else -math.inf
+        self.state = h.state
+        self.cause = h.cause
+        if self.stuck_check:
+            self.same = self.same + 1 if v == self.prev else 0
+        b = h.bad_frames
+        self.bad_run = self.bad_run + 1 if b > self.bad else 0
+        self.bad = b
+
+
+Finding = Optional[tuple]   # (check, value, limit, message) or None: the rule holds
+
+
+# ---------------------------------------------------------------------- channel rules
+def invalid(c: Channel, t: float, lim: Limits) -> Finding:
+    if c.state is Freshness.INVALID:
+        return "invalid", c.value, math.nan, c.cause
+    return None
+
+
+def stale(c: Channel, t: float, lim: Limits) -> Finding:
+    age = t - c.t
+    if c.state is Freshness.STALE or age > c.stale_s:
+        return "stale", age, c.stale_s, c.cause or f"sample {age * 1e3:.1f} ms old"
+    return None
+
+
+def not_finite(c: Channel, t: float, lim: Limits) -> Finding:
+    v = c.value
+    if v != v or v == math.inf or v == -math.inf:
+        return "nan", v, math.nan, "value is not finite"
+    return None
+
+
+def out_of_range(c: Channel, t: float, lim: Limits) -> Finding:
+    v = c.value
+    if v < c.lo or v > c.hi:
+        return "range", v, c.hi if v > c.hi else c.lo, "raw value outside the sensor range"
+    return None
+
+
+def corrupt_link(c: Channel, t: float, lim: Limits) -> Finding:
+    n = lim.corrupt_cycles or _NEVER
+    if c.bad_run >= n:
+        return "corrupt", c.bad_run, n, f"garbled frames in {c.bad_run} consecutive cycles ({c.bad} in total)"
+    return None
+
+
+def stuck(c: Channel, t: float, lim: Limits) -> Finding:
+    n = lim.stuck_periods or _NEVER
+    if c.same >= n:
+        return "stuck", c.same, n, f"value repeated bit-identically for {c.same} cycles"
+    return None
+
+
+def jump(c: Channel, t: float, lim: Limits) -> Finding:
+    if abs(c.delta) > c.step_max:
+        return "jump", c.delta, c.step_max, "implausible change between two cycles"
+    return None
+
+
+CHANNEL_RULES: tuple[Callable[[Channel, float, Limits], Finding], ...] = (
+    invalid, stale, not_finite, out_of_range, corrupt_link, stuck, jump)
+# what arming needs of every channel: a fresh, finite, in-range sample
+ARM_RULES = (invalid, stale, not_finite, out_of_range)
+
+
+# ---------------------------------------------------------------------- pose rules
+class Pose(NamedTuple):
+    """One controlled carrier's state as measured this cycle."""
+    carrier: str
+    y: float
+    psi: float
+    psi_rate: float
+
+
+def pose_not_finite(p: Pose, lim: Limits) -> Finding:
+    if p.psi != p.psi or p.y != p.y:
+        return "nan", math.nan, math.nan, f"{p.carrier} carrier: y or psi is not finite"
+    return None
+
+
+def psi_limit(p: Pose, lim: Limits) -> Finding:
+    if abs(p.psi) > lim.psi_max:
+        return "psi_limit", p.psi, lim.psi_max, f"{p.carrier} carrier: yaw angle beyond limit"
+    return None
+
+
+def y_limit(p: Pose, lim: Limits) -> Finding:
+    if abs(p.y) > lim.y_max:
+        return "y_limit", p.y, lim.y_max, f"{p.carrier} carrier: lateral displacement beyond limit"
+    return None
+
+
+def psi_rate_limit(p: Pose, lim: Limits) -> Finding:
+    if lim.psi_rate_max is not None and abs(p.psi_rate) > lim.psi_rate_max:
+        return "psi_rate_limit", p.psi_rate, lim.psi_rate_max, f"{p.carrier} carrier: yaw rate beyond limit"
+    return None
+
+
+POSE_RULES = (pose_not_finite, psi_limit, y_limit, psi_rate_limit)
 
 
 class Supervisor:
-    """Checks every cycle and limits the output. ``on_event(t, kind, fault_or_None, text)``
-    receives state changes and faults (the recorder's event table)."""
+    """Owns the states and checks every cycle. ``on_event(t, kind, fault_or_None, text)``
+    receives state changes, faults and operator actions (the recorder's event table).
 
-    def __init__(self, limits: Limits, h: float, on_event: Callable | None = None):
+    Per cycle the loop calls :meth:`cycle` (observe, transitions, checks), then
+    :meth:`limit` per carrier, then :meth:`end_cycle`."""
+
+    def __init__(self, limits: Limits, h: float, channels: Sequence[Channel], carriers: Sequence[str],
+                 hardware: Hardware, on_event: Callable | None = None, activate_timeout_s: float = 0.5):
         self.limits = limits
         self.h = h
+        self.channels = list(channels)
+        self.carriers = tuple(carriers)
+        self.hw = hardware
+        self.activate_timeout_s = activate_timeout_s
         self.state = State.IDLE
         self.fault: Fault | None = None
         self.faults: list[Fault] = []
         self.new_fault = False          # set in the cycle a fault latched
-        self._u_prev = [0.0, 0.0]    # per controlled carrier
+        self.started = False            # set in the cycle RUNNING began
+        self.arm_blockers: list[str] = []
+        self.arm_failed = False         # the arm deadline passed with blockers left
+        self.ever_armed = False
+        self._arm_deadline = math.nan   # NaN: no arm request pending
+        self._armed_t = math.nan
+        self._stop_reason: str | None = None
+        self._u_prev = [0.0, 0.0]       # per carrier index (front 0, rear 1)
         self._du = limits.du_max * h
         self._ramp = limits.u_max * h / limits.stop_ramp_s if limits.stop_ramp_s > 0 else math.inf
-        self._psi_prev = math.nan
-        self._psi_rate = 0.0
+        self._psi_prev = [math.nan] * len(self.carriers)
         self._on_event = on_event or (lambda *a: None)
 
-    # ------------------------------------------------------------------ transitions
-    def _to(self, new: State, t: float, text: str = "") -> None:
-        if new is not self.state:
-            old, self.state = self.state, new
-            self._on_event(t, "state", None, f"{old.name} -> {new.name}" + (f": {text}" if text else ""))
-
-    def trip(self, t: float, device: str, check: str, value: float, limit: float, message: str = "") -> None:
-        """Latch a fault (the first one of a cycle is the cause recorded)."""
-        if self.state is State.FAULT:
-            return
-        f = Fault(t, device, check, float(value), float(limit), message)
-        self.fault = f
-        self.faults.append(f)
-        self.new_fault = True
-        self._on_event(t, "fault", f, message)
-        self._to(State.FAULT, t, f"{device} {check}")
-
-    def arm_blockers(self, channels: Sequence[Channel], converters_ready: bool, t: float) -> list[str]:
-        """Why arming is not possible now (empty list: it is)."""
-        why = []
-        for c in channels:
-            if c.state is not Freshness.FRESH or t - c.t > c.stale_s:
-                why.append(f"{c.name}: {c.cause or c.state.value}")
-            elif not (c.lo <= c.value <= c.hi):
-                why.append(f"{c.name}: {c.value:.6g} outside [{c.lo:.6g}, {c.hi:.6g}]")
-        if not converters_ready:
-            why.append("converters not ready")
-        return why
-
-    def arm(self, channels: Sequence[Channel], converters_ready: bool, t: float) -> list[str]:
-        if self.state is not State.IDLE:
-            return [f"cannot arm from {self.state.name}"]
-        why = self.arm_blockers(channels, converters_ready, t)
-        if not why:
-            self._to(State.ARMED, t)
-        return why
-
-    def start(self, t: float) -> None:
-        if self.state is State.ARMED:
-            self._to(State.RUNNING, t)
+    # ------------------------------------------------------------------ requests
+    def request_arm(self, deadline: float) -> None:
+        """Arm as soon as every channel is fit (and the converters are ok), until ``deadline``."""
+        if self.state is State.IDLE:
+            self._arm_deadline = deadline
 
     def request_stop(self, t: float, reason: str = "stop requested") -> None:
-        if self.state in (State.ARMED, State.RUNNING):
-            self._on_event(t, "operator", None, reason)
-            self._to(State.STOPPING, t, reason)
+        """A clean stop: ARMED/RUNNING ramp down (STOPPING), IDLE stops arming."""
+        if self._stop_reason is None:
+            self._stop_reason = reason
+        self._arm_deadline = math.nan
 
     def reset(self, t: float) -> None:
         """Explicit operator reset of a latched fault."""
@@ -147,88 +260,113 @@ class Supervisor:
     def active(self) -> bool:
         return self.state in (State.ARMED, State.RUNNING, State.STOPPING)
 
-    # ------------------------------------------------------------------ per-cycle checks
-    def check(self, t: float, channels: Sequence[Channel], converters_ok: bool, converter_cause: str,
-              y: float, psi: float, consecutive_misses: int, recorder_ok: bool, recorder_cause: str) -> None:
-        """Every cycle while active: sample age, NaN/inf, raw range, state limits, overruns,
-        converters, recorder. Trips the first failing check."""
-        self.new_fault = False
-        # yaw-rate estimate (first-order difference, only used if a limit is configured)
-        if self._psi_prev == self._psi_prev:  # not NaN
-            self._psi_rate = (psi - self._psi_prev) / self.h
-        self._psi_prev = psi
-        stuck_n = self.limits.stuck_periods or 0
-        corrupt_n = self.limits.corrupt_cycles or 0
-        s_lim = stuck_n or _NEVER
-        c_lim = corrupt_n or _NEVER
-        nominal = True          # every channel passes every channel check (known from this one pass)
-        for c in channels:
-            v, p = c.value, c.prev
-            c.prev = v
-            d = c.delta = v - p
-            if c.stuck_check:
-                c.same = c.same + 1 if v == p else 0
-            b = c.bad
-            c.bad_run = c.bad_run + 1 if b > c.bad_prev else 0
-            c.bad_prev = b
-            if nominal and not (c.state is _FRESH and t - c.t <= c.stale_s and c.lo <= v <= c.hi
-                                and _NINF < v < _INF and -c.step_max <= d <= c.step_max
-                                and c.bad_run < c_lim and c.same < s_lim):
-                nominal = False
-        st = self.state
-        if st is not State.RUNNING and st is not State.ARMED and st is not State.STOPPING:
+    # ------------------------------------------------------------------ transitions
+    def _to(self, new: State, t: float, text: str = "") -> None:
+        if new is self.state:
             return
+        old, self.state = self.state, new
+        self._on_event(t, "state", None, f"{old.name} -> {new.name}" + (f": {text}" if text else ""))
+        if new is State.ARMED:
+            self.ever_armed = True
+            self._armed_t = t
+            self.hw.activate(t)                 # power stages on: here and nowhere else
+        elif new is State.RUNNING:
+            self.started = True
+        elif new is State.FAULT or (new is State.IDLE and old is State.STOPPING):
+            self.hw.deactivate(t)
+
+    def trip(self, t: float, device: str, check: str, value: float, limit: float, message: str = "") -> None:
+        """Latch a fault (the first one of a cycle is the cause recorded)."""
+        if self.state is State.FAULT:
+            return
+        f = Fault(t, device, check, float(value), float(limit), message)
+        self.fault = f
+        self.faults.append(f)
+        self.new_fault = True
+        self._on_event(t, "fault", f, message)
+        self._to(State.FAULT, t, f"{device} {check}")
+
+    def _blockers(self, t: float, conv: Converters, misses: int) -> list[str]:
+        why = []
+        if misses:      # warm-up still missing deadlines (first drains, imports)
+            why.append(f"loop: {misses} periods lost to deadline misses")
+        lim = self.limits
+        for c in self.channels:
+            for rule in ARM_RULES:
+                f = rule(c, t, lim)
+                if f is not None:
+                    why.append(f"{c.name}: {f[3]}")
+                    break
+        if not conv.ok:
+            why.append(f"converters: {conv.cause}")
+        return why
+
+    def _transitions(self, t: float, conv: Converters, misses: int) -> None:
+        st = self.state
+        if st is State.IDLE:
+            if self._arm_deadline == self._arm_deadline:      # an arm request is pending
+                self.arm_blockers = self._blockers(t, conv, misses)
+                if not self.arm_blockers:
+                    self._arm_deadline = math.nan
+                    self._to(State.ARMED, t)
+                elif t >= self._arm_deadline:
+                    self._arm_deadline = math.nan
+                    self.arm_failed = True
+        elif self._stop_reason is not None and st in (State.ARMED, State.RUNNING):
+            self._on_event(t, "operator", None, self._stop_reason)
+            self._to(State.STOPPING, t, self._stop_reason)
+        elif st is State.ARMED:
+            if conv.enabled:
+                self._to(State.RUNNING, t)
+            elif t - self._armed_t > self.activate_timeout_s:
+                self.trip(t, "converters", "activate", t - self._armed_t, self.activate_timeout_s,
+                          "power stages not OPERATION ENABLED in time" + (f" ({conv.cause})" if conv.cause else ""))
+
+    # ------------------------------------------------------------------ per cycle
+    def cycle(self, t: float, samples: Sequence[Sample], conv: Converters, poses: Sequence[tuple[float, float]],
+              consecutive_misses: int, recorder_ok: bool, recorder_cause: str) -> None:
+        """Observe this cycle's samples, make the transitions that are due, and (while
+        ARMED/RUNNING/STOPPING) apply every rule in order. ``poses``: (y, ψ) of each
+        controlled carrier, in ``carriers`` order."""
+        self.new_fault = False
+        self.started = False
+        for c, s in zip(self.channels, samples):
+            c.observe(s)
+        h = self.h
+        pp = self._psi_prev
+        pose_list = []
+        for i, (y, psi) in enumerate(poses):
+            p = pp[i]
+            pose_list.append(Pose(self.carriers[i], y, psi, (psi - p) / h if p == p else 0.0))
+            pp[i] = psi
+        self._transitions(t, conv, consecutive_misses)
+        if self.active:
+            self._check(t, conv, pose_list, consecutive_misses, recorder_ok, recorder_cause)
+
+    def _check(self, t: float, conv: Converters, poses: Sequence[Pose], misses: int,
+               recorder_ok: bool, recorder_cause: str) -> None:
         lim = self.limits
         # root causes first: a starved loop makes the converters' watchdogs trip too
-        if consecutive_misses >= lim.overrun_burst:
-            return self.trip(t, "loop", "overrun", consecutive_misses, lim.overrun_burst,
-                             f"{consecutive_misses} control periods lost to deadline misses")
+        if misses >= lim.overrun_burst:
+            return self.trip(t, "loop", "overrun", misses, lim.overrun_burst,
+                             f"{misses} control periods lost to deadline misses")
         if not recorder_ok:
             return self.trip(t, "recorder", "recorder", math.nan, math.nan, recorder_cause)
-        if not converters_ok:
-            return self.trip(t, "converters", "converter", math.nan, math.nan, converter_cause)
-        if not nominal and self._check_channels(t, channels, stuck_n, corrupt_n):
-            return
-        if psi != psi or y != y:
-            return self.trip(t, "geometry", "nan", math.nan, math.nan, "y or psi is not finite")
-        if abs(psi) > lim.psi_max:
-            return self.trip(t, "geometry", "psi_limit", psi, lim.psi_max, "yaw angle beyond limit")
-        if abs(y) > lim.y_max:
-            return self.trip(t, "geometry", "y_limit", y, lim.y_max, "lateral displacement beyond limit")
-        if lim.psi_rate_max is not None and abs(self._psi_rate) > lim.psi_rate_max:
-            return self.trip(t, "geometry", "psi_rate_limit", self._psi_rate, lim.psi_rate_max, "yaw rate beyond limit")
-
-    def _check_channels(self, t: float, channels: Sequence[Channel], stuck_n: int, corrupt_n: int) -> bool:
-        """The channel checks one by one, in order (only when some channel is not nominal);
-        True if one tripped."""
-        for c in channels:
-            age = t - c.t
-            if c.state is Freshness.INVALID:
-                self.trip(t, c.name, "invalid", c.value, math.nan, c.cause)
-                return True
-            if c.state is Freshness.STALE or age > c.stale_s:
-                self.trip(t, c.name, "stale", age, c.stale_s, c.cause or f"sample {age * 1e3:.1f} ms old")
-                return True
-            v = c.value
-            if v != v or v in (math.inf, -math.inf):
-                self.trip(t, c.name, "nan", v, math.nan, "value is not finite")
-                return True
-            if v < c.lo or v > c.hi:
-                self.trip(t, c.name, "range", v, c.hi if v > c.hi else c.lo, "raw value outside the sensor range")
-                return True
-            if corrupt_n and c.bad_run >= corrupt_n:
-                self.trip(t, c.name, "corrupt", c.bad_run, corrupt_n,
-                          f"garbled frames in {c.bad_run} consecutive cycles ({c.bad} in total)")
-                return True
-            if stuck_n and c.same >= stuck_n:
-                self.trip(t, c.name, "stuck", c.same, stuck_n, f"value repeated bit-identically for {c.same} cycles")
-                return True
-        for c in channels:
-            if abs(c.delta) > c.step_max:
-                self.trip(t, c.name, "jump", c.delta, c.step_max,
-                          "implausible change between two cycles")
-                return True
-        return False
+        if not conv.ok:
+            return self.trip(t, "converters", "converter", math.nan, math.nan, conv.cause)
+        if self.state is State.RUNNING and not conv.enabled:
+            return self.trip(t, "converters", "disabled", math.nan, math.nan,
+                             "a power stage left OPERATION ENABLED while running")
+        for rule in CHANNEL_RULES:
+            for c in self.channels:
+                f = rule(c, t, lim)
+                if f is not None:
+                    return self.trip(t, c.name, *f)
+        for p in poses:
+            for rule in POSE_RULES:
+                f = rule(p, lim)
+                if f is not None:
+                    return self.trip(t, "geometry", *f)
 
     # ------------------------------------------------------------------ output limit
     def limit(self, u: float, t: float, i: int = 0) -> float:
@@ -254,6 +392,6 @@ class Supervisor:
         return u
 
     def end_cycle(self, t: float) -> None:
-        """STOPPING ends (→ IDLE) once every output has ramped to zero."""
+        """STOPPING ends (→ IDLE, power stages off) once every output has ramped to zero."""
         if self.state is State.STOPPING and self._u_prev[0] == 0.0 and self._u_prev[1] == 0.0:
             self._to(State.IDLE, t, "stopped")

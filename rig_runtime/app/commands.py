@@ -8,8 +8,8 @@ import logging
 import sys
 from pathlib import Path
 
-from .cli import arg, command
-from .metrics import clean
+from ..metrics import clean
+from .command import arg, command
 from .runner import EXIT_OK, default_log_path, execute
 
 
@@ -51,19 +51,20 @@ def _print_summary(summary: dict, as_json: bool) -> None:
 @arg("--json", action="store_true", help="print one JSON summary object")
 @arg("--report", metavar="DIR", help="write PNG plots and a Markdown summary into DIR")
 def cmd_dry_run(args: argparse.Namespace) -> int:
-    from . import config
-    from .scenario import load_scenario
+    from .. import config
+    from ..scenario import load_scenario
     _quiet_libraries()
     cfg = config.load(args.config)
     scenario = load_scenario(args.scenario)
     log = Path(args.log) if args.log else default_log_path("dry-run")
     if args.realtime:
-        from sim_backend.realtime import run_realtime_dry_run
-        from .metrics import steps_from_log
-        summary, code = run_realtime_dry_run(cfg, scenario, args, log)
+        from ..metrics import steps_from_log
+        from .realtime_dryrun import run_realtime_dry_run
+        summary, code = run_realtime_dry_run(cfg, scenario, log, seed=args.seed, duration_s=args.duration,
+                                             status=sys.stderr.isatty() and not args.json)
         summary["steps"] = steps_from_log(log, scenario, cfg.controller.h)
     else:
-        from sim_backend.dryrun import run_lockstep
+        from .dryrun import run_lockstep
         summary, code = run_lockstep(cfg, scenario, log, seed=args.seed, duration_s=args.duration)
     if args.report:
         from .report import write_report
@@ -79,10 +80,10 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
 @arg("--log", help="HDF5 log path (default: logs/run-<time>.h5)")
 @arg("--json", action="store_true", help="print one JSON summary object at the end")
 def cmd_run(args: argparse.Namespace) -> int:
-    from . import config
-    from .clock import RealtimeClock, apply_realtime
-    from .devices import RigDevices
-    from .scenario import load_scenario
+    from .. import config
+    from ..clock import RealtimeClock, apply_realtime
+    from ..devices import RigDevices
+    from ..scenario import load_scenario
     _quiet_libraries()
     cfg = config.load(args.config or config.CONFIG_DIR / "rig.yaml")
     scenario = load_scenario(args.scenario) if args.scenario else None
@@ -105,8 +106,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 @arg("log", help="HDF5 log written by rig run / rig dry-run")
 @arg("--csv", required=True, metavar="OUT", help="CSV file to write (events go to OUT.events.csv)")
 def cmd_export(args: argparse.Namespace) -> int:
-    from .errors import ConfigError
-    from .export import to_csv
+    from ..errors import ConfigError
+    from ..export import to_csv
     if not Path(args.log).exists():
         raise ConfigError(args.log, "", "an existing log file")
     n = to_csv(args.log, args.csv)

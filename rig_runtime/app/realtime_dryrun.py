@@ -5,30 +5,29 @@ the interpreter's switch interval)."""
 
 from __future__ import annotations
 
-import argparse
-import sys
 from pathlib import Path
+from typing import Optional
 
-from rig_runtime import config
-from rig_runtime.clock import RealtimeClock, apply_realtime
-from rig_runtime.config import RigConfig
-from rig_runtime.devices import RigDevices
-from rig_runtime.runner import execute
-from rig_runtime.scenario import Scenario
+from sim_backend.process import start_sim_process
 
-from .process import start_sim_process
+from .. import config
+from ..clock import RealtimeClock, apply_realtime
+from ..config import RigConfig
+from ..devices import RigDevices
+from ..scenario import Scenario
+from .runner import execute
 
 
-def run_realtime_dry_run(cfg: RigConfig, scenario: Scenario, args: argparse.Namespace, log: Path) -> tuple[dict, int]:
-    with start_sim_process(config=cfg.source, scenario=scenario.source or None, seed=args.seed) as sp:
+def run_realtime_dry_run(cfg: RigConfig, scenario: Scenario, log: Path, *, seed: Optional[int] = None,
+                         duration_s: Optional[float] = None, status: bool = False) -> tuple[dict, int]:
+    with start_sim_process(config=cfg.source, scenario=scenario.source or None, seed=seed) as sp:
         rcfg = config.load(sp.config_path)
         devices = RigDevices(rcfg)
         rt_report = apply_realtime(rcfg.realtime)
         clock = RealtimeClock(rcfg.realtime.spin_us * 1e-6)
-        summary, code, _ = execute(rcfg, devices, clock, scenario=scenario, duration_s=args.duration, log_path=log,
-                                   status=sys.stderr.isatty() and not args.json,
-                                   extra_attrs={"mode": "dry-run realtime (rig sim process)",
-                                                "realtime": "; ".join(rt_report)})
+        summary, code, _ = execute(rcfg, devices, clock, scenario=scenario, duration_s=duration_s, log_path=log,
+                                   status=status, extra_attrs={"mode": "dry-run realtime (rig sim process)",
+                                                               "realtime": "; ".join(rt_report)})
     summary["sim_time_s"] = summary["cycles"] * rcfg.controller.h
     summary["realtime"] = rt_report
     return summary, code

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 
-from .export import read_log
+from ..export import read_log
 
 
 def _plt():

@@ -16,13 +16,13 @@ import sys
 from pathlib import Path
 from typing import Optional
 
-from . import __version__, schema
-from .clock import Clock
-from .config import RigConfig
-from .errors import DeviceInitError
-from .loop import ControlLoop
-from .recorder import Recorder
-from .scenario import Reference, Scenario, open_loop_input
+from .. import __version__, schema
+from ..clock import Clock
+from ..config import RigConfig
+from ..errors import DeviceInitError
+from ..loop import ControlLoop
+from ..recorder import Recorder
+from ..scenario import Reference, Scenario, open_loop_input
 
 EXIT_OK, EXIT_CRASH, EXIT_SETUP, EXIT_FAULT = 0, 1, 2, 3
 
@@ -51,51 +51,50 @@ class StatusLine:
 
 
 def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenario], duration_s: Optional[float],
-            log_path: Path, status: bool, in_cycle=None, on_running=None, extra_attrs: dict | None = None,
-            arm_timeout_s: float = 2.0, open_context=None,
-            recorder_writer: str = "thread") -> tuple[dict, int, ControlLoop | None]:
-    """Run one session; returns (summary, exit code, loop). Devices are closed on return.
-    ``recorder_writer="inline"`` lets the loop thread write the log (lockstep runs)."""
+            log_path: Path, status: bool, extra_attrs: dict | None = None, arm_timeout_s: float = 2.0,
+            configure_context=None) -> tuple[dict, int, ControlLoop | None]:
+    """Run one session; returns (summary, exit code, loop). In this order: signal handlers,
+    the loop and the recorder, ``devices.configure()`` (no power; inside
+    ``configure_context()`` if given), the loop (the supervisor's ARM activates the power
+    stages), then devices and recorder closed on every path."""
     reference = Reference(scenario.reference) if scenario else (lambda t: 0.0)
     open_loop = (scenario.open_loop.carrier, open_loop_input(scenario.open_loop)) if scenario and scenario.open_loop else None
     duration = duration_s if duration_s is not None else (scenario.duration_s if scenario else math.inf)
     log_path = Path(log_path)
     log_path.parent.mkdir(parents=True, exist_ok=True)
-    loop: ControlLoop | None = None
+    loop = ControlLoop(cfg, devices, clock, reference=reference, open_loop=open_loop)
     rec = None
     old_handlers = {}
+
+    def on_signal(signum, frame):
+        loop.stop_requested = True
+    for s in (signal.SIGINT, signal.SIGTERM):
+        try:
+            old_handlers[s] = signal.signal(s, on_signal)
+        except ValueError:   # not the main thread
+            pass
     try:
-        if open_context is not None:
-            with open_context():
-                devices.open()
-        else:
-            devices.open()
-        loop = ControlLoop(cfg, devices, clock, reference=reference, open_loop=open_loop,
-                           in_cycle=in_cycle, on_running=on_running)
         attrs = {"config": json.dumps(schema.to_dict(cfg)), "software_version": __version__,
                  "start_time": _dt.datetime.now(_dt.timezone.utc).isoformat(), "h": cfg.controller.h,
                  "config_source": cfg.source, "scenario": scenario.name if scenario else "",
                  "scenario_source": scenario.source if scenario else ""}
         attrs.update(extra_attrs or {})
         rec = Recorder(log_path, loop.columns, attrs=attrs, buffer_cycles=cfg.recorder.buffer_cycles,
-                       flush_s=cfg.recorder.flush_s, writer=recorder_writer)
+                       flush_s=cfg.recorder.flush_s)
         rec.open()
         loop.recorder = rec
-
-        def on_signal(signum, frame):
-            loop.stop_requested = True
-        for s in (signal.SIGINT, signal.SIGTERM):
-            try:
-                old_handlers[s] = signal.signal(s, on_signal)
-            except ValueError:   # not the main thread
-                pass
+        if configure_context is not None:
+            with configure_context():
+                devices.configure()
+        else:
+            devices.configure()
         result = loop.run(duration, arm_timeout_s=arm_timeout_s, status=StatusLine() if status else None)
     finally:
-        for s, hnd in old_handlers.items():
-            signal.signal(s, hnd)
         devices.close()
         if rec is not None:
             rec.close()
+        for s, hnd in old_handlers.items():
+            signal.signal(s, hnd)
         if status:
             sys.stderr.write("\n")
     if math.isnan(result.t_start):

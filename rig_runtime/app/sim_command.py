@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import argparse
 
-from .cli import arg, command
+from .command import arg, command
 
 
 def _cpus(text: str) -> list[int]:
