@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from rig_runtime import config  # noqa: E402
 from rig_runtime.scenario import load_scenario  # noqa: E402
-from sim_backend import dryrun  # noqa: E402
+from rig_runtime.app import dryrun  # noqa: E402
 
 samples: dict[str, list[float]] = collections.defaultdict(list)
 

@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from rig_runtime import config  # noqa: E402
 from rig_runtime.clock import RealtimeClock, apply_realtime  # noqa: E402
 from rig_runtime.devices import RigDevices  # noqa: E402
-from rig_runtime.runner import execute  # noqa: E402
+from rig_runtime.app.runner import execute  # noqa: E402
 from rig_runtime.stats import CycleStats  # noqa: E402
 from sim_backend.process import start_sim_process  # noqa: E402
 
@@ -96,7 +96,7 @@ def main() -> int:
             if "after_1min" not in rss and now - t_first[0] >= 60.0:
                 rss["after_1min"] = rss_mb()
 
-        import rig_runtime.runner as runner
+        import rig_runtime.app.runner as runner
         orig = runner.StatusLine
         runner.StatusLine = lambda: sample  # sample memory from the loop's status hook (every 0.2 s)
         try:

@@ -152,9 +152,10 @@ def measure(cfg, duration: float, fifo: int | None, channel: str | None = None) 
     """Open the drives through rig_slcan, then the timed SYNC/RPDO loop; latencies in ms."""
     import can
 
-    from drivers.canopen402 import (COB_TPDO1, NMT_OPERATIONAL, RUNTIME_NODE_ID, DriveBus, heartbeat_frame,
+    from drivers.canopen402 import DriveBus
+    from drivers.cia402 import (COB_TPDO1, NMT_OPERATIONAL, RUNTIME_NODE_ID, heartbeat_frame,
                                     nmt_frame, rpdo1_frame, sync_frame)
-    from drivers.slcan_bus import encode_frame
+    from drivers.slcan_codec import encode_frame
 
     cc = cfg.devices.can
     h = cfg.controller.h

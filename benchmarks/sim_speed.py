@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 from rig_runtime import config  # noqa: E402
 from rig_runtime.scenario import load_scenario  # noqa: E402
 from sim_backend import plant as plant_mod  # noqa: E402
-from sim_backend.dryrun import run_lockstep  # noqa: E402
+from rig_runtime.app.dryrun import run_lockstep  # noqa: E402
 
 from _machine import StealMeter  # noqa: E402
 

@@ -54,7 +54,7 @@ import can
 import numpy as np
 import yaml
 
-from drivers.canopen402 import COB_NMT, COB_SYNC, COB_TPDO1, NMT_START, NMT_STATE_NAMES
+from drivers.cia402 import COB_NMT, COB_SYNC, COB_TPDO1, NMT_START, NMT_STATE_NAMES
 from rig_runtime import config as rig_config
 from rig_runtime import schema
 from rig_runtime.config import WHEELS, RigConfig

@@ -74,7 +74,7 @@ from typing import Callable, Optional
 
 import can
 
-from drivers.slcan_bus import encode_frame, parse_frame  # one SLCAN codec for both ends
+from drivers.slcan_codec import encode_frame, parse_frame  # one SLCAN codec for both ends
 
 __all__ = ["SlcanAdapter", "DeviceSideBus", "encode_frame", "parse_frame"]
 

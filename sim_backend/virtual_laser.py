@@ -43,8 +43,8 @@ from typing import Any
 
 import numpy as np
 
-from drivers.laser import (
-    _X_PER_PERCENT, MAX_DISTANCE_X, MAX_X, encode_list, encode_value, encode_values, x_from_distance_mm,
+from drivers.optoncdt import (
+    X_PER_PERCENT, MAX_DISTANCE_X, MAX_X, encode_list, encode_value, encode_values, x_from_distance_mm,
     xs_from_distance_mm,
 )
 from rig_runtime.config import LaserDevice
@@ -482,7 +482,7 @@ class LaserGroup:
         rate = -1.0
         k = 0
         enc = _WIRE
-        xpp = _X_PER_PERCENT
+        xpp = X_PER_PERCENT
         for i, c in enumerate(self._lean):
             vl = c[0] if c is not None else self.lasers[i]
             if vl.rate_hz != rate:

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers import canopen402 as co
+from drivers import cia402 as co
 from rig_runtime import config
 from rig_runtime.export import read_log
 from rig_runtime.scenario import load_scenario
-from sim_backend.dryrun import run_lockstep
+from rig_runtime.app.dryrun import run_lockstep
 
 
 @dataclasses.dataclass

@@ -84,7 +84,7 @@ def test_eq10_form_is_selectable(cfg):
 
 
 def test_cli_json_shape(tmp_path):
-    out = subprocess.run([sys.executable, "-m", "rig_runtime.cli", "tune", "--json", "--plot", str(tmp_path)],
+    out = subprocess.run([sys.executable, "-m", "rig_runtime", "tune", "--json", "--plot", str(tmp_path)],
                          capture_output=True, text=True, check=True).stdout
     d = json.loads(out)
     for k in ("inner", "inner_filtered", "outer", "closed_loop"):
@@ -98,7 +98,7 @@ def test_cli_json_shape(tmp_path):
 def test_cli_bad_config_one_line(tmp_path):
     p = tmp_path / "bad.yaml"
     p.write_text("controller: {h: 0}\n")
-    r = subprocess.run([sys.executable, "-m", "rig_runtime.cli", "tune", "--config", str(p)],
+    r = subprocess.run([sys.executable, "-m", "rig_runtime", "tune", "--config", str(p)],
                        capture_output=True, text=True)
     assert r.returncode == 2
     assert r.stderr.count("\n") == 1 and "bad.yaml" in r.stderr

@@ -14,8 +14,9 @@ from canopen.profiles.p402 import State402
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers import canopen402 as c4
-from drivers.base import ConfigError, DeviceInitError, Freshness
+from drivers import cia402 as c4
+from rig_runtime.errors import ConfigError, DeviceInitError
+from rig_runtime.hardware import Freshness
 from drivers.canopen402 import DriveBus
 from rig_runtime.config import WHEELS, CanBus, Drive, resolve_config_path
 from sim_backend.virtual_drive import VirtualDriveSet

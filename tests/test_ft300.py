@@ -22,7 +22,8 @@ from pymodbus.client import ModbusTcpClient
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from drivers.base import DeviceInitError, Freshness
+from rig_runtime.errors import DeviceInitError
+from rig_runtime.hardware import Freshness
 from drivers.ft300 import (
     REG_COUNT,
     REG_START,

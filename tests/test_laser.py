@@ -16,7 +16,8 @@ import serial
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.base import DeviceInitError, Freshness
+from rig_runtime.errors import DeviceInitError
+from rig_runtime.hardware import Freshness
 from drivers.laser import (
     ERROR_CODES,
     MAX_DISTANCE_X,

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.base import Freshness
+from rig_runtime.hardware import Freshness
 from rig_runtime.safety import Channel, State, Supervisor
 
 H = 0.005

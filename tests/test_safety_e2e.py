@@ -10,7 +10,7 @@ import random
 import numpy as np
 import pytest
 
-from drivers.base import Freshness
+from rig_runtime.hardware import Freshness
 from rig_runtime import config
 from rig_runtime.recorder import Recorder
 from rig_runtime.scenario import Disturbance, FaultInjection, RefPoint, Scenario, load_scenario

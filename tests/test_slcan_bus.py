@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.slcan_bus import encode_frame, parse_frame
+from drivers.slcan_codec import encode_frame, parse_frame
 from sim_backend.slcan import SlcanAdapter
 
 

@@ -1,0 +1,169 @@
+"""Micro-Epsilon optoNCDT 1420-class laser triangulation sensors on RS-422.
+
+Wire format (optoNCDT 1420 manual, Chap. 8.2 and 7.5.2.1; see docs/protocols.md, section 1):
+every output value is three bytes sent L, M, H. The two top bits of each byte are a
+flag (``00`` L, ``01`` M, ``10`` H), the low six bits are data, so a value carries 18
+bits ``x = L6 | M6 << 6 | H6 << 12``. Distances are 16-bit values 0..65520 with
+
+    d_mm = (102/65520 · x − 1) · MR/100        (MR = measuring range in mm)
+
+and values above 65520 are the device's 18-bit error codes (262076 "no peak", …).
+There is no checksum: a damaged byte is only detected if its flag breaks the L, M, H
+pattern; a byte replaced by one with the *same* flag is undetectable by any decoder.
+
+The codec (module-level functions and :class:`FrameDecoder`) does no I/O; the virtual
+device in ``sim_backend.virtual_laser`` reuses it. :class:`drivers.laser.LaserDriver` reads a
+serial port without blocking and turns the values into SI metres with health.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from typing import Iterable
+
+import numpy as np
+
+__all__ = [
+    "MAX_DISTANCE_X", "MAX_X", "ERROR_CODES", "X_PER_PERCENT",
+    "encode_value", "encode_values", "encode_list", "x_from_distance_mm", "xs_from_distance_mm",
+    "distance_mm_from_x", "error_reason", "FrameDecoder",
+]
+
+MAX_DISTANCE_X = 65520          # largest 16-bit distance value (d = 1.01·MR)
+MAX_X = (1 << 18) - 1           # 18 data bits per value: 262143
+X_PER_PERCENT = 65520 / 102    # d_mm = (x/X_PER_PERCENT − 1)·MR/100
+
+ERROR_CODES: dict[int, str] = {
+    262075: "too much data for the baud rate",
+    262076: "no peak",
+    262077: "peak before range",
+    262078: "peak after range",
+    262080: "cannot calculate",
+    262081: "peak too large",
+    262082: "laser off",
+}
+
+_FLAG_L, _FLAG_M, _FLAG_H = 0x00, 0x40, 0x80
+# x = L + (M << 6) + (H << 12) − _FLAG_SUM when M and H carry their flags 01 and 10.
+_FLAG_SUM = (_FLAG_M << 6) + (_FLAG_H << 12)
+# Each byte -> one flag letter, so frame search runs on bytes in C (X = flag 11, never valid).
+_FLAG_TABLE = bytes(b"LMHX"[b >> 6] for b in range(256))
+_FRAME_RUN = re.compile(rb"(?:LMH)+")
+_CLEAN = b"LMH" * 1024          # flags of a gap-free stream of up to 1024 frames
+
+
+def encode_value(x: int) -> bytes:
+    """The three wire bytes (L, M, H) of one 18-bit value."""
+    if not 0 <= x <= MAX_X:
+        raise ValueError(f"laser value {x} outside 0..{MAX_X}")
+    return bytes((x & 0x3F, _FLAG_M | (x >> 6) & 0x3F, _FLAG_H | (x >> 12) & 0x3F))
+
+
+def encode_values(xs: Iterable[int] | np.ndarray) -> bytes:
+    """Wire bytes of many values at once (vectorised; the virtual device's hot path)."""
+    a = np.asarray(xs, dtype=np.int64).reshape(-1)
+    if a.size and (a.min() < 0 or a.max() > MAX_X):
+        raise ValueError(f"laser values outside 0..{MAX_X}")
+    out = np.empty((a.size, 3), dtype=np.uint8)
+    out[:, 0] = a & 0x3F
+    out[:, 1] = _FLAG_M | ((a >> 6) & 0x3F)
+    out[:, 2] = _FLAG_H | ((a >> 12) & 0x3F)
+    return out.tobytes()
+
+
+def encode_list(xs: list[int]) -> bytes:
+    """Wire bytes of a few values (pure Python: cheaper than numpy below ~50 values)."""
+    out = bytearray()
+    for x in xs:
+        if not 0 <= x <= MAX_X:
+            raise ValueError(f"laser value {x} outside 0..{MAX_X}")
+        out += bytes((x & 0x3F, _FLAG_M | (x >> 6) & 0x3F, _FLAG_H | (x >> 12) & 0x3F))
+    return bytes(out)
+
+
+def distance_mm_from_x(x: int, mr_mm: float) -> float:
+    """Distance from the start of the measuring range, mm, of a valid value x (0..65520)."""
+    return (x / X_PER_PERCENT - 1.0) * mr_mm / 100.0
+
+
+def x_from_distance_mm(d_mm: float, mr_mm: float) -> int:
+    """Inverse of :func:`distance_mm_from_x`: rounded to the nearest value, clipped to 0..65520."""
+    if math.isnan(d_mm):
+        raise ValueError("distance is NaN")
+    x = round((d_mm * 100.0 / mr_mm + 1.0) * X_PER_PERCENT)
+    return min(max(x, 0), MAX_DISTANCE_X)
+
+
+def xs_from_distance_mm(d_mm: np.ndarray, mr_mm: float) -> np.ndarray:
+    """Vector form of :func:`x_from_distance_mm` (same rounding: half to even)."""
+    x = np.rint((np.asarray(d_mm, dtype=float) * 100.0 / mr_mm + 1.0) * X_PER_PERCENT)
+    return np.clip(x, 0, MAX_DISTANCE_X).astype(np.int64)
+
+
+def error_reason(x: int) -> str | None:
+    """None for a distance value (0..65520), else why the value is not a measurement."""
+    if 0 <= x <= MAX_DISTANCE_X:
+        return None
+    text = ERROR_CODES.get(x)
+    return f"{text} ({x})" if text else f"unknown code {x}"
+
+
+class FrameDecoder:
+    """Incremental decoder: bytes in, 18-bit values out.
+
+    A frame is three consecutive bytes flagged L, M, H. Partial frames at the end of a
+    chunk are kept for the next :meth:`feed`; every other byte that is not part of such
+    a triple (garbage, a frame with a lost or damaged byte) is dropped and counted in
+    ``discarded``, and decoding resynchronises on the next L, M, H. The search runs on a
+    flag string made with ``bytes.translate``, so the per-byte work happens in C.
+    """
+
+    __slots__ = ("discarded", "frames", "_pending")
+
+    def __init__(self) -> None:
+        self.discarded = 0      # bytes thrown away as not part of a frame
+        self.frames = 0         # values decoded
+        self._pending = b""     # an L or L, M waiting for the rest of its frame
+
+    @property
+    def pending(self) -> int:
+        """Bytes of an incomplete frame held for the next call."""
+        return len(self._pending)
+
+    def reset(self) -> None:
+        """Forget a partial frame (after a read error); its bytes count as discarded."""
+        self.discarded += len(self._pending)
+        self._pending = b""
+
+    def feed(self, data: bytes) -> list[int]:
+        """Decode what ``data`` (plus the held partial frame) completes, in order."""
+        buf = self._pending + data if self._pending else bytes(data)
+        n = len(buf)
+        if n == 0:
+            return []
+        flags = buf.translate(_FLAG_TABLE)
+        if n % 3 == 0 and _CLEAN.startswith(flags):   # the usual case: whole clean frames
+            self._pending = b""
+            self.frames += n // 3
+            return _values(buf, 0, n)
+        out: list[int] = []
+        pos = 0
+        for m in _FRAME_RUN.finditer(flags):
+            start, end = m.span()
+            self.discarded += start - pos
+            out += _values(buf, start, end)
+            pos = end
+        keep = 2 if flags.endswith(b"LM") else 1 if flags.endswith(b"L") else 0
+        self.discarded += n - keep - pos
+        self._pending = buf[n - keep:] if keep else b""
+        self.frames += len(out)
+        return out
+
+
+def _values(buf: bytes, start: int, end: int) -> list[int]:
+    """Values of the clean frames buf[start:end] (flags known to be L, M, H)."""
+    return [lo + (mid << 6) + (hi << 12) - _FLAG_SUM
+            for lo, mid, hi in zip(buf[start:end:3], buf[start + 1:end:3], buf[start + 2:end:3])]
+
+
