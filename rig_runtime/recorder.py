@@ -42,7 +42,8 @@ flush at 200 Hz) keeps the number of HDF5 calls — each of which holds the inte
 small (≈3 ms of writer time per batch of 100 rows × 24 columns measured); between column
 writes the writer yields the GIL (``time.sleep(0)``), so a loop thread that wakes up waits
 for at most one HDF5 call (tens of µs), not for a whole batch. After every successful flush the file on disk is
-complete and readable up to that point, also if the process is killed afterwards.
+complete, fsynced and readable up to that point, also if the process or the machine dies
+afterwards. A log file deleted while recording is noticed at the next flush (a recorder fault).
 
 Before each batch the writer checks the free disk space; below ``min_free_bytes`` it stops
 cleanly (unhealthy, file valid up to the last flush). Any exception while writing
@@ -433,6 +434,10 @@ class Recorder:
             return                        # nothing new: the file on disk is already current
         assert self._file is not None
         self._file.flush()
+        fd = self._file.id.get_vfd_handle()
+        os.fsync(fd)                      # durable: survives a crash of the machine, not just of the process
+        if os.fstat(fd).st_nlink == 0:
+            raise FileNotFoundError(f"the log file {self.path} was deleted while recording")
         self._rows_flushed = self._rows_written
         self._events_flushed = self._events_written
         self.flushes += 1

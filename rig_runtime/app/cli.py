@@ -10,6 +10,7 @@ import argparse
 import sys
 
 from ..errors import RigError
+from .signals import Interrupted, StopSignals
 from . import commands, sim_command, tune_command  # noqa: F401 - each registers its subcommands
 from .command import COMMANDS
 
@@ -28,11 +29,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.stops = StopSignals()
     try:
+        if args._fn.handles_stops:
+            with args.stops:
+                return args._fn(args)
         return args._fn(args)
     except RigError as e:
         print(f"rig {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except Interrupted as e:
+        print(f"rig {args.command}: {e}", file=sys.stderr)
+        return e.code
     except KeyboardInterrupt:
         return 130
 

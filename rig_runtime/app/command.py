@@ -10,9 +10,13 @@ Command = Callable[[argparse.Namespace], int]
 COMMANDS: dict[str, tuple[Command, Callable[[argparse.ArgumentParser], None], str]] = {}
 
 
-def command(name: str, help: str):
-    """Register a subcommand: ``fn(args) -> exit code``; its arguments come from :func:`arg`."""
+def command(name: str, help: str, stops: bool = False):
+    """Register a subcommand: ``fn(args) -> exit code``; its arguments come from :func:`arg`.
+    ``stops``: SIGINT/SIGTERM/SIGHUP request a clean stop (``args.stops``, a
+    :class:`~rig_runtime.app.signals.StopSignals` installed before the command starts)
+    instead of ending the process."""
     def deco(fn):
+        fn.handles_stops = stops
         def add(p: argparse.ArgumentParser) -> None:
             for a, kw in getattr(fn, "_args", []):
                 p.add_argument(*a, **kw)

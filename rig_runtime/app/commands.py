@@ -23,6 +23,8 @@ def _print_summary(summary: dict, as_json: bool) -> None:
         print(json.dumps(clean(summary)))
         return
     t = summary["timing"]
+    if summary.get("stopped_by"):
+        print(f"stopped by {summary['stopped_by']} (operator stop: current ramped to zero, power stages off)")
     print(f"final state: {summary['final_state']}   cycles: {summary['cycles']}   "
           f"max |u|: {summary['max_abs_current_A']:.3f} A   log: {summary['log']}")
     for f in summary["faults"]:
@@ -41,7 +43,7 @@ def _print_summary(summary: dict, as_json: bool) -> None:
                   f"steady-state error {f(s['steady_state_error_mm'], '+.4f')} mm")
 
 
-@command("dry-run", "run the controller against the simulated plant (lockstep by default)")
+@command("dry-run", "run the controller against the simulated plant (lockstep by default)", stops=True)
 @arg("--config", help="config file (default: configs/sim.yaml)")
 @arg("--scenario", default="single-step", help="scenario name in configs/scenarios or a path (default: single-step)")
 @arg("--realtime", action="store_true", help="real-time clock; the plant runs in a separate process")
@@ -61,11 +63,11 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
         from ..metrics import steps_from_log
         from .realtime_dryrun import run_realtime_dry_run
         summary, code = run_realtime_dry_run(cfg, scenario, log, seed=args.seed, duration_s=args.duration,
-                                             status=sys.stderr.isatty() and not args.json)
+                                             status=sys.stderr.isatty() and not args.json, stops=args.stops)
         summary["steps"] = steps_from_log(log, scenario, cfg.controller.h)
     else:
         from .dryrun import run_lockstep
-        summary, code = run_lockstep(cfg, scenario, log, seed=args.seed, duration_s=args.duration)
+        summary, code = run_lockstep(cfg, scenario, log, seed=args.seed, duration_s=args.duration, stops=args.stops)
     if args.report:
         from .report import write_report
         summary["report"] = [str(p) for p in write_report(log, args.report, scenario, summary)]
@@ -73,7 +75,7 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
     return code
 
 
-@command("run", "run the controller on the rig (hardware devices from the config)")
+@command("run", "run the controller on the rig (hardware devices from the config)", stops=True)
 @arg("--config", default=None, help="config file (default: configs/rig.yaml)")
 @arg("--scenario", help="reference profile: scenario name or path (default: hold y_ref = 0)")
 @arg("--duration", type=float, help="seconds of RUNNING (default: the scenario's, else until SIGINT/SIGTERM)")
@@ -96,7 +98,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     clock = RealtimeClock(cfg.realtime.spin_us * 1e-6)
     summary, code, _ = execute(cfg, devices, clock, scenario=scenario, duration_s=args.duration, log_path=log,
                                status=sys.stderr.isatty() and not args.json,
-                               extra_attrs={"mode": "run", "realtime": "; ".join(rt_report)})
+                               extra_attrs={"mode": "run", "realtime": "; ".join(rt_report)}, stops=args.stops)
     summary["realtime"] = rt_report
     _print_summary(summary, args.json)
     return code

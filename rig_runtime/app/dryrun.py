@@ -18,11 +18,13 @@ from ..devices import RigDevices
 from ..metrics import steps_from_log
 from ..scenario import Scenario
 from .runner import execute
+from .signals import StopSignals
 
 
 def run_lockstep(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *, seed: Optional[int] = None,
                  duration_s: Optional[float] = None,
-                 prepare: Optional[Callable[[SimulatedRig, RigDevices, LockstepClock], None]] = None) -> tuple[dict, int]:
+                 prepare: Optional[Callable[[SimulatedRig, RigDevices, LockstepClock], None]] = None,
+                 stops: Optional[StopSignals] = None) -> tuple[dict, int]:
     """Run ``scenario`` against the simulated plant; returns (summary, exit code).
 
     ``prepare(sim, devices, clock)`` runs before the devices are configured (tests use it
@@ -37,7 +39,7 @@ def run_lockstep(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *
         summary, code, _ = execute(
             cfg, devices, clock, scenario=scenario, duration_s=duration_s, log_path=log_path,
             status=False, extra_attrs={"mode": "dry-run lockstep", "seed": sim.seed},
-            configure_context=lambda: sim.drives.serving(0.0))
+            configure_context=lambda: sim.drives.serving(0.0), stops=stops)
         summary["sim_time_s"] = clock.now()
         summary["seed"] = sim.seed
     finally:

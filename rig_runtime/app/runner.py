@@ -11,7 +11,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
-import signal
+import os
 import sys
 from pathlib import Path
 from typing import Optional
@@ -23,13 +23,15 @@ from ..errors import DeviceInitError
 from ..loop import ControlLoop
 from ..recorder import Recorder
 from ..scenario import Reference, Scenario, open_loop_input
+from .signals import StopSignals
 
 EXIT_OK, EXIT_CRASH, EXIT_SETUP, EXIT_FAULT = 0, 1, 2, 3
 
 
 def default_log_path(prefix: str) -> Path:
-    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-    return Path("logs") / f"{prefix}-{stamp}.h5"
+    """``logs/PREFIX-YYYYmmdd-HHMMSS-mmm-PID.h5``: unique across concurrent runs."""
+    now = _dt.datetime.now()
+    return Path("logs") / f"{prefix}-{now:%Y%m%d-%H%M%S}-{now.microsecond // 1000:03d}-{os.getpid()}.h5"
 
 
 class StatusLine:
@@ -52,52 +54,55 @@ class StatusLine:
 
 def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenario], duration_s: Optional[float],
             log_path: Path, status: bool, extra_attrs: dict | None = None, arm_timeout_s: float = 2.0,
-            configure_context=None) -> tuple[dict, int, ControlLoop | None]:
-    """Run one session; returns (summary, exit code, loop). In this order: signal handlers,
-    the loop and the recorder, ``devices.configure()`` (no power; inside
-    ``configure_context()`` if given), the loop (the supervisor's ARM activates the power
-    stages), then devices and recorder closed on every path."""
+            configure_context=None, stops: StopSignals | None = None) -> tuple[dict, int, ControlLoop | None]:
+    """Run one session; returns (summary, exit code, loop). In this order: the loop and the
+    recorder, ``devices.configure()`` (no power; inside ``configure_context()`` if given),
+    the loop (the supervisor's ARM activates the power stages), then devices and recorder
+    closed on every path. ``stops``: the command's installed :class:`StopSignals` (a stop
+    request before RUNNING raises :class:`Interrupted` after the clean stop)."""
     reference = Reference(scenario.reference) if scenario else (lambda t: 0.0)
     open_loop = (scenario.open_loop.carrier, open_loop_input(scenario.open_loop)) if scenario and scenario.open_loop else None
     duration = duration_s if duration_s is not None else (scenario.duration_s if scenario else math.inf)
+    stops = stops if stops is not None else StopSignals()
     log_path = Path(log_path)
     log_path.parent.mkdir(parents=True, exist_ok=True)
     loop = ControlLoop(cfg, devices, clock, reference=reference, open_loop=open_loop)
+    stops.on_stop(lambda: setattr(loop, "stop_requested", True))
     rec = None
-    old_handlers = {}
-
-    def on_signal(signum, frame):
-        loop.stop_requested = True
-    for s in (signal.SIGINT, signal.SIGTERM):
-        try:
-            old_handlers[s] = signal.signal(s, on_signal)
-        except ValueError:   # not the main thread
-            pass
+    result = None
+    phase = "before the log was opened"
     try:
-        attrs = {"config": json.dumps(schema.to_dict(cfg)), "software_version": __version__,
-                 "start_time": _dt.datetime.now(_dt.timezone.utc).isoformat(), "h": cfg.controller.h,
-                 "config_source": cfg.source, "scenario": scenario.name if scenario else "",
-                 "scenario_source": scenario.source if scenario else ""}
-        attrs.update(extra_attrs or {})
-        rec = Recorder(log_path, loop.columns, attrs=attrs, buffer_cycles=cfg.recorder.buffer_cycles,
-                       flush_s=cfg.recorder.flush_s)
-        rec.open()
-        loop.recorder = rec
-        if configure_context is not None:
-            with configure_context():
+        if not stops.requested:
+            attrs = {"config": json.dumps(schema.to_dict(cfg)), "software_version": __version__,
+                     "start_time": _dt.datetime.now(_dt.timezone.utc).isoformat(), "h": cfg.controller.h,
+                     "config_source": cfg.source, "scenario": scenario.name if scenario else "",
+                     "scenario_source": scenario.source if scenario else ""}
+            attrs.update(extra_attrs or {})
+            rec = Recorder(log_path, loop.columns, attrs=attrs, buffer_cycles=cfg.recorder.buffer_cycles,
+                           flush_s=cfg.recorder.flush_s)
+            rec.open()
+            loop.recorder = rec
+            phase = "while configuring the devices"
+        if not stops.requested:
+            if configure_context is not None:
+                with configure_context():
+                    devices.configure()
+            else:
                 devices.configure()
-        else:
-            devices.configure()
-        result = loop.run(duration, arm_timeout_s=arm_timeout_s, status=StatusLine() if status else None)
+            phase = "during warm-up"
+        if not stops.requested:
+            result = loop.run(duration, arm_timeout_s=arm_timeout_s, status=StatusLine() if status else None)
     finally:
         devices.close()
         if rec is not None:
             rec.close()
-        for s, hnd in old_handlers.items():
-            signal.signal(s, hnd)
         if status:
             sys.stderr.write("\n")
-    if math.isnan(result.t_start):
+    if result is None or math.isnan(result.t_start):
+        if stops.requested:
+            what = "power stages disabled" if loop.supervisor.ever_armed else "power stages never enabled"
+            raise stops.interrupted(f"before RUNNING ({phase if result is None else 'while arming'}): {what}"
+                                    + (f", log closed: {log_path}" if rec is not None else ", no log written"))
         raise DeviceInitError("arming", "not every device is ready: " + "; ".join(result.arm_blockers[:4]))
     summary = {
         "final_state": result.final_state,
@@ -111,5 +116,7 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
         "run_started_t": result.t_start,
         "wall_time_s": result.wall_time_s,
     }
+    if stops.requested:
+        summary["stopped_by"] = stops.name
     code = EXIT_FAULT if result.final_state == "FAULT" else EXIT_OK
     return summary, code, loop
