@@ -29,7 +29,7 @@ from .cia402 import (  # the codec
     NMT_OPERATIONAL, NMT_STATE_NAMES, CW_ENABLE_OPERATION, CW_DISABLE_VOLTAGE, CW_QUICK_STOP, CW_FAULT_RESET,
     CW_FAULT_RESET_BIT, OPERATION_ENABLED, UNKNOWN, INT16_MAX, INT32_MIN,
     INT32_MAX, RPDO1, TPDO1, EMCY, node_cob_id, amps_to_permille,
-    nmt_frame, emcy_text, state_of, next_controlword, startup_sdo_writes,
+    nmt_frame, emcy_text, state_of, next_controlword, startup_sdo_writes, SAFETY_OBJECTS,
     FAULT_STATES,
 )
 
@@ -359,8 +359,15 @@ class DriveBus(Driver):
         device_type = self._sdo_read(node, d, 0x1000)
         if device_type & 0xFFFF != DEVICE_TYPE_PROFILE:
             raise DeviceInitError(self._device(d), f"not a CiA 402 drive (device type 0x{device_type:08X})")
-        for index, sub, value in startup_sdo_writes(d.cfg, self.runtime_node_id, self.consumer_time_ms):
+        writes = startup_sdo_writes(d.cfg, self.runtime_node_id, self.consumer_time_ms)
+        for index, sub, value in writes:
             self._sdo_write(node, d, index, sub, value)
+        wrote = {(i, s): v for i, s, v in writes}
+        for index, sub in SAFETY_OBJECTS:       # the drive must stop by itself if the runtime dies
+            got = self._sdo_read(node, d, index, sub)
+            if got != wrote[index, sub]:
+                raise DeviceInitError(self._device(d), f"0x{index:04X}:{sub} reads 0x{got:X} after writing "
+                                      f"0x{wrote[index, sub]:X}: the drive did not take its safety setting")
         self._wait_for(node, d, 0x6061, MODE_CST, "mode of operation display")
         d.max_permille = min(self._sdo_read(node, d, 0x6072), INT16_MAX)
         log.info("%s configured (rated %.3f A, max torque %d per mille)", self._device(d),
@@ -391,8 +398,8 @@ class DriveBus(Driver):
         switch off their heartbeat consumers (a clean stop must not leave every drive
         faulting on the runtime's missing heartbeat), then release the bus (ours only)."""
         try:
+            self._consumers_off(self._last_now)     # first: a clean stop must not look like a dead runtime
             self._safe_stop(self._last_now)
-            self._consumers_off(self._last_now)
         finally:
             self._release_bus()
             self._enabled = False

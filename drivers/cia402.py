@@ -46,7 +46,8 @@ __all__ = [
     "decode_heartbeat", "consumer_heartbeat_entry", "emcy_frame", "decode_emcy", "emcy_text",
     "state_of", "controlword_command", "next_controlword", "drive_transition",
     "startup_sdo_writes",
-    "FAULT_STATES",
+    "FAULT_STATES", "ABORT_NO_ACTION", "ABORT_FAULT", "ABORT_DISABLE_VOLTAGE", "ABORT_QUICK_STOP",
+    "QUICK_STOP_TO_DISABLED", "SAFETY_OBJECTS",
 ]
 
 # --------------------------------------------------------------------------- constants
@@ -179,6 +180,13 @@ TPDO1_MAPPING = ((0x6041, 0, 16), (0x606C, 0, 32), (0x6077, 0, 16))
 RPDO1_TRANSMISSION_TYPE = 0xFF      # asynchronous: the target torque acts on reception
 TPDO1_TRANSMISSION_TYPE = 1         # synchronous: sampled and sent on every SYNC
 PDO_COB_ID_INVALID = 0x80000000     # bit 31 of a PDO COB-ID: PDO disabled
+
+# 0x6007 abort connection option code (CiA 402-2): the drive's reaction to a lost
+# connection (heartbeat consumer timeout, bus-off, NMT leaving OPERATIONAL)
+ABORT_NO_ACTION, ABORT_FAULT, ABORT_DISABLE_VOLTAGE, ABORT_QUICK_STOP = 0, 1, 2, 3
+# 0x605A quick stop option code: 1/2 = slow-down/quick-stop ramp, then SWITCH ON DISABLED;
+# 5/6 = the same ramps, then stay in QUICK STOP ACTIVE (0 = disable drive function at once)
+QUICK_STOP_TO_DISABLED = 2
 
 
 # --------------------------------------------------------------------------- codec
@@ -408,5 +416,12 @@ def startup_sdo_writes(drive: Drive, consumer_node_id: int, consumer_time_ms: in
         (0x1800, 1, tpdo_id),
         (0x1016, 1, consumer_heartbeat_entry(consumer_node_id, consumer_time_ms)),
         (0x1017, 0, drive.heartbeat_ms),
+        (0x6007, 0, ABORT_QUICK_STOP),          # heartbeat loss / bus-off / NMT stop: quick stop
+        (0x605A, 0, QUICK_STOP_TO_DISABLED),    # quick stop ramp, then SWITCH ON DISABLED
     ]
     return tuple(writes)
+
+
+# the drive's own safety settings, read back after the start-up writes (configure refuses a
+# drive that did not take one: it would not stop by itself if the runtime died)
+SAFETY_OBJECTS = ((0x1016, 1), (0x6007, 0), (0x605A, 0))

@@ -19,9 +19,14 @@ Behaviour a real converter has and this one models (docs/protocols.md, section 2
   amperes from per-mille via the *drive's* 0x6075 (the value the runtime wrote).
 * Watchdog: once armed by the first SYNC/RPDO in OPERATIONAL, no SYNC or no RPDO1 for longer
   than ``cfg.watchdog_ms`` while the power stage is on -> FAULT, EMCY 0x8250, zero current.
-* Heartbeat consumer: armed by the first heartbeat of the configured producer; silence for
-  longer than the consumer time -> FAULT, EMCY 0x8130, zero current (CiA 301 heartbeat consumer).
-* Leaving NMT OPERATIONAL with the power stage on -> disable voltage (0x6007 = 2).
+* Heartbeat consumer: runs from its configuration (the write of 0x1016:1 starts the clock,
+  not the producer's first heartbeat, so a runtime that dies right after configuring is
+  noticed too); silence for longer than the consumer time -> EMCY 0x8130 and the reaction
+  0x6007 asks for; 0x1016:1 = 0 switches the consumer off (a clean stop).
+* Connection lost (heartbeat consumer timeout, leaving NMT OPERATIONAL with the power stage
+  on) -> 0x6007: 0 nothing, 1 FAULT, 2 disable voltage, 3 quick stop; a quick stop ends per
+  0x605A (1, 2: SWITCH ON DISABLED; 5, 6: stays QUICK STOP ACTIVE; the ramp is instantaneous
+  here), zero current either way.
 * Fault reset (rising edge of controlword bit 7) -> SWITCH ON DISABLED and EMCY 0x0000,
   unless an injected fault persists.
 
@@ -46,6 +51,7 @@ import canopen
 from canopen.nmt import NmtSlave
 
 from drivers.cia402 import (
+    ABORT_FAULT, ABORT_NO_ACTION, ABORT_QUICK_STOP,
     COB_HEARTBEAT, COB_NMT, COB_SDO_RX, COB_SDO_TX, COB_SYNC, CW_DISABLE_VOLTAGE, EMCY_HEARTBEAT,
     EMCY_OVERCURRENT, EMCY_PDO_LENGTH, EMCY_RPDO_TIMEOUT, FAULT, INT32_MAX, MODE_CST,
     NMT_INITIALISING, NMT_OPERATIONAL, NMT_PRE_OPERATIONAL, NMT_STATE_NAMES, OPERATION_ENABLED,
@@ -172,6 +178,10 @@ class VirtualDrive:
         entry = self._od(0x1016, 1)
         self.consumer_node = (entry >> 16) & 0x7F
         self.consumer_s = (entry & 0xFFFF) / 1000.0
+        if self.consumer_s == 0:
+            self.consumer_last = None           # consumer switched off
+        self.abort_code = self._od(0x6007)
+        self.qs_option = self._od(0x605A)
         # derived for the cyclic path
         self._codec_rpdo = self.rpdo_map == _CODEC_RPDO_MAP
         self._codec_tpdo = self.tpdo_map == _CODEC_TPDO_MAP
@@ -235,6 +245,9 @@ class VirtualDrive:
                 self.target = self.pending
         else:
             self._cfg_dirty = True
+            if index == 0x1016:                 # the consumer runs from its configuration
+                self._load_config()
+                self.consumer_last = self.owner._now if self.consumer_s > 0 else None
 
     def _set_heartbeat_period(self, ms: int) -> None:
         self.hb_period_s = ms / 1000.0
@@ -262,6 +275,24 @@ class VirtualDrive:
         self.state = FAULT
         self.error_code = code
         self._emcy(code, _ERROR_REGISTER.get(code >> 8, 0x01))
+
+    def connection_lost(self, emcy_code: int | None) -> None:
+        """The reaction 0x6007 asks for (CiA 402-2); ``emcy_code`` is reported in any case."""
+        if self._cfg_dirty:
+            self._load_config()
+        code = self.abort_code
+        if code == ABORT_FAULT:
+            self.fault(emcy_code if emcy_code is not None else EMCY_HEARTBEAT)
+            return
+        if emcy_code is not None:
+            self.error_code = emcy_code
+            self._emcy(emcy_code, _ERROR_REGISTER.get(emcy_code >> 8, 0x01))
+        if self.state not in _POWER_ON or code == ABORT_NO_ACTION:
+            return
+        if code == ABORT_QUICK_STOP and self.qs_option in (5, 6):
+            self.state = QUICK_STOP_ACTIVE          # ramped to zero, stays there
+        else:
+            self.state = SWITCH_ON_DISABLED         # disable voltage, or a quick stop that ends disabled
 
     def _emcy(self, code: int, register: int) -> None:
         self.counters["emcy"] += 1
@@ -336,7 +367,7 @@ class VirtualDrive:
             self.wd_armed = False               # armed again by the first SYNC/RPDO
             self.sync_count = 0
         elif before == NMT_OPERATIONAL and self.state in _POWER_ON:
-            self.state = SWITCH_ON_DISABLED     # abort connection option 2: disable voltage
+            self.connection_lost(None)
         if after == NMT_INITIALISING:
             self._reset(data[0])
 
@@ -408,7 +439,7 @@ class VirtualDrive:
         if last is not None and t - last > self.consumer_s:
             self.consumer_last = None                   # re-armed by the next heartbeat
             self.counters["heartbeat_events"] += 1
-            self.fault(EMCY_HEARTBEAT)
+            self.connection_lost(EMCY_HEARTBEAT)
         if self.wd_armed and self.state in _POWER_ON and self.node.nmt._state == NMT_OPERATIONAL:
             ws, wr = self.wd_sync, self.wd_rpdo
             if t - (ws if ws < wr else wr) > self.owner.watchdog_s:
