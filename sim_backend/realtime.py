@@ -16,7 +16,7 @@ from rig_runtime.devices import RigDevices
 from rig_runtime.runner import execute
 from rig_runtime.scenario import Scenario
 
-from .process import start_sim_process
+from .launcher import start_sim_process
 
 
 def run_realtime_dry_run(cfg: RigConfig, scenario: Scenario, args: argparse.Namespace, log: Path) -> tuple[dict, int]:

@@ -30,7 +30,8 @@ import pytest
 
 from rig_runtime import config, schema
 from rig_runtime.export import read_log
-from sim_backend.process import Histogram, RealtimeSim, start_sim_process
+from sim_backend.launcher import start_sim_process
+from sim_backend.realtime_sim import RealtimeSim
 from sim_backend.slcan import SlcanAdapter, encode_frame, parse_frame
 
 WHEELS = ("fl", "fr", "rl", "rr")
@@ -227,24 +228,6 @@ def test_slcan_direct_mode_answers_in_the_reading_thread():
         client.shutdown()
         adapter.close()
     assert adapter.device_bus is not None
-
-
-def test_histogram_percentiles():
-    h = Histogram(bin_s=1e-5)
-    xs = np.random.default_rng(1).exponential(0.3e-3, 20000)
-    for x in xs:
-        h.add(float(x))
-    d = h.summary(1e3)
-    assert d["n"] == xs.size and d["max"] == pytest.approx(xs.max() * 1e3)
-    for q, key in ((50, "p50"), (99, "p99"), (99.9, "p999")):
-        assert d[key] == pytest.approx(np.percentile(xs, q) * 1e3, abs=0.011)   # 10 µs bins
-    w = Histogram(window_s=1.0)
-    w.add(5.0, 0.0)
-    w.add(0.001, 1.5)                       # a new window: the first one still counts
-    assert w.summary()["n"] == 2
-    w.add(0.001, 2.6)                       # and now it is gone
-    assert w.summary()["n"] == 2 and w.summary()["max"] == pytest.approx(0.001)
-    assert Histogram().summary() == {"n": 0, "p50": None, "p99": None, "p999": None, "max": None}
 
 
 @pytest.mark.parametrize("mode", ["process", "thread"])
@@ -574,7 +557,7 @@ def test_sigkill_converter_watchdog_cuts_current(sim, tmp_path):
 @pytest.mark.slow
 def test_scenario_faults_act_in_scenario_time(tmp_path):
     """`rig sim --scenario fault-dropout`: laser b_f falls silent 3 s into the session
-    (scenario time starts at the runtime's first SYNC, a few cycles before RUNNING)."""
+    (scenario time starts when the runtime has enabled every drive, about when it goes RUNNING)."""
     with start_sim_process(scenario="fault-dropout", workdir=tmp_path / "sim",
                            extra_args=["--rt-priority", "50", "--runtime-rt-priority", "80"]) as sp:
         def attempt(i):
@@ -600,5 +583,5 @@ def test_scenario_faults_act_in_scenario_time(tmp_path):
     assert (f["device"], f["check"]) == ("b_f", "stale"), summary["faults"]
     t_fault = f["t"] - summary["run_started_t"]               # RUNNING time; the session began earlier
     lead = summary["run_started_t"] - st["session"]["t0"]
-    assert 0.0 < lead < 0.5, lead
+    assert -0.1 < lead < 0.5, lead
     assert 3.0 - lead <= t_fault <= 3.0 - lead + 0.1, (t_fault, lead)
