@@ -36,7 +36,7 @@ def _cpus(text: str) -> list[int]:
                 "(lasers on ptys, SLCAN adapter on a pty, Modbus TCP F/T sensors)")
 @arg("--config", help="config file of the simulated rig (default: configs/sim.yaml)")
 @arg("--scenario", help="scenario name or path whose disturbances and faults the plant applies "
-                        "(scenario time starts at the runtime's first SYNC)")
+                        "(scenario time starts when the runtime has enabled every drive)")
 @arg("--seed", type=int, help="random seed of the simulated sensors (default: sim.seed)")
 @arg("--write-config", metavar="PATH", help="write a rig config for `rig run --config PATH` pointing at the ports")
 @arg("--status-file", metavar="PATH", help="rewrite a JSON status (applied currents, drive states, plant, timing) "
