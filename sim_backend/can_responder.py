@@ -75,7 +75,8 @@ class CanResponder(_SharedView):
     """The CAN side of ``rig sim``: the emulated SLCAN adapter (direct mode) with the virtual
     drives behind it, served by ONE thread — a SYNC is answered by the thread that read it,
     in one write, with no hand-over between threads. Also its share of the session
-    bookkeeping: SYNC/NMT events for scenario time, SYNC → TPDO1 latency, SYNC gaps.
+    bookkeeping: session events for scenario time (every drive enabled; NMT stop, SYNC
+    silence), SYNC → TPDO1 latency, SYNC gaps.
 
     Runs either inside the ``rig sim`` process (``attach(sim.drives)``; the adapter's own
     thread) or alone in a child process (:class:`ResponderProcess`, ``python -m
