@@ -4,10 +4,10 @@ device set's per-cycle calls with timers and runs the single-step scenario.
 Per part: the mean per cycle (what the real-time factor pays) and the median per call
 (robust against other processes preempting this one). In the simulator, "virtual
 drives" handles the runtime's frames (the replies wait in an outbox), "frames sent" sends
-the replies; both, the wheel speeds, the F/T work and the runtime's drive and F/T polls
-run while the kernel delivers the laser bytes; what is left of that wait is "wait until
-the laser bytes are delivered", just before the runtime reads the lasers. "advance" is
-the whole simulator step (the parts plus what is not timed separately).
+the replies; both the replies, the wheel speeds and the F/T work run while the kernel
+delivers the laser bytes; what is left of that wait is "wait until the laser bytes are
+delivered", the last part of ``advance``. "advance" is the whole simulator step (the
+parts plus what is not timed separately).
 
     python benchmarks/lockstep_breakdown.py [--duration S]
 """
@@ -58,14 +58,9 @@ def prepare(sim, dev, clock) -> None:
     wrap(sim, "set_wheel_speeds", "sim:   wheel speeds")
     if sim.ft is not None:
         wrap(sim.ft, "set_wrench", "sim:   F/T registers")
-    if dev.ft is not None:
-        wrap(dev.ft, "poll_devices_start", "sim:   F/T Modbus round: requests sent")
-        wrap(dev.ft, "poll_devices_finish", "sim:   F/T Modbus round: replies collected")
-    if sim.ft is not None:
-        wrap(sim.ft, "serve_inline", "sim:   F/T Modbus round: simulated sensors answer")
+        wrap(sim.ft, "answer_pending", "sim:   F/T requests answered")
+    wrap(sim._laser_group, "wait", "sim:   wait until the laser bytes are delivered")
     wrap(dev, "poll", "runtime: devices.poll (all below)")
-    if dev.before_laser_poll is not None:
-        dev.before_laser_poll = timed(dev.before_laser_poll, "runtime:   wait until the laser bytes are delivered")
     for d in dev.lasers:
         wrap(d, "poll", "runtime:   laser polls")
     wrap(dev.drives, "poll", "runtime:   drive bus poll")

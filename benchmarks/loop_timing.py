@@ -34,7 +34,7 @@ from rig_runtime.clock import RealtimeClock, apply_realtime  # noqa: E402
 from rig_runtime.devices import RigDevices  # noqa: E402
 from rig_runtime.app.runner import execute  # noqa: E402
 from rig_runtime.stats import CycleStats  # noqa: E402
-from sim_backend.process import start_sim_process  # noqa: E402
+from sim_backend.launcher import start_sim_process  # noqa: E402
 
 
 def rss_mb() -> float:

@@ -284,7 +284,7 @@ def main() -> int:
         return echo_child(args.sim_fifo or None)
     for name in ("pymodbus", "can", "canopen"):
         logging.getLogger(name).setLevel(logging.CRITICAL)
-    from sim_backend.process import start_sim_process
+    from sim_backend.launcher import start_sim_process
     env = None
     if args.sim_tree:
         env = {**os.environ, "PYTHONPATH": str(Path(args.sim_tree).resolve())}

@@ -59,9 +59,10 @@ class LockstepClock(Clock):
         return self._t
 
     def wait_until(self, t: float) -> float:
+        """``advance(t)`` may return a later release time (a simulated stall); None is ``t``."""
         if t > self._t:
             r = self._advance(t) if self._advance is not None else None
-            self._t = t if r is None or r < t else r
+            self._t = t if r is None else max(t, r)
         return self._t
 
 
@@ -74,17 +75,11 @@ def apply_realtime(rt: Realtime) -> list[str]:
         sys.setswitchinterval(rt.switch_interval_us * 1e-6)
         report.append(f"interpreter switch interval {rt.switch_interval_us:g} us: applied")
     if rt.cpu_affinity:
-        try:
-            os.sched_setaffinity(0, set(rt.cpu_affinity))
-            report.append(f"cpu affinity {sorted(rt.cpu_affinity)}: applied")
-        except (OSError, AttributeError) as e:
-            report.append(f"cpu affinity {sorted(rt.cpu_affinity)}: not applied ({e})")
+        err = set_cpu_affinity(rt.cpu_affinity)
+        report.append(f"cpu affinity {sorted(rt.cpu_affinity)}: " + (f"not applied ({err})" if err else "applied"))
     if rt.sched_fifo_priority is not None:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt.sched_fifo_priority))
-            report.append(f"SCHED_FIFO priority {rt.sched_fifo_priority}: applied")
-        except (OSError, AttributeError) as e:
-            report.append(f"SCHED_FIFO priority {rt.sched_fifo_priority}: not applied ({e})")
+        err = set_sched_fifo(rt.sched_fifo_priority)
+        report.append(f"SCHED_FIFO priority {rt.sched_fifo_priority}: " + (f"not applied ({err})" if err else "applied"))
     if rt.mlockall:
         try:
             import ctypes
@@ -97,6 +92,26 @@ def apply_realtime(rt: Realtime) -> list[str]:
         except OSError as e:
             report.append(f"mlockall: not applied ({e})")
     return report
+
+
+def set_cpu_affinity(cpus) -> str | None:
+    """Run this process on ``cpus`` (threads and processes started later inherit it);
+    None if applied, else why not."""
+    try:
+        os.sched_setaffinity(0, set(cpus))
+        return None
+    except (OSError, AttributeError, ValueError) as e:
+        return str(e)
+
+
+def set_sched_fifo(priority: int) -> str | None:
+    """Run the calling thread SCHED_FIFO at ``priority`` (threads and processes it starts
+    later inherit it); None if applied, else why not."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        return None
+    except (OSError, AttributeError) as e:
+        return str(e)
 
 
 def as_background_thread() -> bool:

@@ -299,6 +299,12 @@ def _read_yaml(path: Path) -> dict[str, Any]:
     return data
 
 
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """One config file's top-level mapping as written (``include`` not followed), read as
+    :func:`load` reads it; errors name the file (``rig sim --write-config`` copies it)."""
+    return _read_yaml(Path(path))
+
+
 def load_sections(path: Path, _seen: tuple[Path, ...] = ()) -> dict[str, tuple[Any, str]]:
     """Read a config file and its includes into ``{section: (value, file)}``."""
     path = path.resolve()

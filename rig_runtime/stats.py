@@ -1,67 +1,136 @@
-"""Cycle timing statistics: release lateness and work time per cycle, deadline misses.
+"""Timing statistics: fixed-size histograms of durations, and the cycle statistics of the loop.
 
-Distributions are kept as fixed-size histograms (0.1 µs bins up to 10 ms; the rare larger
+A distribution is a fixed-size histogram (bins of ``bin_s`` up to ``max_s``; the rare larger
 values are kept exactly), so a run of any length holds the same memory — a ten-minute run
-must not grow the process — and each cycle costs one integer increment per quantity.
-Percentiles are exact to the bin width.
+must not grow the process — and each sample costs one integer increment. Percentiles are
+exact to the bin width (nearest rank, reported as the bin centre, never above the maximum).
+The loop's cycle statistics and ``rig sim``'s status (plant-thread lateness, SYNC → TPDO
+latency, over a sliding window) use the same class.
 """
 
 from __future__ import annotations
 
+import math
 from array import array
+from typing import Any, Optional
 
 import numpy as np
 
-BIN_S = 1e-7                 # histogram resolution: 0.1 µs
-N_BINS = 100_000             # 0 … 10 ms in the histogram; beyond, the values themselves
+BIN_S = 1e-7                 # cycle statistics: 0.1 µs bins …
+N_BINS = 100_000             # … 0 … 10 ms in the histogram; beyond, the values themselves
 
 
-class TimingHistogram:
-    """A distribution of non-negative durations in seconds (negative ones count as 0)."""
+class Histogram:
+    """A distribution of non-negative durations in seconds (negative ones count as 0).
 
-    __slots__ = ("counts", "over", "n", "max", "last")
+    ``window_s`` > 0: only the current and the previous window are counted ("the last
+    ``window_s`` to 2·``window_s``"); ``add`` then needs the time ``t`` of the sample."""
 
-    def __init__(self) -> None:
-        self.counts = array("q", bytes(8 * N_BINS))     # zeroed and touched now, not in the loop
+    __slots__ = ("bin_s", "n_bins", "window_s", "counts", "over", "n", "max", "last",
+                 "_inv", "_prev", "_t_window")
+
+    def __init__(self, bin_s: float = BIN_S, max_s: float = BIN_S * N_BINS, window_s: float = 0.0) -> None:
+        self.bin_s = bin_s
+        self._inv = 1.0 / bin_s
+        self.n_bins = int(round(max_s / bin_s))
+        self.window_s = window_s
+        self.clear()
+
+    def clear(self) -> None:
+        """Forget every sample (the memory is allocated and touched now, not while adding)."""
+        self.counts = array("q", bytes(8 * self.n_bins))
         self.over = array("d")
         self.n = 0
         self.max = 0.0
         self.last = 0.0
+        self._prev: Optional[tuple[array, array, int, float]] = None   # the previous window
+        self._t_window = math.nan           # end of the current window
 
-    def add(self, x: float) -> None:
+    def add(self, x: float, t: float = 0.0) -> None:
+        if self.window_s and not t < self._t_window:
+            self._rotate(t)
         self.last = x
         self.n += 1
         if x > self.max:
             self.max = x
-        i = int(x * 1e7) if x > 0.0 else 0
-        if i < N_BINS:
+        i = int(x * self._inv) if x > 0.0 else 0
+        if i < self.n_bins:
             self.counts[i] += 1
         else:
             self.over.append(x)
 
-    def percentile(self, q: float) -> float:
-        """The ``q``-th percentile in seconds (bin centre; 0 when empty)."""
-        if self.n == 0:
-            return 0.0
-        rank = max(1, int(np.ceil(q / 100.0 * self.n)))          # the rank-th smallest value
-        cum = np.cumsum(np.frombuffer(self.counts, dtype=np.int64))
+    def _rotate(self, t: float) -> None:
+        """A new window starts at ``t``; the current one becomes the previous one."""
+        if self._t_window == self._t_window:
+            self._prev = (self.counts, self.over, self.n, self.max)
+            self.counts = array("q", bytes(8 * self.n_bins))
+            self.over = array("d")
+            self.n = 0
+            self.max = 0.0
+        self._t_window = t + self.window_s
+
+    def copy(self) -> "Histogram":
+        h = Histogram.__new__(Histogram)
+        for k in Histogram.__slots__:
+            setattr(h, k, getattr(self, k))
+        h.counts = array("q", self.counts)
+        h.over = array("d", self.over)
+        return h
+
+    def _merged(self) -> tuple[np.ndarray, np.ndarray, int, float]:
+        counts = np.frombuffer(self.counts, dtype=np.int64)
+        over = np.frombuffer(self.over, dtype=float)
+        n, mx = self.n, self.max
+        if self._prev is not None:
+            pc, po, pn, pm = self._prev
+            counts = counts + np.frombuffer(pc, dtype=np.int64)
+            over = np.concatenate([over, np.frombuffer(po, dtype=float)])
+            n, mx = n + pn, max(mx, pm)
+        return counts, over, n, mx
+
+    def percentiles(self, qs: tuple[float, ...]) -> list[float]:
+        """The ``q``-th percentiles (0…100) in seconds (nearest rank; 0 without samples)."""
+        counts, over, n, mx = self._merged()
+        if n == 0:
+            return [0.0] * len(qs)
+        cum = np.cumsum(counts)
         in_hist = int(cum[-1])
-        if rank <= in_hist:
-            i = int(np.searchsorted(cum, rank))
-            return min((i + 0.5) * BIN_S, self.max)
-        return float(np.sort(np.frombuffer(self.over, dtype=float))[rank - in_hist - 1])
+        over_sorted = None
+        out = []
+        for q in qs:
+            rank = max(1, int(np.ceil(q / 100.0 * n)))          # the rank-th smallest value
+            if rank <= in_hist:
+                i = int(np.searchsorted(cum, rank))
+                out.append(min((i + 0.5) * self.bin_s, mx))
+            else:
+                if over_sorted is None:
+                    over_sorted = np.sort(over)
+                out.append(float(over_sorted[rank - in_hist - 1]))
+        return out
+
+    def percentile(self, q: float) -> float:
+        return self.percentiles((q,))[0]
 
     def distribution_us(self) -> dict:
-        return {"p50": self.percentile(50) * 1e6, "p99": self.percentile(99) * 1e6,
-                "p999": self.percentile(99.9) * 1e6, "max": self.max * 1e6}
+        """``{"p50", "p99", "p999", "max"}`` in µs (0 without samples)."""
+        p50, p99, p999 = self.percentiles((50.0, 99.0, 99.9))
+        return {"p50": p50 * 1e6, "p99": p99 * 1e6, "p999": p999 * 1e6, "max": self._merged()[3] * 1e6}
+
+    def summary(self, scale: float = 1.0) -> dict[str, Any]:
+        """``{"n", "p50", "p99", "p999", "max"}`` in seconds × ``scale`` (None without samples)."""
+        _, _, n, mx = self._merged()
+        if not n:
+            return {"n": 0, "p50": None, "p99": None, "p999": None, "max": None}
+        p50, p99, p999 = self.percentiles((50.0, 99.0, 99.9))
+        return {"n": n, "p50": p50 * scale, "p99": p99 * scale, "p999": p999 * scale, "max": mx * scale}
 
 
 class CycleStats:
     """Release lateness and work time of every cycle, deadline misses and overrun bursts."""
 
     def __init__(self) -> None:
-        self.lateness = TimingHistogram()
-        self.work = TimingHistogram()
+        self.lateness = Histogram()
+        self.work = Histogram()
         self.deadline_misses = 0
         self.skipped_periods = 0
         self.consecutive_misses = 0

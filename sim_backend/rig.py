@@ -1,12 +1,27 @@
 """The simulated rig: the plant with a virtual device on the other end of every wire.
 
 Lasers stream frames into pty pairs, the converters are CiA 402 drives on a python-can
-bus, the force–torque sensors sit behind real Modbus TCP servers on 127.0.0.1. In
-lockstep (``advance(t)``, called by the runtime's ``LockstepClock``) the plant is
-integrated to ``t`` with the currents the virtual drives actually apply, then every
-virtual device emits what it would have sent by ``t``. Scenario disturbances act on the
-plant; scenario faults are injected into the virtual devices (or, for ``stall``, into
-the runtime's clock).
+bus, the force–torque sensors sit behind real Modbus TCP servers on 127.0.0.1. The
+runtime reaches the simulated rig only through those transports (``laser_ports``,
+``runtime_bus()``, ``ft_endpoints``) and through its clock,
+``LockstepClock(advance=sim.advance)``: ``advance(t)`` completes every delivery up to
+``t`` before the runtime's release — the drives take the frames the runtime sent, the
+plant is integrated to ``t`` with the currents they apply, every laser's frames up to
+``t`` are readable at its port, the F/T requests the runtime sent are answered, and the
+drives' replies are on the bus. Runs are deterministic for a seed.
+
+Until the first ``advance`` (the runtime's blocking start-up: SDO configuration of the
+drives) the virtual drives answer from a thread at the frozen time ``t`` = 0; from then on
+only inside ``advance``. Scenario time starts when every virtual drive has reached
+OPERATION ENABLED for the first time (the runtime enables the power stages at its ARM):
+disturbances act on the plant, faults are injected into the virtual devices, and a
+``stall`` fault makes ``advance`` return a release time later than ``t`` (the runtime
+sees a starved machine, while the plant and the drives' timers run on). A fault naming a
+device or fault kind the simulated rig does not have is refused when the rig is built.
+
+``RealtimeSim`` (``rig sim``) serves the same rig in real time with :meth:`step`, the
+``set_*`` publishers and :meth:`start_scenario` / :meth:`end_scenario`, with its own CAN
+responder in front of the drives (``drive_bus``).
 """
 
 from __future__ import annotations
@@ -14,15 +29,17 @@ from __future__ import annotations
 import itertools
 import math
 import random
-from typing import Callable, Optional
+from typing import Callable, Optional, Sequence
 
 import can
 
 from drivers.ft300 import Wrench
 from rig_runtime.config import LASER_ROLES, WHEELS, RigConfig
+from rig_runtime.errors import ConfigError
 from rig_runtime.geometry import ideal_readings, pose_from_carriers
 from rig_runtime.scenario import Scenario
 
+from . import virtual_drive, virtual_ft, virtual_laser
 from .lockstep_bus import LockstepBus
 from .plant import Plant
 from .simconfig import sim_config
@@ -31,6 +48,7 @@ from .virtual_ft import VirtualFTServer
 from .virtual_laser import LaserGroup, VirtualLaser
 
 _channel_ids = itertools.count()
+_NO_FORCES = (0.0, 0.0, 0.0, 0.0)
 
 
 class SimulatedRig:
@@ -51,8 +69,11 @@ class SimulatedRig:
         self.plant.reset(y_r=y0)   # psi at rest (K·0 + psi_off), z = psi
         self.t = 0.0
         self._drive_bus = drive_bus
-        self.defer_laser_delivery = False   # advance() waits for the laser bytes itself
-        self.ft_driver = None
+        self._check_scenario()
+        self.t_run0 = math.nan                  # scenario time 0 (simulated time); NaN: not started
+        self._events = self._schedule()
+        self._active_faults: set[int] = set()
+        self._stalls_done: set[int] = set()
         self._next_ft = 0.0
         self._closers: list[Callable[[], None]] = []
         try:
@@ -60,9 +81,9 @@ class SimulatedRig:
         except Exception:
             self.close()
             raise
-        self.t_run0 = math.nan
-        self._events = self._schedule()
-        self._stall_done: set[int] = set()
+        self._serving_start_up = drive_bus is None
+        if self._serving_start_up:              # the runtime's blocking start-up, before the first advance
+            self.drives.start_realtime(time_fn=lambda: self.t)
 
     # ------------------------------------------------------------------ devices
     def _open_devices(self) -> None:
@@ -95,14 +116,20 @@ class SimulatedRig:
         if self.ft is not None:
             self._closers.append(self.ft.close)
         self.ft_period = 1.0 / (sc.ft_rate_hz or cfg.devices.ft.poll_hz)
-        self._publish(0.0)
+        self.set_laser_distances()
+        self._laser_group.emit(0.0)
+        self.set_wheel_speeds()
+        self._set_wrenches_when_due(0.0)
+        self._laser_group.wait()
 
     @property
     def laser_ports(self) -> dict[str, str]:
+        """Laser role -> the pty the runtime reads (``devices.lasers[].port``)."""
         return {r: v.port_name for r, v in self.lasers.items()}
 
     @property
     def ft_endpoints(self) -> dict[str, tuple[str, int]]:
+        """F/T sensor name -> (host, port) of its Modbus TCP server on 127.0.0.1."""
         return dict(self.ft.endpoints) if self.ft is not None else {}
 
     def runtime_bus(self) -> can.BusABC:
@@ -117,12 +144,29 @@ class SimulatedRig:
             return LockstepBus(channel=self.can_channel)
         return can.Bus(interface="virtual", channel=self.can_channel, receive_own_messages=False)
 
-    def attach_ft_driver(self, driver) -> None:
-        """Lockstep: the runtime's F/T driver is polled by the simulated clock at the
-        sensors' rate instead of by its own thread, so runs are deterministic."""
-        self.ft_driver = driver
-
     # ------------------------------------------------------------------ scenario
+    def _check_scenario(self) -> None:
+        """Every fault names a device of this rig and a fault that device can have."""
+        if self.scenario is None:
+            return
+        dev = self.cfg.devices
+        kinds: dict[str, Sequence[str]] = {}
+        kinds.update({lc.role: virtual_laser.FAULT_KINDS for lc in dev.lasers})
+        kinds.update({d.wheel: tuple(virtual_drive.FAULT_KINDS) for d in dev.can.drives})
+        kinds.update({s.name: virtual_ft.FAULT_KINDS for s in dev.ft.sensors})
+        where = self.scenario.source or f"scenario {self.scenario.name!r}"
+        for i, f in enumerate(self.scenario.faults):
+            if f.kind == "stall":
+                continue
+            if f.device not in kinds:
+                raise ConfigError(where, f"faults[{i}].device",
+                                  f"a device of the simulated rig for fault {f.kind!r} (one of "
+                                  f"{', '.join(kinds)})", f.device)
+            if f.kind not in kinds[f.device]:
+                raise ConfigError(where, f"faults[{i}].kind",
+                                  f"a fault device {f.device!r} can have (one of {', '.join(kinds[f.device])})",
+                                  f.kind)
+
     def _schedule(self) -> list:
         """(t_start, t_end, kind, item) for every disturbance and fault, scenario time."""
         ev = []
@@ -133,21 +177,22 @@ class SimulatedRig:
                 ev.append((f.t, f.t + f.duration_s, "fault", f))
         return ev
 
-    def on_running(self, t: float) -> None:
-        """The runtime entered RUNNING at ``t``: scenario time starts here."""
-        self.t_run0 = t
-        self._active_faults: set[int] = set()
+    @property
+    def scenario_started(self) -> bool:
+        return not math.isnan(self.t_run0)
 
-    def in_cycle(self, clock) -> Callable[[float, float], None]:
-        """A hook for the loop that starves the runtime (``stall`` faults) on ``clock``."""
-        def hook(t: float, tr: float) -> None:
-            if self.scenario is None or math.isnan(self.t_run0):
-                return
-            for i, f in enumerate(self.scenario.faults):
-                if f.kind == "stall" and i not in self._stall_done and tr >= f.t:
-                    self._stall_done.add(i)
-                    clock.spend(f.duration_s)
-        return hook
+    def start_scenario(self, t: float) -> None:
+        """Scenario time 0 is simulated time ``t`` (lockstep: called by :meth:`advance`)."""
+        self.end_scenario()
+        self.t_run0 = t
+
+    def end_scenario(self) -> None:
+        """Clear the active faults, stop disturbances and scenario time (``rig sim``: a
+        session ended); stalls that happened stay done."""
+        for i in sorted(self._active_faults):
+            self._inject(self._events[i][3], False)
+        self._active_faults.clear()
+        self.t_run0 = math.nan
 
     def _forces(self, tau: float) -> tuple[float, float, float, float]:
         Ff = Fr = Mf = Mr = 0.0
@@ -179,85 +224,97 @@ class SimulatedRig:
                 return vl.clear(f.kind)
             kw = {"corrupt": {"p": f.fraction}, "offset": {"amount_m": f.amount}}.get(f.kind, {})
             return vl.inject(f.kind, **kw)
-        if dev in WHEELS:
+        if dev in self.drives.drives:
             if not on:
-                return self.drives.clear(f.kind)
+                return self.drives.clear(f.kind, wheel=dev)
             kw = {"bus_error": {"fraction": f.fraction}, "corrupt": {"fraction": f.fraction},
                   "offset": {"amount": f.amount}}.get(f.kind, {})
             return self.drives.inject(f.kind, wheel=dev, **kw)
-        if self.ft is not None and dev in self.ft.endpoints:
-            if not on:
-                return self.ft.clear(dev, f.kind)
-            kw = {"offset": {"fy": f.amount}}.get(f.kind, {})
-            return self.ft.inject(dev, f.kind, **kw)
-        raise ValueError(f"scenario fault {f.kind!r}: unknown device {dev!r}")
+        if not on:
+            return self.ft.clear(dev, f.kind)
+        kw = {"offset": {"fy": f.amount}}.get(f.kind, {})
+        return self.ft.inject(dev, f.kind, **kw)
+
+    def _stall_s(self, t: float) -> float:
+        """How long the runtime is starved at its release ``t``: the scenario's ``stall``
+        faults whose time has come, each once."""
+        if self.scenario is None or not self.scenario_started:
+            return 0.0
+        tau = t - self.t_run0
+        d = 0.0
+        for i, f in enumerate(self.scenario.faults):
+            if f.kind == "stall" and i not in self._stalls_done and tau >= f.t:
+                self._stalls_done.add(i)
+                d += f.duration_s
+        return d
+
+    # ------------------------------------------------------------------ the plant
+    def step(self, dt: float, currents: Sequence[float]) -> None:
+        """One plant step of ``dt`` from ``self.t`` with the wheels' applied ``currents``
+        (A, ``WHEELS`` order): scenario faults switched and forces applied at the step's
+        start (scenario time), then ``self.t += dt``. The one plant step of both
+        :meth:`advance` and ``RealtimeSim``."""
+        if self.scenario_started:
+            tau = self.t - self.t_run0
+            self._update_faults(tau)
+            forces = self._forces(tau)
+        else:
+            forces = _NO_FORCES
+        fl, fr, rl, rr = currents
+        self.plant.step(dt, fl - fr, rl - rr, *forces)
+        self.t += dt
+
+    def applied_currents(self) -> list[float]:
+        """What the virtual drives' power stages apply now, A, ``WHEELS`` order."""
+        wd = self._wheel_drives
+        if wd is not None:
+            return [d.current_A() for d in wd]
+        return [self.drives.current_A(w) for w in WHEELS]
 
     # ------------------------------------------------------------------ lockstep
-    def advance(self, t: float) -> None:
-        """Integrate the plant to ``t`` and let every virtual device emit up to ``t``.
+    def advance(self, t: float) -> Optional[float]:
+        """Complete every delivery up to ``t``; returns a later release time while a
+        ``stall`` fault starves the runtime, else None.
 
-        Ordered for the wall clock: the drives' frames wait in their outbox while the plant
-        steps and the laser frames are written, then go out while the kernel delivers the
-        pty bytes; the wait for delivery (the runtime must see all of them) comes last —
-        or, with ``defer_laser_delivery``, in :meth:`await_laser_delivery`."""
-        h, plant, drives = self.h, self.plant, self.drives
-        self._laser_group.wait()        # a deferred delivery nobody awaited (no-op otherwise)
+        The drives take the SYNC/RPDOs the runtime sent last cycle (their replies wait in
+        an outbox); the plant is integrated to the release time in steps of h with the
+        currents they apply (their timers run between steps); every laser's frames up to
+        then are written into its pty; the replies go onto the bus; wheel speeds and, when
+        due, F/T registers are set and the F/T requests pending are answered; the call
+        returns once the kernel delivered every laser byte."""
+        h, drives = self.h, self.drives
+        if self._serving_start_up:
+            self._serving_start_up = False
+            drives.stop()                   # from now on the drives act only in here
         drives.hold()
         try:
-            drives.service(self.t)      # SYNC/RPDOs the runtime sent last cycle; TPDOs back
-            running = not math.isnan(self.t_run0)
-            while self.t < t - 1e-12:
-                dt = t - self.t
-                if dt >= h - 1e-9:       # float residue of t0 + k h must not change the step size
+            drives.service(self.t)          # SYNC/RPDOs the runtime sent last cycle; TPDOs back
+            if not self.scenario_started and drives.operation_enabled():
+                self.start_scenario(self.t)
+            t_rel = t + self._stall_s(t)
+            while self.t < t_rel - 1e-12:
+                dt = t_rel - self.t
+                if dt >= h - 1e-9:          # float residue of t0 + k h must not change the step size
                     dt = h
-                tau = self.t - self.t_run0 if running else -1.0
-                if running:
-                    self._update_faults(tau)
-                Ff, Fr, Mf, Mr = self._forces(tau) if running else (0.0, 0.0, 0.0, 0.0)
-                wd = self._wheel_drives
-                fl, fr, rl, rr = ([d.current_A() for d in wd] if wd is not None
-                                  else [drives.current_A(w) for w in WHEELS])
-                du_f = fl - fr
-                du_r = rl - rr
-                plant.step(dt, du_f, du_r, Ff, Fr, Mf, Mr)
-                self.t += dt
-                if self.t < t - 1e-12:
-                    drives.service(self.t)   # watchdog and heartbeats keep time during a stall
+                self.step(dt, self.applied_currents())
+                if self.t < t_rel - 1e-12:
+                    drives.service(self.t)  # watchdog and heartbeats keep time during a stall
             self.set_laser_distances()
-            self._laser_group.emit(t)
+            self._laser_group.emit(t_rel)
         finally:
             drives.release()
-        self._publish_rest(t)
-        if not self.defer_laser_delivery:
-            self._laser_group.wait()
-
-    def await_laser_delivery(self) -> None:
-        """Return once the laser bytes of the latest ``advance`` are readable at the ports.
-        With ``defer_laser_delivery`` the runtime calls this just before it reads the lasers
-        (``RigDevices.before_laser_poll``), so the kernel delivers them while the runtime
-        polls its other devices."""
-        self._laser_group.wait()
-
-    def _publish(self, t: float) -> None:
-        """Physical values -> virtual devices (their own codecs), frames up to ``t``."""
-        self.set_laser_distances()
-        self._laser_group.emit(t)
-        self._publish_rest(t)
-        self._laser_group.wait()
-
-    def _publish_rest(self, t: float) -> None:
-        """Wheel speeds and, when due, F/T registers (and the lockstep F/T poll: the
-        driver sends its requests, the simulated sensors answer them in this thread, the
-        driver collects the replies — no thread hand-over in the round)."""
         self.set_wheel_speeds()
+        if self.ft is not None:
+            self._set_wrenches_when_due(t_rel)
+            self.ft.answer_pending()
+        self._laser_group.wait()
+        return t_rel if t_rel > t else None
+
+    # ------------------------------------------------------------------ physical values -> devices
+    def _set_wrenches_when_due(self, t: float) -> None:
         if self.ft is not None and t >= self._next_ft - 1e-12:
             self._next_ft = t + self.ft_period
             self.set_wrenches()
-            drv = self.ft_driver
-            if drv is not None:
-                drv.poll_devices_start()
-                self.ft.serve_inline()
-                drv.poll_devices_finish()
 
     def set_laser_distances(self) -> None:
         """The distances the six lasers see for the plant's pose (no frames are emitted)."""
@@ -287,9 +344,16 @@ class SimulatedRig:
                                                 for k, v in enumerate(vals6))))
 
     def close(self) -> None:
+        """Close every transport and device (ptys, servers, buses). Idempotent."""
         for c in reversed(self._closers):
             try:
                 c()
             except Exception:
                 pass
         self._closers.clear()
+
+    def __enter__(self) -> "SimulatedRig":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

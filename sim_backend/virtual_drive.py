@@ -523,6 +523,29 @@ class VirtualDriveSet:
         """Current the converter of ``wheel`` applies (0 unless OPERATION ENABLED and commanded)."""
         return self.drives[wheel].current_A()
 
+    def operation_enabled(self) -> bool:
+        """Whether every drive's power stage is in OPERATION ENABLED (the simulators start
+        scenario time the first time it is: the runtime enables the drives at its ARM)."""
+        return all(d.state == OPERATION_ENABLED for d in self._drive_list)
+
+    def status(self) -> dict[str, dict[str, Any]]:
+        """Per wheel, JSON-ready (``rig sim``'s status): applied current, 402 and NMT state,
+        error code, counters, times of the latest SYNC / RPDO1 (None before the first)."""
+        out = {}
+        with self._lock:
+            for w in WHEELS:
+                d = self.drives.get(w)
+                if d is None:
+                    continue
+                out[w] = {"current_A": d.current_A(), "state": d.state,
+                          "nmt": NMT_STATE_NAMES.get(d.nmt, hex(d.nmt)), "error_code": d.error_code,
+                          "watchdog_trips": d.counters["watchdog_trips"],
+                          "heartbeat_events": d.counters["heartbeat_events"],
+                          "counters": dict(d.counters),
+                          "last_sync_t": d.wd_sync if d.wd_armed or d.counters["sync"] else None,
+                          "last_rpdo_t": d.wd_rpdo if d.wd_armed or d.counters["rpdo"] else None}
+        return out
+
     def state(self, wheel: str) -> str:
         """402 state of the drive of ``wheel``."""
         return self.drives[wheel].state

@@ -1,10 +1,15 @@
-"""The lockstep fast paths of the simulator: ``LaserGroup`` writes exactly the bytes of
+"""The lockstep simulator: ``LaserGroup`` writes exactly the bytes of
 ``VirtualLaser.emit_until`` and waits until the kernel delivered them; ``LockstepBus``
-keeps python-can's bus contract; the virtual drives' outbox keeps frame order."""
+keeps python-can's bus contract; the virtual drives' outbox keeps frame order; and
+``SimulatedRig`` driven only through ``advance(t)`` and its transports is deterministic
+for a seed, starts scenario time when the drives are enabled, stalls the runtime's
+release, and refuses a scenario fault on a device it does not have."""
 
 from __future__ import annotations
 
+import dataclasses
 import fcntl
+import math
 import os
 import struct
 import termios
@@ -14,8 +19,12 @@ import can
 import numpy as np
 import pytest
 
-from rig_runtime.config import LaserDevice
+from rig_runtime.clock import LockstepClock
+from rig_runtime.config import WHEELS, LaserDevice
+from rig_runtime.errors import ConfigError
+from rig_runtime.scenario import Disturbance, FaultInjection, Scenario
 from sim_backend.lockstep_bus import LockstepBus
+from sim_backend.rig import SimulatedRig
 from sim_backend.virtual_drive import VirtualDriveSet
 from sim_backend.virtual_laser import LaserGroup, VirtualLaser
 
@@ -249,3 +258,149 @@ def test_drive_outbox_holds_frames_in_order_until_release(cfg):
     finally:
         sim_bus.shutdown()
         tap.shutdown()
+
+
+# --------------------------------------------------------------------------- the simulated rig
+# The runtime reaches SimulatedRig only through its transports (laser ptys, a python-can
+# bus, Modbus TCP) and LockstepClock(advance=sim.advance). These tests play the runtime's
+# side with the drive driver itself and raw pty reads. F/T sensors are left out: their
+# lockstep answers are the virtual F/T server's own business (tests/test_ft300.py).
+def _no_ft(cfg):
+    return dataclasses.replace(cfg, devices=dataclasses.replace(
+        cfg.devices, ft=dataclasses.replace(cfg.devices.ft, sensors=())))
+
+
+class _Runtime:
+    """The runtime's side of every wire, cycle by cycle on the lockstep clock: read every
+    laser pty, poll and write the drives (the drive driver over ``sim.runtime_bus()``);
+    a tap on the CAN wire records every frame. The drives are configured, enabled by the
+    driver's blocking start-up and then disabled again: ``enable_at`` enables them at a
+    cycle of their own, as the runtime does at its ARM."""
+
+    def __init__(self, sim: SimulatedRig, cfg, enable_at: int):
+        from drivers.canopen402 import DriveBus
+        self.sim, self.h, self.enable_at = sim, cfg.controller.h, enable_at
+        self.tap = sim.runtime_bus()
+        self.db = DriveBus(cfg.devices.can, bus=sim.runtime_bus(), period_s=self.h)
+        self.fds = {r: os.open(p, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY) for r, p in sim.laser_ports.items()}
+        self.clock = LockstepClock(advance=sim.advance)
+        self.laser = {r: [] for r in self.fds}          # bytes read per cycle
+        self.frames: list[list[tuple[int, bytes]]] = []  # CAN frames seen per cycle
+        self.releases: list[float] = []
+        self.db.open()
+        self.db.disable(0.0)
+
+    def run(self, cycles: int) -> "_Runtime":
+        k = 1
+        while k <= cycles:
+            t = self.clock.wait_until(k * self.h)
+            self.releases.append(t)
+            for r, fd in self.fds.items():
+                self.laser[r].append(_read_all(fd))
+            self.db.poll(t)
+            if k == self.enable_at:
+                self.db.enable(t)
+            a = 0.4 * math.sin(2 * math.pi * 3.0 * t)
+            self.db.write({"fl": a, "fr": -a, "rl": 0.5 * a, "rr": -0.5 * a}, t)
+            got = []
+            while (m := self.tap.recv(0.0)) is not None:
+                got.append((m.arbitration_id, bytes(m.data)))
+            self.frames.append(got)
+            k = max(k + 1, math.floor(t / self.h + 1e-9) + 1)    # periods missed in a stall are skipped
+        return self
+
+    def close(self) -> None:
+        for fd in self.fds.values():
+            os.close(fd)
+        self.db.close()
+
+
+def _read_all(fd: int) -> bytes:
+    out = b""
+    while chunk := _read(fd):
+        out += chunk
+    return out
+
+
+def _scenario(*faults, disturbances=()) -> Scenario:
+    return Scenario(name="lockstep-test", duration_s=10.0, faults=tuple(faults), disturbances=tuple(disturbances))
+
+
+def _run(cfg, scenario, seed, cycles, enable_at=10):
+    sim = SimulatedRig(cfg, scenario, seed=seed)
+    rt = None
+    try:
+        rt = _Runtime(sim, cfg, enable_at).run(cycles)
+        plant = (sim.plant.y_f, sim.plant.y_r, sim.plant.psi_af, sim.plant.psi_ar)
+        return rt, sim.t_run0, plant, {w: sim.drives.state(w) for w in WHEELS}
+    finally:
+        if rt is not None:
+            rt.close()
+        sim.close()
+
+
+def test_lockstep_is_deterministic_for_a_seed_on_every_wire(cfg):
+    """Two runs with the same seed: byte for byte the same laser streams, frame for frame
+    the same CAN traffic (both directions) in every cycle, the same plant state — through
+    a disturbance and faults that draw random numbers (corrupt frames, lost CAN frames)."""
+    c = _no_ft(cfg)
+    sc = _scenario(FaultInjection(kind="corrupt", device="s_fl", t=0.05, duration_s=0.2, fraction=0.3),
+                   FaultInjection(kind="bus_error", device="rl", t=0.1, duration_s=0.05, fraction=0.3),
+                   disturbances=[Disturbance(kind="pulse", carrier="rear", t=0.02, duration_s=0.1, F_y=300.0)])
+    n = 120
+    a, b = _run(c, sc, 7, n), _run(c, sc, 7, n)
+    assert a[0].laser == b[0].laser and a[0].frames == b[0].frames
+    assert a[1:] == b[1:]
+    assert all(len(v) == n for v in a[0].laser.values()) and len(a[0].frames) == n
+    assert sum(len(x) for x in a[0].laser["b_f"]) > 0 and sum(len(f) for f in a[0].frames) > 5 * n
+    assert not math.isnan(a[1]) and a[3] == {w: "OPERATION ENABLED" for w in WHEELS}   # the scenario ran
+    other = _run(c, sc, 8, n)
+    assert other[0].laser != a[0].laser             # the seed matters (sensor noise)
+
+
+def test_scenario_time_starts_when_every_drive_is_enabled(cfg):
+    """Not at start-up, not at the first SYNC: when the last drive reached OPERATION
+    ENABLED. A laser dropout 20 ms into the scenario silences b_f from then on."""
+    c = _no_ft(cfg)
+    h = c.controller.h
+    enable_at = 30
+    rt, t_run0, _, states = _run(c, _scenario(FaultInjection(kind="dropout", device="b_f", t=0.02)), 0, 60, enable_at)
+    assert states == {w: "OPERATION ENABLED" for w in WHEELS}
+    # the driver walks the drives over a few cycles; the drives take each cycle's frames at its time
+    assert enable_at * h <= t_run0 <= (enable_at + 6) * h, t_run0
+    silent_from = round((t_run0 + 0.02) / h)        # the cycle whose release ends the last step with frames
+    per_cycle = [len(x) for x in rt.laser["b_f"]]
+    assert all(per_cycle[k] > 0 for k in range(silent_from - 1)), per_cycle
+    assert all(x == 0 for x in per_cycle[silent_from + 1:]), per_cycle
+    assert all(len(x) > 0 for x in rt.laser["b_r"])
+
+
+def test_stall_releases_late_while_plant_and_drive_timers_run_on(cfg):
+    """A ``stall`` fault: advance returns a release 100 ms late; the plant is integrated to
+    it, the lasers streamed through it, and the drives' 50 ms watchdog (no SYNC/RPDO
+    meanwhile) cut the current and sent its EMCY."""
+    c = _no_ft(cfg)
+    h = c.controller.h
+    rt, t_run0, _, states = _run(c, _scenario(FaultInjection(kind="stall", t=0.03, duration_s=0.1)), 0, 70, 5)
+    late = [(k, t) for k, t in enumerate(rt.releases) if t > (k + 1) * h + 1e-9]
+    assert late, rt.releases
+    k, t = late[0]
+    assert t == pytest.approx((k + 1) * h + 0.1) and (k + 1) * h >= t_run0 + 0.03 - 1e-9
+    assert len(rt.releases) == 70 - 20                         # the 20 periods of the stall were skipped
+    assert len(rt.laser["b_f"][k]) >= 3 * round(0.1 * 1000)      # 100 ms of 1 kHz frames, 3 bytes each
+    assert all(s == "FAULT" for s in states.values()), states
+    emcy = [d for cid, d in rt.frames[k] if 0x80 < cid <= 0x80 + 127 and d[:2] == b"\x50\x82"]
+    assert len(emcy) == 4                                       # EMCY 0x8250 (RPDO timeout) from each drive
+
+
+@pytest.mark.parametrize("fault, key", [
+    (FaultInjection(kind="dropout", device="b_x", t=1.0), "faults[1].device"),
+    (FaultInjection(kind="stuck", device="ft_zz", t=1.0), "faults[1].device"),
+    (FaultInjection(kind="no_heartbeat", device="s_fl", t=1.0), "faults[1].kind"),
+])
+def test_a_fault_on_a_device_the_rig_lacks_is_refused_when_built(cfg, fault, key):
+    sc = _scenario(FaultInjection(kind="dropout", device="b_f", t=1.0), fault)
+    with pytest.raises(ConfigError) as e:
+        SimulatedRig(_no_ft(cfg), sc, seed=0)
+    msg = str(e.value)
+    assert "lockstep-test" in msg and key in msg and repr(fault.device if key.endswith("device") else fault.kind) in msg

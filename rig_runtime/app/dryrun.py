@@ -39,7 +39,7 @@ def run_lockstep(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *
         summary, code, _ = execute(
             cfg, devices, clock, scenario=scenario, duration_s=duration_s, log_path=log_path,
             status=False, extra_attrs={"mode": "dry-run lockstep", "seed": sim.seed},
-            configure_context=lambda: sim.drives.serving(0.0), stops=stops)
+            stops=stops)
         summary["sim_time_s"] = clock.now()
         summary["seed"] = sim.seed
     finally:

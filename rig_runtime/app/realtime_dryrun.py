@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Optional
 
-from sim_backend.process import start_sim_process
+from sim_backend.launcher import start_sim_process
 
 from .. import config
 from ..clock import RealtimeClock, apply_realtime

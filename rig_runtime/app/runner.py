@@ -54,10 +54,9 @@ class StatusLine:
 
 def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenario], duration_s: Optional[float],
             log_path: Path, status: bool, extra_attrs: dict | None = None, arm_timeout_s: float = 2.0,
-            configure_context=None, stops: StopSignals | None = None) -> tuple[dict, int, ControlLoop | None]:
+            stops: StopSignals | None = None) -> tuple[dict, int, ControlLoop | None]:
     """Run one session; returns (summary, exit code, loop). In this order: the loop and the
-    recorder, ``devices.configure()`` (no power; inside ``configure_context()`` if given),
-    the loop (the supervisor's ARM activates the power stages), then devices and recorder
+    recorder, ``devices.configure()`` (no power), the loop (the supervisor's ARM activates the power stages), then devices and recorder
     closed on every path. ``stops``: the command's installed :class:`StopSignals` (a stop
     request before RUNNING raises :class:`Interrupted` after the clean stop)."""
     reference = Reference(scenario.reference) if scenario else (lambda t: 0.0)
@@ -84,11 +83,7 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
             loop.recorder = rec
             phase = "while configuring the devices"
         if not stops.requested:
-            if configure_context is not None:
-                with configure_context():
-                    devices.configure()
-            else:
-                devices.configure()
+            devices.configure()
             phase = "during warm-up"
         if not stops.requested:
             result = loop.run(duration, arm_timeout_s=arm_timeout_s, status=StatusLine() if status else None)

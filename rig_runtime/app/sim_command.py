@@ -1,6 +1,6 @@
 """``rig sim``: serve the simulated rig in its own process, in real time, for an unmodified
 ``rig run`` in another process (registered with the CLI on import; the work is done by
-``sim_backend.process``, imported only when the command runs).
+``sim_backend.serve``, imported only when the command runs).
 
 Output on stdout, one line each, then ``ready``::
 
@@ -36,7 +36,7 @@ def _cpus(text: str) -> list[int]:
                 "(lasers on ptys, SLCAN adapter on a pty, Modbus TCP F/T sensors)")
 @arg("--config", help="config file of the simulated rig (default: configs/sim.yaml)")
 @arg("--scenario", help="scenario name or path whose disturbances and faults the plant applies "
-                        "(scenario time starts at the runtime's first SYNC)")
+                        "(scenario time starts when the runtime has enabled every drive)")
 @arg("--seed", type=int, help="random seed of the simulated sensors (default: sim.seed)")
 @arg("--write-config", metavar="PATH", help="write a rig config for `rig run --config PATH` pointing at the ports")
 @arg("--status-file", metavar="PATH", help="rewrite a JSON status (applied currents, drive states, plant, timing) "
@@ -58,7 +58,7 @@ def _cpus(text: str) -> list[int]:
      help="where the emulated SLCAN adapter and the virtual drives run: process (default: a child "
           "process of their own, so no plant-side thread delays a TPDO) or thread (in this process)")
 def cmd_sim(args: argparse.Namespace) -> int:
-    from sim_backend.process import serve
+    from sim_backend.serve import serve
     return serve(args.config, args.scenario, args.seed, write_config=args.write_config,
                  status_file=args.status_file, status_period_s=args.status_period, duration_s=args.duration,
                  rt_priority=args.rt_priority, cpu_affinity=args.cpu_affinity,
