@@ -192,7 +192,10 @@ class ControlLoop:
                     sup.request_stop(t, "stop requested (signal)")
                 elif t >= t_end:
                     sup.request_stop(t, "duration reached")
-                sup.cycle(t, s, inp.converters, [(ys[i], psis[i]) for i in carriers], stats.overrun_periods,
+                # periods lost so far: the misses before this cycle and this release's lateness
+                # (a stalled loop is the root cause of what it finds on waking, e.g. a drive watchdog)
+                misses = stats.overrun_periods + int(cy.lateness / h)
+                sup.cycle(t, s, inp.converters, [(ys[i], psis[i]) for i in carriers], misses,
                           rec.healthy if rec is not None else True, rec.error if rec is not None else "")
                 if sup.started:
                     self.t_start = t
