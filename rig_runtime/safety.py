@@ -9,8 +9,8 @@ be loosened.
 
 The checks are one ordered list of small named rules (no second copy of any of them):
 the system rules (loop overruns, recorder, converters), the channel rules (each applied to
-every sensor channel before the next rule), then the pose rules for every controlled
-carrier. The first rule that fails in a cycle trips the fault. Arming asks the same channel
+every sensor channel before the next rule), then the pose rules (each applied to every
+controlled carrier before the next rule). The first rule that fails in a cycle trips the fault. Arming asks the same channel
 rules whether every channel is fit.
 """
 
@@ -243,8 +243,8 @@ class Supervisor:
             self._arm_deadline = deadline
 
     def request_stop(self, t: float, reason: str = "stop requested") -> None:
-        """A clean stop: ARMED/RUNNING ramp down (STOPPING), IDLE stops arming."""
-        if self._stop_reason is None:
+        """A clean stop: ARMED/RUNNING ramp down (STOPPING, at the next cycle), IDLE stops arming."""
+        if self.state in (State.ARMED, State.RUNNING) and self._stop_reason is None:
             self._stop_reason = reason
         self._arm_deadline = math.nan
 
@@ -253,6 +253,7 @@ class Supervisor:
         if self.state is State.FAULT:
             self._on_event(t, "operator", None, "fault reset")
             self.fault = None
+            self._stop_reason = None
             self._u_prev = [0.0, 0.0]
             self._to(State.IDLE, t)
 
@@ -313,8 +314,9 @@ class Supervisor:
                     self._arm_deadline = math.nan
                     self.arm_failed = True
         elif self._stop_reason is not None and st in (State.ARMED, State.RUNNING):
-            self._on_event(t, "operator", None, self._stop_reason)
-            self._to(State.STOPPING, t, self._stop_reason)
+            reason, self._stop_reason = self._stop_reason, None
+            self._on_event(t, "operator", None, reason)
+            self._to(State.STOPPING, t, reason)
         elif st is State.ARMED:
             if conv.enabled:
                 self._to(State.RUNNING, t)
@@ -362,8 +364,8 @@ class Supervisor:
                 f = rule(c, t, lim)
                 if f is not None:
                     return self.trip(t, c.name, *f)
-        for p in poses:
-            for rule in POSE_RULES:
+        for rule in POSE_RULES:
+            for p in poses:
                 f = rule(p, lim)
                 if f is not None:
                     return self.trip(t, "geometry", *f)

@@ -75,6 +75,15 @@ class Rig:
             self.t += H
         return self.drv.poll(self.t)
 
+    def activate(self, currents=None, max_cycles: int = 40):
+        """``activate`` (the supervisor's ARM) and step until every drive is OPERATION ENABLED."""
+        self.drv.activate(self.t)
+        for _ in range(max_cycles):
+            r = self.cycle({} if currents is None else currents)
+            if r.enabled:
+                return r
+        raise AssertionError([(y.state, y.health.cause) for y in r])
+
     def measured(self, wheel: str, omega: float, offset: float = 0.0) -> bool:
         """Whether ``omega`` is one of the speeds the plant really had (± quantisation)."""
         return any(abs(omega - (v + offset)) <= VF / 2 + 1e-12 for v in self.seen_speeds[wheel])
@@ -83,17 +92,25 @@ class Rig:
 def open_lockstep(drv: DriveBus, vds: VirtualDriveSet) -> None:
     """The blocking start-up needs answers: serve the bus from a thread at frozen time 0."""
     with vds.serving(0.0):
-        drv.open()
+        drv.configure()
 
 
 @pytest.fixture
-def rig(buses, channel):
+def configured(buses, channel):
+    """Configured (drives started, no power), not activated."""
     cfg = can_cfg(channel)
     vds = VirtualDriveSet(cfg, buses[1])
     drv = DriveBus(cfg, buses[0], period_s=H)
     open_lockstep(drv, vds)
     yield Rig(drv, vds)
     drv.close()
+
+
+@pytest.fixture
+def rig(configured):
+    """Configured, activated and stepped until every drive is OPERATION ENABLED."""
+    configured.activate()
+    return configured
 
 
 # =========================================================================== codec
@@ -238,19 +255,59 @@ def test_eds_loads_with_required_objects():
 
 
 # =========================================================================== driver <-> virtual drives
-def test_startup_configures_and_enables_every_drive(rig):
+def test_startup_configures_and_activate_enables_every_drive(configured):
+    rig = configured
     vds = rig.vds
     for w in WHEELS:
-        assert vds.state(w) == c4.OPERATION_ENABLED and vds.nmt_state(w) == "OPERATIONAL"
+        # configure(): started (NMT operational), configured, but no power
+        assert vds.state(w) == c4.SWITCH_ON_DISABLED and vds.nmt_state(w) == "OPERATIONAL"
         assert vds.od_value(w, 0x6060) == 10 and vds.od_value(w, 0x6061) == 10
         assert vds.od_value(w, 0x6075) == 8000
         assert [vds.od_value(w, 0x1A00, s) for s in range(4)] == [3, 0x60410010, 0x606C0020, 0x60770010]
         assert vds.od_value(w, 0x1800, 2) == 1
         assert vds.od_value(w, 0x1016, 1) == (0x7F << 16) | 250
         assert vds.od_value(w, 0x1017) == 50
+        assert vds.od_value(w, 0x6007) == c4.ABORT_QUICK_STOP                 # the drive's own safety
+        assert vds.od_value(w, 0x605A) == c4.QUICK_STOP_TO_DISABLED
     r = rig.cycle({}, n=3)
-    assert r.ready and rig.drv.ready
+    assert not r.enabled and not rig.drv.enabled
     assert all(x.health.state is Freshness.FRESH for x in r)
+    r = rig.activate()
+    for w in WHEELS:
+        assert vds.state(w) == c4.OPERATION_ENABLED and vds.nmt_state(w) == "OPERATIONAL"
+    assert r.enabled and rig.drv.enabled
+    assert all(x.health.state is Freshness.FRESH for x in r)
+
+
+def test_no_enable_operation_controlword_until_activate(configured, channel):
+    """configure() starts the drives without power: every RPDO carries controlword 0 until
+    activate(); only then do the writes walk the drives to OPERATION ENABLED."""
+    rig = configured
+    spy = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    rpdo_cobs = {c4.node_cob_id(c4.COB_RPDO1, d.node_id): d.wheel for d in rig.vds.cfg.drives}
+
+    def rpdo_controlwords():
+        cws = []
+        while (msg := spy.recv(0.0)) is not None:
+            if msg.arbitration_id in rpdo_cobs:
+                cws.append(c4.decode_rpdo1(msg.data)[0])
+        return cws
+
+    try:
+        rig.cycle({w: 2.0 for w in WHEELS}, n=20)
+        before = rpdo_controlwords()
+        assert len(before) == 20 * len(WHEELS)
+        assert c4.CW_ENABLE_OPERATION not in before and set(before) == {c4.CW_DISABLE_VOLTAGE}
+        r = rig.drv.poll(rig.t)
+        assert not r.enabled and all(x.state != c4.OPERATION_ENABLED for x in r)
+        assert all(rig.vds.current_A(w) == 0.0 for w in WHEELS)
+        rig.activate({w: 2.0 for w in WHEELS})
+        rig.cycle({w: 2.0 for w in WHEELS}, n=2)
+        after = rpdo_controlwords()
+        assert c4.CW_ENABLE_OPERATION in after
+        assert all(rig.vds.current_A(w) == pytest.approx(2.0) for w in WHEELS)
+    finally:
+        spy.shutdown()
 
 
 def test_currents_arrive_and_speeds_come_back(rig):
@@ -263,9 +320,13 @@ def test_currents_arrive_and_speeds_come_back(rig):
         assert r[w].omega == pytest.approx(rig.speeds_at(rig.t - H)[w], abs=VF / 2 + 1e-12)
         assert r[w].t == pytest.approx(rig.t) and r[w].health.fresh
     # a sequence in wheel order works the same; NaN is sent as 0 A and counted
+    # (the activation cycles sent {}: count from here)
+    c0 = rig.drv.counters()
     r = rig.cycle([1.0, math.nan, -1.0], n=2)
     assert [rig.vds.current_A(w) for w in WHEELS] == pytest.approx([1.0, 0.0, -1.0, 0.0])
-    assert r.bus.counters["nan_commands"] == 2 and r.bus.counters["missing_commands"] == 2
+    c1 = rig.drv.counters()
+    assert c1["nan_commands"] - c0["nan_commands"] == 2
+    assert c1["missing_commands"] - c0["missing_commands"] == 2
 
 
 def test_watchdog_cuts_current_when_writes_stop(rig):
@@ -281,7 +342,7 @@ def test_watchdog_cuts_current_when_writes_stop(rig):
         assert "EMCY 0x8250" in x.health.cause and x.health.errors == 1
     # writes resume: a faulted drive is held off, not silently re-enabled
     r = rig.cycle({w: 2.0 for w in WHEELS}, n=5)
-    assert not r.ready and all(rig.vds.current_A(w) == 0.0 for w in WHEELS)
+    assert not r.enabled and all(rig.vds.current_A(w) == 0.0 for w in WHEELS)
     assert "drive in FAULT" in r["fl"].health.cause
 
 
@@ -297,8 +358,9 @@ def test_drive_stops_when_runtime_heartbeat_stops(rig, buses):
         if rig.t < 0.24:
             assert rig.vds.current_A("fl") == pytest.approx(2.0)
         rig.t += H
-    assert all(rig.vds.current_A(w) == 0.0 and rig.vds.state(w) == c4.FAULT for w in WHEELS)
-    assert rig.vds.drives["fl"].error_code == c4.EMCY_HEARTBEAT
+    # the reaction configure() asked for: 0x6007 quick stop, 0x605A ending SWITCH ON DISABLED
+    assert all(rig.vds.current_A(w) == 0.0 and rig.vds.state(w) == c4.SWITCH_ON_DISABLED for w in WHEELS)
+    assert all(rig.vds.drives[w].error_code == c4.EMCY_HEARTBEAT for w in WHEELS)
 
 
 FAULT_CASES = [
@@ -320,7 +382,7 @@ def test_fault_kinds_are_reported_and_never_invent_values(rig, kind, params, fre
         return {w: 1.0 + 0.5 * math.sin(20 * t) for w in WHEELS}
 
     r0 = rig.cycle(varying, n=10)
-    assert r0.ready
+    assert r0.enabled
     t_inject = rig.t
     rig.vds.inject(kind, "rl", **params)
     r = rig.cycle(varying, n=40)
@@ -342,31 +404,33 @@ def test_fault_kinds_are_reported_and_never_invent_values(rig, kind, params, fre
         assert rig.drv.error_frames > 0 and all(y.health.state is Freshness.INVALID for y in r)
     else:
         assert all(r[w].health.fresh for w in ("fl", "fr", "rr")), [r[w].health.cause for w in WHEELS]
-    # clear the fault, re-enable (fault reset where needed): everything comes back
+    # clear the fault, deactivate and activate again (the supervisor's FAULT, reset and ARM;
+    # fault reset where needed): everything comes back
     rig.vds.clear(kind)
-    rig.drv.enable(rig.t)
+    rig.drv.deactivate(rig.t)
+    rig.drv.activate(rig.t)
     for _ in range(60):
         r = rig.cycle(varying)
-        if r.ready:
+        if r.enabled:
             break
-    assert r.ready, [(y.state, y.health.cause) for y in r]
+    assert r.enabled, [(y.state, y.health.cause) for y in r]
     rig.cycle(varying)                               # ready: the next write carries torque
     assert abs(rig.vds.current_A("rl") - varying(rig.t - H)["rl"]) <= STEP_A / 2 + 1e-12
 
 
-def test_disable_leaves_drives_off_until_enable(rig):
+def test_deactivate_leaves_drives_off_until_activate(rig):
     rig.cycle({w: 2.0 for w in WHEELS}, n=5)
-    rig.drv.disable(rig.t)
+    rig.drv.deactivate(rig.t)
     rig.vds.service(rig.t)
     for w in WHEELS:
         assert rig.vds.state(w) == c4.SWITCH_ON_DISABLED and rig.vds.current_A(w) == 0.0
         assert rig.vds.nmt_state(w) == "PRE-OPERATIONAL"
     r = rig.cycle({w: 2.0 for w in WHEELS}, n=40)                 # writes keep them off
-    assert not r.ready and all(rig.vds.current_A(w) == 0.0 for w in WHEELS)
+    assert not r.enabled and all(rig.vds.current_A(w) == 0.0 for w in WHEELS)
     assert "NMT state PRE-OPERATIONAL" in r["fl"].health.cause
-    rig.drv.enable(rig.t)
+    rig.drv.activate(rig.t)
     r = rig.cycle({w: 2.0 for w in WHEELS}, n=15)
-    assert r.ready and all(rig.vds.current_A(w) == pytest.approx(2.0) for w in WHEELS)
+    assert r.enabled and all(rig.vds.current_A(w) == pytest.approx(2.0) for w in WHEELS)
 
 
 def test_send_failures_are_counted_not_raised(rig, buses, monkeypatch):
@@ -379,7 +443,7 @@ def test_send_failures_are_counted_not_raised(rig, buses, monkeypatch):
     rig.drv.write({w: 1.0 for w in WHEELS}, rig.t)
     r = rig.drv.poll(rig.t)
     assert rig.drv.send_errors == 5 and "Transmit buffer full" in rig.drv.last_bus_error
-    assert r.bus.state is Freshness.INVALID and not r.ready
+    assert r.bus.state is Freshness.INVALID and not r.enabled
     assert all("bus error" in x.health.cause for x in r)
 
 
@@ -391,7 +455,7 @@ def test_poll_survives_garbage_frames(rig, buses):
         data = bytes(rng.randrange(256) for _ in range(rng.randrange(9)))
         buses[1].send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
     r = rig.drv.poll(rig.t)
-    assert r.bus.counters["rx_frames"] >= 2000
+    assert rig.drv.counters()["rx_frames"] >= 2000
     assert all(r[w].health.bad_frames > 0 for w in ("fl", "fr", "rl"))
 
 
@@ -401,24 +465,42 @@ def test_missing_drive_names_the_node(buses, channel):
     t0 = time.monotonic()
     with pytest.raises(DeviceInitError, match=r"node 9 \(fr\).*no SDO answer"):
         open_lockstep(drv, vds)
-    assert time.monotonic() - t0 < 2.0 and not drv.is_open
+    assert time.monotonic() - t0 < 2.0 and not drv.is_configured
     buses[0].send(can.Message(arbitration_id=0x80, data=b""))      # a passed-in bus stays usable
     drv.close()
 
 
 def test_drive_stuck_in_fault_names_node_and_state(buses, channel):
+    """configure() no longer powers the drives, so a drive that faults as soon as it is
+    powered shows up after activate(): never enabled, reported with its node and state."""
     cfg = can_cfg(channel, ids=(5,))
     vds = VirtualDriveSet(cfg, buses[1])
     vds.inject("out_of_range")                                      # overcurrent as soon as powered
-    drv = DriveBus(cfg, buses[0], enable_timeout_s=0.2)
-    with pytest.raises(DeviceInitError, match=r"node 5 \(fl\).*stuck in FAULT"):
-        open_lockstep(drv, vds)
+    drv = DriveBus(cfg, buses[0], period_s=H, enable_timeout_s=0.2)
+    open_lockstep(drv, vds)
+    try:
+        t = 0.0
+        for k in range(43):
+            if k == 3:
+                drv.activate(t)
+            drv.poll(t)
+            drv.write({"fl": 1.0}, t)
+            vds.service(t)
+            t += H
+        r = drv.poll(t)
+        x = r["fl"]
+        assert not r.enabled and not drv.enabled
+        assert x.node_id == 5 and x.state == c4.FAULT and vds.state("fl") == c4.FAULT
+        assert x.health.state is Freshness.INVALID and "drive in FAULT" in x.health.cause
+        assert "EMCY 0x2310" in x.health.cause and vds.current_A("fl") == 0.0
+    finally:
+        drv.close()
 
 
 def test_bus_open_failure_and_config_checks(channel):
     cfg = CanBus(interface="no-such-interface", channel="x", drives=drives(1))
     with pytest.raises(DeviceInitError, match="can no-such-interface:x"):
-        DriveBus(cfg).open()
+        DriveBus(cfg).configure()
     with pytest.raises(ConfigError, match="heartbeat_timeout_factor"):
         DriveBus(can_cfg(channel, heartbeat_timeout_factor=1.0))
     with pytest.raises(ConfigError, match="runtime_node_id"):
@@ -427,19 +509,19 @@ def test_bus_open_failure_and_config_checks(channel):
 
 def test_owned_bus_open_close_idempotent(buses, channel):
     vds = VirtualDriveSet(can_cfg(channel), buses[1])
-    drv = DriveBus(can_cfg(channel))            # creates its own virtual bus in open()
-    drv.close()                                 # never opened: fine
+    drv = DriveBus(can_cfg(channel))            # creates its own virtual bus in configure()
+    drv.close()                                 # never configured: fine
     open_lockstep(drv, vds)
     own = drv._bus
-    assert drv.is_open and own is not buses[0]
+    assert drv.is_configured and own is not buses[0]
     drv.close()
     drv.close()
-    assert not drv.is_open and own._is_shutdown
+    assert not drv.is_configured and own._is_shutdown
     vds.service(1.0)
     assert all(vds.state(w) == c4.SWITCH_ON_DISABLED for w in WHEELS)   # close() disabled them
     r = drv.poll(1.0)
     drv.write([1.0] * 4, 1.0)                   # closed: nothing sent, nothing raised
-    assert all(x.health.state is Freshness.INVALID and x.health.cause == "driver not open" for x in r)
+    assert all(x.health.state is Freshness.INVALID and x.health.cause == "driver not configured" for x in r)
 
 
 def test_synchronous_rpdo_acts_at_next_sync(rig, buses):
@@ -470,7 +552,8 @@ def test_realtime_mode(buses, channel):
     drv = DriveBus(cfg, buses[0], period_s=H)
     vds.start_realtime()
     try:
-        drv.open()
+        drv.configure()
+        drv.activate(time.monotonic())
         for w in WHEELS:
             vds.set_wheel_speed(w, BASE_SPEEDS[w])
         t_next = time.monotonic()
@@ -478,11 +561,11 @@ def test_realtime_mode(buses, channel):
             now = time.monotonic()
             r = drv.poll(now)
             drv.write({w: -1.25 for w in WHEELS}, now)
-            if k >= 10 and r.ready:
+            if k >= 10 and r.enabled:
                 break
             t_next += H
             time.sleep(max(0.0, t_next - time.monotonic()))
-        assert r.ready, [x.health.cause for x in r]
+        assert r.enabled, [x.health.cause for x in r]
         time.sleep(0.005)
         assert all(vds.current_A(w) == pytest.approx(-1.25, abs=STEP_A / 2) for w in WHEELS)
         assert r["rl"].omega == pytest.approx(BASE_SPEEDS["rl"], abs=VF)
@@ -529,7 +612,7 @@ def test_startup_against_canopen_localnode(buses, channel):
             net.add_node(node)
             peers.append(node)
         drv = DriveBus(cfg, buses[0], period_s=H)
-        drv.open()
+        drv.configure()
         try:
             for node in peers:
                 assert node.nmt.state == "OPERATIONAL"
@@ -537,17 +620,19 @@ def test_startup_against_canopen_localnode(buses, channel):
                 assert [node.sdo[0x1A00][s].raw for s in range(4)] == [3, 0x60410010, 0x606C0020, 0x60770010]
                 assert node.sdo[0x1800][1].raw == 0x180 + node.id and node.sdo[0x1800][2].raw == 1
                 assert node.sdo[0x1016][1].raw == 0x007F00FA and node.sdo[0x1017].raw == 50
-                assert c4.state_of(node.sdo[0x6041].raw) == c4.OPERATION_ENABLED
+                # configure() leaves the power stage off (enabling is activate()'s job)
+                assert c4.state_of(node.sdo[0x6041].raw) == c4.SWITCH_ON_DISABLED
             # canopen's LocalNode produces the heartbeat itself (python-can periodic task)
             drv.poll(time.monotonic())
             deadline = time.monotonic() + 1.0
             while True:
                 time.sleep(0.01)
                 r = drv.poll(time.monotonic())
-                if all(x.health.counters["heartbeat"] >= 2 for x in r) or time.monotonic() > deadline:
+                counters = drv.counters()
+                if all(counters[f"{x.wheel}.heartbeat"] >= 2 for x in r) or time.monotonic() > deadline:
                     break
             for x in r:
-                assert x.nmt_state == c4.NMT_OPERATIONAL and x.health.counters["heartbeat"] >= 2
+                assert x.nmt_state == c4.NMT_OPERATIONAL and counters[f"{x.wheel}.heartbeat"] >= 2
                 assert x.health.state is Freshness.STALE and "no TPDO" in x.health.cause
         finally:
             drv.close()

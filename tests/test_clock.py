@@ -19,10 +19,33 @@ def test_realtime_clock_never_releases_early():
 
 def test_lockstep_clock_advances_the_simulation():
     seen = []
-    clock = LockstepClock(advance=seen.append)
+    clock = LockstepClock(advance=seen.append)      # returns None: release on time
+    assert clock.now() == 0.0
     assert clock.wait_until(0.005) == 0.005 and clock.wait_until(0.005) == 0.005
-    clock.spend(0.001)
-    assert clock.now() == pytest.approx(0.006) and seen == [0.005]
+    assert clock.now() == 0.005 and seen == [0.005]     # advanced once per new time
+    assert clock.wait_until(0.003) == 0.005 and seen == [0.005]     # time never goes back
+    assert clock.wait_until(0.010) == 0.010 and clock.now() == 0.010 and seen == [0.005, 0.010]
+    assert not hasattr(clock, "spend")
+    assert LockstepClock(t0=1.0).wait_until(1.5) == 1.5      # without a simulation
+
+
+def test_lockstep_clock_stall_releases_late():
+    """``advance(t)`` may return a later release time: the runtime wakes up late (a stall)."""
+    seen = []
+    stalls = {0.010: 0.0235, 0.030: 0.029}        # one stall, and one "earlier" answer (ignored)
+
+    def advance(t):
+        seen.append(t)
+        return stalls.get(t)
+
+    clock = LockstepClock(advance=advance)
+    assert clock.wait_until(0.005) == 0.005
+    assert clock.wait_until(0.010) == 0.0235 and clock.now() == 0.0235    # released late
+    assert clock.wait_until(0.015) == 0.0235 and clock.wait_until(0.020) == 0.0235   # missed releases
+    assert seen == [0.005, 0.010]                 # no advance for a time already passed
+    assert clock.wait_until(0.025) == 0.025 and clock.now() == 0.025
+    assert clock.wait_until(0.030) == 0.030       # a release time before t is not a stall
+    assert seen == [0.005, 0.010, 0.025, 0.030]
 
 
 def test_helper_threads_leave_sched_fifo():

@@ -4,6 +4,7 @@ virtual device over a real pty."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import pickle
@@ -18,12 +19,12 @@ from hypothesis import strategies as st
 
 from rig_runtime.errors import DeviceInitError
 from rig_runtime.hardware import Freshness
-from drivers.laser import (
+from drivers.laser import LaserDriver
+from drivers.optoncdt import (
     ERROR_CODES,
     MAX_DISTANCE_X,
     MAX_X,
     FrameDecoder,
-    LaserDriver,
     distance_mm_from_x,
     encode_value,
     encode_list,
@@ -234,12 +235,12 @@ def _cfg(**kw) -> LaserDevice:
 
 @pytest.fixture
 def rig(request):
-    """(virtual laser, open driver); parametrize indirectly with dicts for cfg/virtual kwargs."""
+    """(virtual laser, configured driver); parametrize indirectly with dicts for cfg/virtual kwargs."""
     opts = getattr(request, "param", {})
     cfg = _cfg(**opts.get("cfg", {}))
     vl = VirtualLaser(cfg, seed=7, **opts.get("virtual", {}))
     drv = LaserDriver(cfg, port=vl.port_name)
-    drv.open()
+    drv.configure()
     yield vl, drv
     drv.close()
     vl.close()
@@ -263,7 +264,7 @@ def test_fresh_readings_equal_the_distance(rig):
         assert r.role == "b_f"
         assert r.raw_x == x_from_distance_mm(d * 1000 - OFFSET, MR)
     assert r.health.bad_frames == 0 and r.health.errors == 0
-    assert r.health.counters["values"] == 80
+    assert drv.counters()["values"] == 80
 
 
 def test_reading_is_an_immutable_snapshot(rig):
@@ -276,20 +277,36 @@ def test_reading_is_an_immutable_snapshot(rig):
         r1.value_m = 0.0  # type: ignore[misc]
 
 
-def test_health_snapshot_is_reused_and_its_counters_are_a_live_read_only_view(rig):
+def test_health_is_reused_while_unchanged_and_is_frozen(rig):
+    """The same Health object poll after poll while state/cause/counts do not change, a new
+    one when they do; Health is frozen; the statistics are a new dict from counters()."""
     vl, drv = rig
+    vl.set_distance(0.06)
     r1 = _cycle(vl, drv, 1)
-    frozen = copy.deepcopy(r1.health.counters)
+    c1 = drv.counters()
     r2 = _cycle(vl, drv, 2)
-    assert r2.health is r1.health                    # only counters changed: the same snapshot
-    assert frozen == {"values": 20, "error_frames": 0, "read_errors": 0, "bytes": 60}
-    assert type(frozen) is dict and pickle.loads(pickle.dumps(r2.health.counters)) == r2.health.counters
-    assert r1.health.counters["values"] == 40 and json.loads(json.dumps(dict(r1.health.counters)))["bytes"] == 120
-    with pytest.raises(TypeError):
-        r1.health.counters["values"] = 0  # type: ignore[index]
+    assert r2.health is r1.health                    # only the statistics changed: the same value
+    assert c1 == {"values": 20, "error_frames": 0, "read_errors": 0, "bytes": 60}
+    c2 = drv.counters()
+    assert c2["values"] == 40 and json.loads(json.dumps(c2))["bytes"] == 120
+    assert type(c2) is dict and c2 is not drv.counters() and pickle.loads(pickle.dumps(c2)) == c2
+    c2["values"] = 0                                 # a copy: the driver's statistics are untouched
+    assert drv.counters()["values"] == 40 and c1["values"] == 20
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        r1.health.state = Freshness.STALE  # type: ignore[misc]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        r1.health.errors = 5  # type: ignore[misc]
+    assert copy.deepcopy(r1.health) == r1.health and pickle.loads(pickle.dumps(r1.health)) == r1.health
     vl.inject("out_of_range")
     r3 = _cycle(vl, drv, 3)
     assert r3.health is not r2.health and r3.health.state is Freshness.INVALID and r2.health.fresh
+    assert r3.health.errors == 20 and r2.health.errors == 0      # the old value is unchanged
+    r4 = _cycle(vl, drv, 4)                          # more error codes: the count changed
+    assert r4.health is not r3.health and r4.health.errors == 40
+    vl.clear("out_of_range")
+    r5 = _cycle(vl, drv, 5)
+    r6 = _cycle(vl, drv, 6)
+    assert r5.health.fresh and r6.health is r5.health
 
 
 @pytest.mark.parametrize("average", [False, True])
@@ -354,7 +371,7 @@ def test_out_of_range_is_invalid_with_reason(rig):
     assert r.health.state is Freshness.INVALID
     assert r.health.cause == "no peak (262076)"
     assert math.isnan(r.value_m) and r.raw_x == 262076 and r.n_values == 0
-    assert r.health.errors == 20 and r.health.counters["error_frames"] == 20
+    assert r.health.errors == 20 and drv.counters()["error_frames"] == 20
     assert r.t == 1 * H                              # the last valid value's arrival, still
     r = drv.poll(2 * H + 0.001)                      # no new frames: stays INVALID, not FRESH
     assert r.health.state is Freshness.INVALID and math.isnan(r.value_m)
@@ -519,28 +536,28 @@ def test_realtime_mode_emits_at_wall_clock_rate(rig):
 def test_open_missing_port_names_the_port():
     drv = LaserDriver(_cfg(), port="/dev/does-not-exist-laser")
     with pytest.raises(DeviceInitError) as ei:
-        drv.open()
+        drv.configure()
     assert "/dev/does-not-exist-laser" in str(ei.value)
     assert ei.value.device == "laser b_f"
     assert isinstance(ei.value.__cause__, serial.SerialException)
-    assert not drv.is_open
-    drv.close()                                       # closing a never-opened driver is fine
+    assert not drv.is_configured
+    drv.close()                                       # closing a never-configured driver is fine
 
 
 def test_port_defaults_to_the_config():
     drv = LaserDriver(LaserDevice(role="s_fl", port="/dev/ttyNOPE9", measuring_range_mm=25))
     with pytest.raises(DeviceInitError, match="ttyNOPE9"):
-        drv.open()
+        drv.configure()
 
 
 def test_close_is_idempotent_and_context_manager(rig):
     vl, _ = rig
     with LaserDriver(_cfg(), port=vl.port_name) as drv:
-        assert drv.is_open
-    assert not drv.is_open
+        assert drv.is_configured
+    assert not drv.is_configured
     drv.close()
     r = drv.poll(1.0)                                 # never raises
-    assert r.health.state is Freshness.INVALID and r.health.cause == "port not open"
+    assert r.health.state is Freshness.INVALID and r.health.cause == "port not configured"
     vl.close()
     vl.close()
 
@@ -558,7 +575,7 @@ def test_serial_exception_in_poll_is_reported_not_raised(rig, monkeypatch):
     r = drv.poll(2 * H)
     assert r.health.state is Freshness.INVALID
     assert "OSError" in r.health.cause and "Input/output error" in r.health.cause
-    assert r.health.errors == 1 and r.health.counters["read_errors"] == 1
+    assert r.health.errors == 1 and drv.counters()["read_errors"] == 1
     assert math.isnan(r.value_m)
     monkeypatch.undo()
     assert _cycle(vl, drv, 3).health.fresh
@@ -576,8 +593,8 @@ def test_device_gone_is_invalid(rig):
 @given(xs=st.lists(st.one_of(st.integers(0, MAX_X), st.integers(60000, MAX_X), st.sampled_from(sorted(ERROR_CODES))),
                    min_size=1, max_size=40),
        average=st.booleans())
-def test_fast_and_general_decoding_agree(xs, average):
-    """The poll's shortcut for clean frames gives what the general decoder gives."""
+def test_poll_decodes_like_the_decoder(xs, average):
+    """A poll gives what the frame decoder gives (values, latest value, validity, mean)."""
     import os as _os
 
     r, w = _os.pipe()
@@ -600,3 +617,14 @@ def test_fast_and_general_decoding_agree(xs, average):
     finally:
         _os.close(r)
         _os.close(w)
+
+
+def test_last_values_is_always_a_list(rig):
+    vl, drv = rig
+    r = drv.poll(0.0)                                  # nothing arrived yet
+    assert type(drv.last_values) is list and drv.last_values == [] and r.n_values == 0
+    vl.set_distance(0.06)
+    _cycle(vl, drv, 1)
+    assert type(drv.last_values) is list and len(drv.last_values) == 20
+    drv.poll(1 * H)                                    # no new bytes
+    assert type(drv.last_values) is list and drv.last_values == []

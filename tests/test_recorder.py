@@ -57,9 +57,8 @@ def log(tmp_path):
     return tmp_path / "run.h5"
 
 
-@pytest.mark.parametrize("writer", ["thread", "inline"])
-def test_round_trip(log, writer):
-    rec = Recorder(log, COLS, attrs=ATTRS, buffer_cycles=2048, flush_s=0.2, writer=writer)
+def test_round_trip(log):
+    rec = Recorder(log, COLS, attrs=ATTRS, buffer_cycles=2048, flush_s=0.2)
     rec.open()
     n = 10_000                                    # several times the ring
     feed(rec, 0, n // 2)
@@ -190,82 +189,32 @@ def test_disk_almost_full_stops_cleanly(log, monkeypatch):
     assert not log.with_name("next.h5").exists()
 
 
-def test_inline_writer_stores_batches_in_the_callers_thread(log, monkeypatch):
-    threads = {}
+def test_one_writer_thread_stores_every_batch(log, monkeypatch):
+    """One path: a writer thread does all file I/O (the ``writer="inline"`` option is gone)."""
+    threads = set()
     real = Recorder._store_column
 
     def store(d, start, data):
-        threads[threading.get_ident()] = True
+        threads.add(threading.get_ident())
         real(d, start, data)
 
     monkeypatch.setattr(Recorder, "_store_column", staticmethod(store))
+    with pytest.raises(TypeError):
+        Recorder(log, COLS, attrs={}, writer="inline")
     n_threads = threading.active_count()
-    rec = Recorder(log, COLS, attrs={}, buffer_cycles=64, flush_s=60.0, writer="inline")
+    rec = Recorder(log, COLS, attrs={}, buffer_cycles=64, flush_s=0.05)
     rec.open()
-    assert threading.active_count() == n_threads      # no writer thread
-    for i in range(31):
+    assert threading.active_count() == n_threads + 1  # the writer thread
+    for i in range(40):
         assert rec.append(row(i))
-    assert rec.rows_written == 0 and rec.pending == 31
-    assert rec.append(row(31))                        # half the ring pending: stored now
-    assert rec.rows_written == 32 and rec.pending == 0 and rec.rows_flushed == 0
     rec.event(0.1, "state", message="x")
-    for i in range(32, 40):
-        rec.append(row(i))
+    wait_for(lambda: rec.rows_written == 40)
     rec.close()                                       # the rest, events, flush, attributes
-    assert list(threads) == [threading.get_ident()]
+    assert threading.active_count() == n_threads
+    assert len(threads) == 1 and threading.get_ident() not in threads
     d = read_log(log)
     np.testing.assert_array_equal(d["columns"]["y"], [row(i)[3] for i in range(40)])
     assert list(d["events"]["message"]) == ["x"] and d["attrs"]["rows_written"] == 40
-
-
-def test_inline_writer_stores_events_before_they_overflow(log):
-    rec = Recorder(log, COLS, attrs={}, buffer_cycles=4096, flush_s=60.0, event_capacity=8, writer="inline")
-    rec.open()
-    for k in range(40):                               # 5x the event capacity, one per cycle
-        rec.event(k * 0.005, "operator", message=str(k))
-        rec.append(row(k))
-    assert rec.healthy and rec.events_dropped == 0
-    rec.close()
-    assert list(read_log(log)["events"]["message"]) == [str(k) for k in range(40)]
-
-
-def test_inline_writer_flushes_every_flush_s(log):
-    rec = Recorder(log, COLS, attrs={}, buffer_cycles=4096, flush_s=0.05, writer="inline")
-    rec.open()
-    rec.append(row(0))
-    assert rec.rows_flushed == 0
-    time.sleep(0.06)
-    rec.append(row(1))                                # a flush is due: stored and flushed
-    assert rec.rows_flushed == 2 and rec.flushes == 1
-    rec.close()
-
-
-def test_inline_write_failure_keeps_flushed_data(log, monkeypatch):
-    fail = []
-    real = Recorder._store_column
-
-    def store(d, start, data):
-        if fail:
-            raise OSError(errno.EIO, "Input/output error")
-        real(d, start, data)
-
-    monkeypatch.setattr(Recorder, "_store_column", staticmethod(store))
-    rec = Recorder(log, COLS, attrs={}, buffer_cycles=64, flush_s=60.0, writer="inline")
-    rec.open()
-    for i in range(32):
-        rec.append(row(i))
-    rec._next_flush = 0.0                             # make the next append flush
-    rec.append(row(32))
-    assert rec.rows_flushed == 33 and rec.healthy
-    fail.append(True)
-    for i in range(33, 65):
-        rec.append(row(i))                            # the batch at row 64 fails
-    assert not rec.healthy and "write failed" in rec.error and "row 33" in rec.error
-    assert rec.append(row(65)) is False               # nothing more is accepted
-    rec.close()
-    d = read_log(log)
-    assert d["rows"] == 33
-    np.testing.assert_array_equal(d["columns"]["t"], [row(i)[0] for i in range(33)])
 
 
 def test_open_errors_name_the_recorder(tmp_path, log):
@@ -288,8 +237,8 @@ def test_input_validation(log):
         Recorder(log, ["t", "a/b"], attrs={})
     with pytest.raises(ValueError, match="reserved"):
         Recorder(log, ["t"], attrs={"columns": "x"})
-    with pytest.raises(ValueError, match="writer 'thread' or 'inline'"):
-        Recorder(log, ["t"], attrs={}, writer="process")
+    with pytest.raises(TypeError):                # no writer option any more: one writer thread
+        Recorder(log, ["t"], attrs={}, writer="thread")
     rec = Recorder(log, COLS, attrs={})
     with pytest.raises(ValueError, match="expected 9 numbers"):
         rec.append((1.0, 2.0))

@@ -91,13 +91,15 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
         devices.close()
         if rec is not None:
             rec.close()
+            if result is None and rec.rows_written == 0:
+                log_path.unlink(missing_ok=True)    # the loop never ran: no empty log left behind
         if status:
             sys.stderr.write("\n")
     if result is None or math.isnan(result.t_start):
         if stops.requested:
             what = "power stages disabled" if loop.supervisor.ever_armed else "power stages never enabled"
             raise stops.interrupted(f"before RUNNING ({phase if result is None else 'while arming'}): {what}"
-                                    + (f", log closed: {log_path}" if rec is not None else ", no log written"))
+                                    + (f", log closed: {log_path}" if log_path.exists() else ", no log written"))
         raise DeviceInitError("arming", "not every device is ready: " + "; ".join(result.arm_blockers[:4]))
     summary = {
         "final_state": result.final_state,
