@@ -198,13 +198,25 @@ class FTSensor:
     unit_id: int = check(positive, default=9)
 
 
+FT_POLLERS = ("process", "thread", "inline")       # where the F/T driver polls (drivers.ft_pollers)
+
+
 @dataclass(frozen=True, kw_only=True)
 class FTBus:
     driver: str = "robotiq_ft300"                   # drivers.registry name
+    poller: str = "process"                         # one of FT_POLLERS
     poll_hz: float = check(positive, default=50.0)
     timeout_s: float = check(positive, default=0.1)
     stale_s: float = check(positive, default=0.5)
     sensors: tuple[FTSensor, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.poller not in FT_POLLERS:
+            raise ConfigError(None, "poller", "one of " + ", ".join(FT_POLLERS), self.poller)
+        rtu = [s.name for s in self.sensors if s.transport == "rtu"]
+        if self.poller == "inline" and rtu:
+            raise ConfigError(None, "poller", "'process' or 'thread' with RTU sensors (" + ", ".join(rtu) +
+                              "): 'inline' polls without blocking, which only the TCP link can", self.poller)
 
 
 @dataclass(frozen=True, kw_only=True)

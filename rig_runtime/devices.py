@@ -38,8 +38,7 @@ class RigDevices:
     the non-blocking per-cycle calls."""
 
     def __init__(self, cfg: RigConfig, *, laser_ports: Optional[Mapping[str, str]] = None,
-                 can_bus=None, ft_endpoints: Optional[Mapping[str, tuple[str, int]]] = None,
-                 ft_clock=None, ft_thread: bool = True):
+                 can_bus=None, ft_endpoints: Optional[Mapping[str, tuple[str, int]]] = None):
         dcfg = cfg.devices
         h = cfg.controller.h
         stale = cfg.limits.stale_periods * h
@@ -66,13 +65,12 @@ class RigDevices:
         self.ft = None
         if dcfg.ft.sensors:
             cls = driver_class("ft", dcfg.ft.driver, "devices.ft.driver")
-            kw = {"clock": ft_clock} if ft_clock is not None else {}
+            kw = {}
             loop_cpus = set(cfg.realtime.cpu_affinity or ())
-            others = sorted(set(range(os.cpu_count() or 1)) - loop_cpus) if loop_cpus and ft_thread else []
+            others = sorted(set(range(os.cpu_count() or 1)) - loop_cpus) if loop_cpus else []
             if others:
                 kw["poller_cpus"] = others      # keep the F/T poll process off the loop's CPU
             self.ft = cls(dcfg.ft, endpoints=dict(ft_endpoints) if ft_endpoints else None, **kw)
-        self._ft_thread = ft_thread
         self.ft_names = [s.name for s in dcfg.ft.sensors]
         # ---- channels the supervisor checks
         step = cfg.limits.laser_step_max or math.inf
@@ -105,7 +103,7 @@ class RigDevices:
                 d.open(); self._opened.append(d)
             self.drives.open(); self._opened.append(self.drives)
             if self.ft is not None:
-                self.ft.open(start_thread=self._ft_thread); self._opened.append(self.ft)
+                self.ft.open(); self._opened.append(self.ft)
         except Exception as e:
             self.close()
             if isinstance(e, (DeviceInitError, ConfigError)):

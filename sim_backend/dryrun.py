@@ -27,8 +27,7 @@ def run_lockstep(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *
     try:
         clock = LockstepClock(advance=sim.advance)
         devices = RigDevices(cfg, laser_ports=sim.laser_ports, can_bus=sim.runtime_bus(),
-                             ft_endpoints=sim.ft_endpoints, ft_clock=clock.now, ft_thread=False)
-        sim.attach_ft_driver(devices.ft)
+                             ft_endpoints=sim.ft_endpoints)
         sim.defer_laser_delivery = True     # the runtime waits for the laser bytes before reading them
         devices.before_laser_poll = sim.await_laser_delivery
         if prepare is not None:

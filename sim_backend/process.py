@@ -660,6 +660,7 @@ class RealtimeSim:
         can_d["interface"] = "slcan"
         can_d["channel"] = self.can_port
         can_d["eds"] = str(rig_config.resolve_config_path(can_d["eds"]).resolve())
+        d["ft"]["poller"] = "process"       # the runtime polls as on the rig (sim.yaml's dry run: inline)
         for s in d["ft"]["sensors"]:
             host, port = self.ft_endpoints[s["name"]]
             s.update(transport="tcp", host=host, port=int(port))
