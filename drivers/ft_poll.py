@@ -144,8 +144,8 @@ class TcpLink(Link):
 
     def connect_nowait(self) -> bool:
         """Start a connect to the address of the last connection without waiting: True if
-        connected already, False while in progress (:meth:`connect_done`); OSError if refused
-        at once."""
+        connected already (a peer on this host: the handshake completes within the call),
+        False while in progress (:meth:`connect_done`); OSError if it failed already."""
         self.close()
         addr = self.addr or (self.host, self.port)
         sock = socket.socket(socket.AF_INET6 if ":" in addr[0] else socket.AF_INET, socket.SOCK_STREAM)
@@ -155,8 +155,8 @@ class TcpLink(Link):
             sock.close()
             raise OSError(err, os.strerror(err))
         self._adopt(sock)
-        self.connecting = err != 0
-        return not self.connecting
+        self.connecting = True
+        return self.connect_done()
 
     def connect_done(self) -> bool:
         """Whether the connect started by :meth:`connect_nowait` has completed (never waits);

@@ -7,8 +7,8 @@
   its sockets (non-blocking ``recv``) and publishes it, stamped ``now``; then, when a round
   is due at ``poll_hz``, it sends the next requests. A request sent in one ``poll`` is
   answered by the next ``poll`` that finds the reply — a pipelined request/response on the
-  caller's thread, driven only by the times it is given (deterministic on a lockstep
-  clock). TCP only: the serial client blocks per request, so ``inline`` with an RTU sensor
+  caller's thread, driven only by the times it is given (the same times and replies give
+  the same readings). TCP only: the serial client blocks per request, so ``inline`` with an RTU sensor
   is refused by the configuration (``devices.ft.poller``).
 """
 
