@@ -58,11 +58,10 @@ def prepare(sim, dev, clock) -> None:
     wrap(sim, "set_wheel_speeds", "sim:   wheel speeds")
     if sim.ft is not None:
         wrap(sim.ft, "set_wrench", "sim:   F/T registers")
-    if dev.ft is not None:
-        wrap(dev.ft, "poll_devices_start", "sim:   F/T Modbus round: requests sent")
-        wrap(dev.ft, "poll_devices_finish", "sim:   F/T Modbus round: replies collected")
     if sim.ft is not None:
-        wrap(sim.ft, "serve_inline", "sim:   F/T Modbus round: simulated sensors answer")
+        wrap(sim.ft, "answer_pending", "sim:   F/T Modbus: simulated sensors answer")
+    if dev.ft is not None:
+        wrap(dev.ft, "poll", "runtime:   F/T poll (inline: sends and collects)")
     wrap(dev, "poll", "runtime: devices.poll (all below)")
     if dev.before_laser_poll is not None:
         dev.before_laser_poll = timed(dev.before_laser_poll, "runtime:   wait until the laser bytes are delivered")

@@ -36,7 +36,6 @@ import select
 import selectors
 import socket
 import struct
-import termios
 import threading
 import time
 import tty
@@ -146,9 +145,11 @@ class VirtualFTServer:
     def answer_pending(self) -> int:
         """Lockstep: answer every request that has arrived on the TCP sensors' sockets (new
         connections accepted too) in the caller's thread, never waiting for more; returns
-        once the replies are in the clients' receive queues (loopback: acknowledged), so a
-        client's non-blocking read right after this finds them. Returns the number of
-        requests read (each answered, unless a ``dropout`` fault swallows it).
+        once every reply has left its socket's send queue. Loopback TCP delivers within the
+        ``send`` call (the receive path runs in the sender's softirq), so a client's
+        non-blocking read right after this finds the replies; likewise the requests a
+        client sent before this call are here to be read. Returns the number of requests
+        read (each answered, unless a ``dropout`` fault swallows it).
 
         The first call retires the selector thread (its sockets stay open): from then on,
         requests are answered only here. 0 if there is no TCP sensor."""
@@ -402,7 +403,7 @@ class _TcpServer:
     def answer_pending(self) -> int:
         """Retire the thread on first use; then passes over everything ready (accepts,
         requests, replies) until nothing is, without waiting; then wait until every reply
-        sent here has left the send queue (see :meth:`VirtualFTServer.answer_pending`)."""
+        sent here has left its send queue (see :meth:`VirtualFTServer.answer_pending`)."""
         if not self._inline:
             self._inline = True
             self._wake()
@@ -415,7 +416,7 @@ class _TcpServer:
                 break
         deadline = time.monotonic() + _START_TIMEOUT_S
         for conn in self._replied:
-            while conn.sock.fileno() >= 0 and (conn.tx or _unacked(conn.sock)):
+            while conn.sock.fileno() >= 0 and (conn.tx or _unsent(conn.sock)):
                 if time.monotonic() > deadline:     # a peer that stopped reading: not ours to wait for
                     break
                 if conn.tx:
@@ -449,10 +450,9 @@ class _TcpServer:
                 self._close_sockets()
 
     def _serve_ready(self, timeout: Optional[float]) -> bool:
-        """Read every ready request first, then send the replies: in lockstep the driver
-        wakes at the first reply and competes for the interpreter lock, so the replies go
-        out back to back instead of interleaved with the reads. Returns whether anything
-        was ready."""
+        """Read every ready request first, then send the replies back to back (a client
+        thread woken by the first reply would otherwise compete for the interpreter lock
+        between the reads). Returns whether anything was ready."""
         replying = []
         events = self._sel.select(timeout)
         for key, ev in events:
@@ -545,9 +545,13 @@ class _TcpServer:
         self._sel.close()
 
 
-def _unacked(sock: socket.socket) -> int:
-    """Bytes sent on ``sock`` that the peer's TCP has not acknowledged yet (Linux SIOCOUTQ)."""
-    return struct.unpack("i", fcntl.ioctl(sock.fileno(), termios.TIOCOUTQ, b"\0\0\0\0"))[0]
+_SIOCOUTQNSD = 0x894B          # Linux: bytes in a TCP socket's send queue not yet sent
+
+
+def _unsent(sock: socket.socket) -> int:
+    """Bytes written to ``sock`` that TCP has not sent yet. (Not SIOCOUTQ, which counts
+    unacknowledged bytes: the client's delayed ACK would hold it up for tens of ms.)"""
+    return struct.unpack("i", fcntl.ioctl(sock.fileno(), _SIOCOUTQNSD, b"\0\0\0\0"))[0]
 
 
 class _PtyBridge:
