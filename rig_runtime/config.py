@@ -198,7 +198,7 @@ class FTSensor:
     unit_id: int = check(positive, default=9)
 
 
-FT_POLLERS = ("process", "thread", "inline")       # where the F/T driver polls (drivers.ft_pollers)
+FT_POLLERS = ("process", "thread", "inline")       # where the F/T driver polls (drivers.ft300.POLLERS)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -9,6 +9,7 @@ crosses a bound does not depend on rounding."""
 from __future__ import annotations
 
 import ast
+import concurrent.futures
 import subprocess
 import sys
 import threading
@@ -21,7 +22,8 @@ from drivers.base import Freshness
 from drivers.ft300 import FTSensorSet
 from drivers.ft_codec import Wrench
 from rig_runtime import config as rig_config
-from rig_runtime.config import FTBus, FTSensor
+from drivers.ft300 import POLLERS
+from rig_runtime.config import FT_POLLERS, FTBus, FTSensor
 from rig_runtime.errors import ConfigError
 from sim_backend.virtual_ft import VirtualFTServer
 
@@ -189,6 +191,31 @@ def test_garbled_and_truncated_replies_are_bad_frames(ls):
     assert r["ft_fl"].health.timeouts == 0
 
 
+def test_pymodbus_client_is_answered_by_answer_pending():
+    """The lockstep way of serving, read by an independent client: pymodbus's blocking
+    client in a thread, the server answering only when ``answer_pending()`` is called."""
+    from pymodbus.client import ModbusTcpClient
+
+    with VirtualFTServer(["a"]) as srv:
+        srv.set_wrench("a", Wrench(fx=-12.34, mz=1.5))
+        assert srv.answer_pending() == 0               # retires the thread: nothing answers now
+        host, port = srv.endpoints["a"]
+        client = ModbusTcpClient(host, port=port, timeout=5, retries=0)
+        assert client.connect()
+        try:
+            with concurrent.futures.ThreadPoolExecutor(1) as ex:
+                for count in (6, 2):
+                    fut = ex.submit(client.read_holding_registers, 180, count=count, device_id=9)
+                    answered = 0
+                    while not fut.done():
+                        answered += srv.answer_pending()
+                    rr = fut.result()
+                    assert answered == 1 and not rr.isError()
+                    assert rr.registers == [64302, 0, 0, 0, 0, 1500][:count]
+        finally:
+            client.close()
+
+
 def test_an_exception_response_is_invalid(ls):
     ls.srv.inject("ft_rr", "out_of_range", code=4)
     ls.step()
@@ -235,6 +262,10 @@ def _load_with_ft(tmp_path: Path, **ft) -> rig_config.RigConfig:
     path = tmp_path / "rig.yaml"
     path.write_text(yaml.safe_dump(raw))
     return rig_config.load(path)
+
+
+def test_every_configurable_poller_exists():
+    assert tuple(POLLERS) == FT_POLLERS
 
 
 def test_shipped_configs_choose_their_poller():
