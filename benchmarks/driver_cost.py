@@ -21,6 +21,7 @@ took away during the measured cycles, in % of their wall time (summed over CPUs)
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import gc
 import json
 import logging
@@ -94,7 +95,7 @@ def main() -> int:
     parent_end, child_end = ctx.Pipe()
     ft_srv = ctx.Process(target=_serve_ft, args=(names, child_end), name="ft-server", daemon=True)
     ft_srv.start()
-    ft = FTSensorSet(cfg.devices.ft, endpoints=parent_end.recv(), poller="process")
+    ft = FTSensorSet(dataclasses.replace(cfg.devices.ft, poller="process"), endpoints=parent_end.recv())
     try:
         for d in drivers:
             d.configure()

@@ -60,6 +60,8 @@ def prepare(sim, dev, clock) -> None:
         wrap(sim.ft, "set_wrench", "sim:   F/T registers")
         wrap(sim.ft, "answer_pending", "sim:   F/T requests answered")
     wrap(sim._laser_group, "wait", "sim:   wait until the laser bytes are delivered")
+    if dev.ft is not None:
+        wrap(dev.ft, "poll", "runtime:   F/T poll (inline: sends and collects)")
     wrap(dev, "poll", "runtime: devices.poll (all below)")
     for d in dev.lasers:
         wrap(d, "poll", "runtime:   laser polls")

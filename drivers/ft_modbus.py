@@ -1,9 +1,10 @@
 """Modbus TCP framing for function 0x03 (Read Holding Registers), both ends of the wire.
 
-Written once and used by the F/T driver (:mod:`drivers.ft300`, client side) and by the
-simulated sensors (:mod:`sim_backend.virtual_ft`, server side), so that the driver can keep
-several requests in flight on separate connections (no library call that blocks per
-request) and the simulator can answer from a small selector thread. Both ends are checked
+Written once and used by the F/T driver's polling core (:mod:`drivers.ft_poll`, client
+side) and by the simulated sensors (:mod:`sim_backend.virtual_ft`, server side), so that the
+driver can keep several requests in flight on separate connections and never has to wait
+in a library call (the inline poller sends and reads without blocking), and the simulator
+can answer from a small selector thread or in its own thread. Both ends are checked
 against pymodbus in ``tests/test_ft300.py`` (pymodbus's client reads our server, our driver
 reads pymodbus's server), so a shared mistake cannot hide.
 

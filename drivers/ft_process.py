@@ -1,5 +1,6 @@
-"""The F/T poll process: ``drivers.ft300``'s polling code in its own OS process, publishing
-into shared memory that the control loop reads without locks, waits or system calls.
+"""The ``process`` F/T poller (``devices.ft.poller: process``, the default): the polling
+core (:mod:`drivers.ft_poll`) in its own OS process, publishing into shared memory that the
+control loop reads without locks, waits or system calls.
 
 Why: pymodbus calls (and any Python work of the pollers) hold the interpreter lock; in a
 thread of the runtime process they delayed the 5 ms loop thread by up to ~1 ms. In a
@@ -10,9 +11,10 @@ separate process they cannot.
   the start and the child does it again itself (it inherits the parent's policy, CPU
   affinity optional via ``cpus``). The child ignores SIGINT (Ctrl-C goes to the whole process
   group; the runtime stops the rig on it and still needs the sensors meanwhile).
-* Handshake: the child connects and reads every sensor exactly as an in-process ``open()``
-  does and reports success, or the ``DeviceInitError`` (device, message, OS error), over a
-  pipe before ``PollProcess.start()`` returns; the parent re-raises it.
+* Handshake: the child connects and reads every sensor exactly as the in-process pollers'
+  ``start()`` does and reports success, or the ``DeviceInitError`` (device, message, OS
+  error), over a pipe before :meth:`ProcessPoller.start` returns; the parent re-raises it.
+  Timestamps are ``time.monotonic()`` in the child (system-wide, the runtime's clock).
 * Lifetime: the child stops on a ``"stop"`` message, on EOF of the pipe (the parent is gone,
   however it died) or when its parent pid changes; ``close()`` asks, joins, then terminates
   (then kills) after ``timeout_s + 2`` s.
@@ -34,6 +36,7 @@ import os
 import pickle
 import signal
 import struct
+import time
 import zlib
 from multiprocessing import shared_memory
 from typing import Any, Callable, Optional
@@ -41,9 +44,11 @@ from typing import Any, Callable, Optional
 from rig_runtime.clock import as_background_thread
 from rig_runtime.config import FTBus
 
-from .base import DeviceInitError
+from rig_runtime.errors import DeviceInitError
+from .ft_codec import Wrench
+from .ft_poll import PollCore, Poller, Published
 
-__all__ = ["PollProcess", "SlotWriter", "SlotReader", "SLOT_SIZE", "CAUSE_BYTES"]
+__all__ = ["ProcessPoller", "SlotWriter", "SlotReader", "SLOT_SIZE", "CAUSE_BYTES"]
 
 CAUSE_BYTES = 240
 # t, fx..mz | has_wrench, timeouts, errors, bad_frames, samples, connects, connect_failures,
@@ -58,12 +63,12 @@ _WATCH_S = 0.2                              # how often the child looks at its p
 
 
 class SlotWriter:
-    """Child side: publish ``_Published`` states into the slots (one writer per slot)."""
+    """Child side: publish :class:`Published` states into the slots (one writer per slot)."""
 
     def __init__(self, buf: memoryview) -> None:
         self._buf = buf                     # the SharedMemory's own view: no extra buffer exports
 
-    def write(self, k: int, p: Any) -> None:
+    def write(self, k: int, p: Published) -> None:
         w = p.wrench
         vals = (0.0,) * 6 if w is None else (w.fx, w.fy, w.fz, w.mx, w.my, w.mz)
         counters = dict(p.counters)
@@ -121,14 +126,21 @@ class SlotReader:
         self._last[k] = s1
 
 
-class PollProcess:
-    """Parent side: the child process, its pipe and the shared memory it publishes into."""
+def _make_pub(w6: Optional[tuple], *rest: Any) -> Published:
+    return Published(None if w6 is None else Wrench(*w6), *rest)
 
-    def __init__(self, cfg: FTBus, endpoints: dict[str, tuple[str, int]], core: Any,
+
+class ProcessPoller(Poller):
+    """Parent side: the child process, its pipe and the shared memory it publishes into.
+    The parent's own :class:`PollCore` opens nothing: it gives the layout (and checks it,
+    ConfigError before anything starts) and holds the states the reader takes over."""
+
+    def __init__(self, cfg: FTBus, endpoints: dict[str, tuple[str, int]], reconnect_s: float,
                  cpus: Optional[tuple[int, ...]] = None) -> None:
+        super().__init__(cfg, endpoints, reconnect_s)
         self._cfg = cfg
         self._endpoints = dict(endpoints)
-        self._core = core                   # the parent's _PollCore: its sensors receive the states
+        self._reconnect_s = reconnect_s
         self._cpus = cpus
         self.process: Optional[multiprocessing.process.BaseProcess] = None
         self._conn: Optional[multiprocessing.connection.Connection] = None
@@ -144,21 +156,17 @@ class PollProcess:
         except BaseException:
             self.close()
             raise
+        self._reader.refresh()              # type: ignore[union-attr]  # what the child read at open
 
     def _start(self) -> None:
         ctx = multiprocessing.get_context("spawn")
-        n = len(self._core.sensors)
+        n = len(self.core.sensors)
         self._shm = shared_memory.SharedMemory(create=True, size=n * SLOT_SIZE)
         self._shm.buf[:n * SLOT_SIZE] = bytes(n * SLOT_SIZE)
         here, there = ctx.Pipe(duplex=True)
         self._conn = here
-        args = (self._cfg, self._endpoints, self._core.clock, self._core.reconnect_s, self._shm.name,
+        args = (self._cfg, self._endpoints, self._reconnect_s, self._shm.name,
                 there, os.getpid(), self._cpus, logging.getLogger("pymodbus").level)
-        try:
-            pickle.dumps(self._core.clock)
-        except Exception as exc:            # noqa: BLE001 - any pickling failure means the same
-            raise ValueError("poller='process' needs a picklable, system-wide clock "
-                             f"(e.g. time.monotonic), got {self._core.clock!r}") from exc
         proc = ctx.Process(target=child_main, args=args, name="ft-poll", daemon=True)
         try:
             proc.start()
@@ -167,7 +175,7 @@ class PollProcess:
         self.process = proc
         _sched_other(proc.pid)              # as early as possible; the child repeats it
         budget = _START_GRACE_S + sum(
-            self._cfg.timeout_s * (1 + 2 * len(link.sensors) * 3) for link in self._core.links)
+            self._cfg.timeout_s * (1 + 2 * len(link.sensors) * 3) for link in self.core.links)
         ready = multiprocessing.connection.wait([here, proc.sentinel], budget)
         if here in ready:
             try:
@@ -184,20 +192,16 @@ class PollProcess:
         if msg[0] == "error":
             _, device, message, cause = msg
             raise DeviceInitError(device, message) from cause
-        from .ft300 import Wrench, _Published
-
-        def make_pub(w6: Optional[tuple], *rest: Any) -> Any:
-            return _Published(None if w6 is None else Wrench(*w6), *rest)
-
-        self._reader = SlotReader(self._shm.buf, self._core.sensors, make_pub)
+        self._reader = SlotReader(self._shm.buf, self.core.sensors, _make_pub)
 
     # ------------------------------------------------------------------ running
-    @property
-    def reader(self) -> Optional[SlotReader]:
-        """The loop side of the shared memory (None before a successful start / after close)."""
-        return self._reader
+    def latest(self, now: float) -> tuple[Published, ...]:
+        """Every slot whose sequence moved is taken over first (one 8-byte read per sensor)."""
+        if self._reader is not None:
+            self._reader.refresh()
+        return super().latest(now)
 
-    def death_cause(self) -> str:
+    def failure(self) -> str:
         """"" while the child runs; otherwise why the samples stopped (cheap once dead)."""
         if not self._dead and self.process is not None and self.process.exitcode is not None:
             self._dead = f"F/T poll process exited with code {self.process.exitcode}"
@@ -221,12 +225,12 @@ class PollProcess:
             if proc.exitcode is None:
                 proc.kill()
                 proc.join(1.0)
-            self.death_cause()
+            self.failure()
         if conn is not None:
             conn.close()
             self._conn = None
         if self._reader is not None:
-            self._reader.refresh()          # the child's last words: poll() keeps them after close
+            self._reader.refresh()          # the child's last words: latest() keeps them after close
             self._reader = None
         if self._shm is not None:
             self._shm.close()
@@ -251,8 +255,7 @@ def _sched_other(pid: int) -> None:
 
 
 # --------------------------------------------------------------------------- child
-def child_main(cfg: FTBus, endpoints: dict[str, tuple[str, int]], clock: Callable[[], float],
-               reconnect_s: float, shm_name: str, conn: multiprocessing.connection.Connection,
+def child_main(cfg: FTBus, endpoints: dict[str, tuple[str, int]], reconnect_s: float, shm_name: str, conn: multiprocessing.connection.Connection,
                parent_pid: int, cpus: Optional[tuple[int, ...]], pymodbus_log_level: int) -> None:
     """Entry point of the poll process: open like in-process, report, poll until told to
     stop or orphaned. (Spawned: the parent's logging setup is not inherited, so the
@@ -265,10 +268,8 @@ def child_main(cfg: FTBus, endpoints: dict[str, tuple[str, int]], clock: Callabl
             os.sched_setaffinity(0, set(cpus))
         except (OSError, AttributeError):
             pass
-    from .ft300 import _PollCore
-
     shm = shared_memory.SharedMemory(name=shm_name)
-    core = _PollCore(cfg, endpoints, clock, reconnect_s)
+    core = PollCore(cfg, endpoints, time.monotonic, reconnect_s)
     writer = SlotWriter(shm.buf)
     for k, s in enumerate(core.sensors):
         s.sink = (lambda p, k=k: writer.write(k, p))

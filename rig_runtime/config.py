@@ -155,7 +155,7 @@ class TuningCriteria:
 @dataclass(frozen=True, kw_only=True)
 class LaserDevice:
     role: Literal["b_f", "b_r", "s_fl", "s_fr", "s_rl", "s_rr"]
-    driver: str = "optoncdt1420"                    # drivers.registry name
+    driver: str = "optoncdt1420"                    # rig_runtime.registry name
     port: str                                       # serial port, or "sim" for the virtual device
     measuring_range_mm: float = check(positive)
     offset_mm: float = 0.0                          # distance from the reference to the start of range
@@ -175,7 +175,7 @@ class Drive:
 
 @dataclass(frozen=True, kw_only=True)
 class CanBus:
-    driver: str = "cia402"                          # drivers.registry name
+    driver: str = "cia402"                          # rig_runtime.registry name
     interface: str = "virtual"                      # python-can interface name
     channel: str = "rig"
     bitrate: int = check(positive, default=1_000_000)
@@ -198,13 +198,25 @@ class FTSensor:
     unit_id: int = check(positive, default=9)
 
 
+FT_POLLERS = ("process", "thread", "inline")       # where the F/T driver polls (drivers.ft300.POLLERS)
+
+
 @dataclass(frozen=True, kw_only=True)
 class FTBus:
-    driver: str = "robotiq_ft300"                   # drivers.registry name
+    driver: str = "robotiq_ft300"                   # rig_runtime.registry name
+    poller: str = "process"                         # one of FT_POLLERS
     poll_hz: float = check(positive, default=50.0)
     timeout_s: float = check(positive, default=0.1)
     stale_s: float = check(positive, default=0.5)
     sensors: tuple[FTSensor, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.poller not in FT_POLLERS:
+            raise ConfigError(None, "poller", "one of " + ", ".join(FT_POLLERS), self.poller)
+        rtu = [s.name for s in self.sensors if s.transport == "rtu"]
+        if self.poller == "inline" and rtu:
+            raise ConfigError(None, "poller", "'process' or 'thread' with RTU sensors (" + ", ".join(rtu) +
+                              "): 'inline' polls without blocking, which only the TCP link can", self.poller)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -37,6 +37,7 @@ def devices_section(devices: Devices, laser_ports: Mapping[str, str], laser_rate
     can_d["interface"] = can_interface
     can_d["channel"] = can_channel
     can_d["eds"] = str(rig_config.resolve_config_path(can_d["eds"]).resolve())
+    d["ft"]["poller"] = "process"       # the runtime polls as on the rig (sim.yaml's lockstep dry run: inline)
     for s in d["ft"]["sensors"]:
         host, port = ft_endpoints[s["name"]]
         s.update(transport="tcp", host=host, port=int(port))

@@ -33,7 +33,7 @@ from typing import Callable, Optional, Sequence
 
 import can
 
-from drivers.ft300 import Wrench
+from drivers.ft_codec import Wrench
 from rig_runtime.config import LASER_ROLES, WHEELS, RigConfig
 from rig_runtime.errors import ConfigError
 from rig_runtime.geometry import ideal_readings, pose_from_carriers

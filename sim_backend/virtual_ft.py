@@ -1,13 +1,15 @@
 """Simulated force–torque sensors: the other end of the FT 300 wire.
 
-Modbus TCP (127.0.0.1, a free port unless given): one small selector thread serves every
-TCP sensor with the driver's own framing (:mod:`drivers.ft_modbus`) — a round of four
-requests costs the lockstep simulation tens of microseconds instead of the ~0.2 ms per
-request of pymodbus's asyncio server. Modbus RTU (a pseudo-terminal pair per sensor):
+Modbus TCP (127.0.0.1, a free port unless given): every TCP sensor is served with the
+driver's own framing (:mod:`drivers.ft_modbus`), either by one small selector thread (after
+:meth:`VirtualFTServer.start`: ``rig sim``, tests) or — lockstep — by
+:meth:`VirtualFTServer.answer_pending`, which the simulator calls in its ``advance(t)``:
+it answers every request that has arrived, in the caller's thread, without waiting for
+more (the first call retires the thread). Modbus RTU (a pseudo-terminal pair per sensor):
 pymodbus's serial server on an asyncio loop thread, started only if an RTU sensor exists.
-Holding registers 180..185 are filled from the latest :class:`Wrench` with the driver's own
-codec (:func:`drivers.ft300.registers_from_wrench`), so there is one register map for both
-ends; ``tests/test_ft300.py`` reads the TCP server with pymodbus's client. Faults are
+Holding registers 180..185 are filled from the latest :class:`Wrench` with the register
+codec the driver decodes with (:mod:`drivers.ft_codec`), so there is one register map for
+both ends; ``tests/test_ft300.py`` reads the TCP server with pymodbus's client. Faults are
 injected per sensor and act on the wire:
 
 =============== ==========================================================================
@@ -28,11 +30,14 @@ quantity 0 or > 125 → 3, another unit id → 11 (as a gateway whose target doe
 from __future__ import annotations
 
 import asyncio
+import fcntl
 import os
 import select
 import selectors
 import socket
+import struct
 import threading
+import time
 import tty
 from collections.abc import Mapping, Sequence
 from dataclasses import fields, replace
@@ -42,7 +47,7 @@ from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusSerialServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from drivers.ft300 import DEFAULT_UNIT_ID, REG_COUNT, REG_START, Wrench, registers_from_wrench
+from drivers.ft_codec import DEFAULT_UNIT_ID, REG_COUNT, REG_START, Wrench, registers_from_wrench
 from drivers.ft_modbus import (
     FC_READ_HOLDING,
     MAX_READ_COUNT,
@@ -137,16 +142,20 @@ class VirtualFTServer:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def serve_inline(self) -> bool:
-        """Lockstep: answer what the TCP sensors' clients sent, in the caller's thread.
+    def answer_pending(self) -> int:
+        """Lockstep: answer every request that has arrived on the TCP sensors' sockets (new
+        connections accepted too) in the caller's thread, never waiting for more; returns
+        once every reply has left its socket's send queue. Loopback TCP delivers within the
+        ``send`` call (the receive path runs in the sender's softirq), so a client's
+        non-blocking read right after this finds the replies; likewise the requests a
+        client sent before this call are here to be read. Returns the number of requests
+        read (each answered, unless a ``dropout`` fault swallows it).
 
-        The first call stops the selector thread (its sockets stay open), so every later
-        request is answered only here — no thread hand-over per round. Returns False if
-        there is no TCP server (then nothing changes)."""
+        The first call retires the selector thread (its sockets stay open): from then on,
+        requests are answered only here. 0 if there is no TCP sensor."""
         if self._tcp is None:
-            return False
-        self._tcp.serve_inline()
-        return True
+            return 0
+        return self._tcp.answer_pending()
 
     @property
     def running(self) -> bool:
@@ -365,7 +374,9 @@ class _TcpServer:
         self._listeners: list[socket.socket] = []
         self._conns: dict[int, _Conn] = {}
         self._stopping = False
-        self._inline = False            # serve_inline() took over from the thread
+        self._inline = False            # answer_pending() took over from the thread
+        self._requests = 0              # request frames read (answer_pending's count)
+        self._replied: set[_Conn] = set()   # connections written to in this answer_pending()
         self.endpoints: dict[str, tuple[str, int]] = {}
         try:
             for name in names:
@@ -389,17 +400,30 @@ class _TcpServer:
     def start(self) -> None:
         self._thread.start()
 
-    def serve_inline(self) -> None:
-        """Detach the thread on first use, then one pass over everything ready (accepts,
-        requests, replies) until nothing is left, without waiting."""
+    def answer_pending(self) -> int:
+        """Retire the thread on first use; then passes over everything ready (accepts,
+        requests, replies) until nothing is, without waiting; then wait until every reply
+        sent here has left its send queue (see :meth:`VirtualFTServer.answer_pending`)."""
         if not self._inline:
             self._inline = True
             self._wake()
             if self._thread.is_alive():
                 self._thread.join(_START_TIMEOUT_S)
+        self._requests = 0
+        self._replied.clear()
         for _ in range(8):              # a new connection's request is read in the next pass
             if not self._serve_ready(0.0):
                 break
+        deadline = time.monotonic() + _START_TIMEOUT_S
+        for conn in self._replied:
+            while conn.sock.fileno() >= 0 and (conn.tx or _unsent(conn.sock)):
+                if time.monotonic() > deadline:     # a peer that stopped reading: not ours to wait for
+                    break
+                if conn.tx:
+                    self._send(conn)
+                time.sleep(0)
+        self._replied.clear()
+        return self._requests
 
     def _wake(self) -> None:
         try:
@@ -417,7 +441,7 @@ class _TcpServer:
             self._close_sockets()
 
     def _run(self) -> None:
-        """Serve until closed (or detached for :meth:`serve_inline`; the sockets then stay)."""
+        """Serve until closed (or retired by :meth:`answer_pending`; the sockets then stay)."""
         try:
             while not self._stopping and not self._inline:
                 self._serve_ready(None)
@@ -426,10 +450,9 @@ class _TcpServer:
                 self._close_sockets()
 
     def _serve_ready(self, timeout: Optional[float]) -> bool:
-        """Read every ready request first, then send the replies: in lockstep the driver
-        wakes at the first reply and competes for the interpreter lock, so the replies go
-        out back to back instead of interleaved with the reads. Returns whether anything
-        was ready."""
+        """Read every ready request first, then send the replies back to back (a client
+        thread woken by the first reply would otherwise compete for the interpreter lock
+        between the reads). Returns whether anything was ready."""
         replying = []
         events = self._sel.select(timeout)
         for key, ev in events:
@@ -482,10 +505,13 @@ class _TcpServer:
             except ValueError:                          # not Modbus TCP: hang up, like a device would
                 return self._drop(conn)
             del rx[:n]
+            self._requests += 1
             if reply:
                 conn.tx += reply
 
     def _send(self, conn: _Conn) -> None:
+        if self._inline:
+            self._replied.add(conn)
         try:
             n = conn.sock.send(conn.tx)
         except (BlockingIOError, InterruptedError):
@@ -517,6 +543,15 @@ class _TcpServer:
             sock.close()
         self._listeners.clear()
         self._sel.close()
+
+
+_SIOCOUTQNSD = 0x894B          # Linux: bytes in a TCP socket's send queue not yet sent
+
+
+def _unsent(sock: socket.socket) -> int:
+    """Bytes written to ``sock`` that TCP has not sent yet. (Not SIOCOUTQ, which counts
+    unacknowledged bytes: the client's delayed ACK would hold it up for tens of ms.)"""
+    return struct.unpack("i", fcntl.ioctl(sock.fileno(), _SIOCOUTQNSD, b"\0\0\0\0"))[0]
 
 
 class _PtyBridge:

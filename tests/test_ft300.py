@@ -1,5 +1,6 @@
-"""FT 300 codec, driver (poll process, poll threads, lockstep) and virtual sensors — over
-real Modbus TCP/RTU on this machine."""
+"""FT 300 codec, driver (every poller: process, thread, inline) and virtual sensors — over
+real Modbus TCP/RTU on this machine, in real time. The inline poller on a lockstep clock:
+``tests/test_ft_inline.py``."""
 
 from __future__ import annotations
 
@@ -22,21 +23,14 @@ from pymodbus.client import ModbusTcpClient
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from rig_runtime.errors import DeviceInitError
 from rig_runtime.hardware import Freshness
-from drivers.ft300 import (
-    REG_COUNT,
-    REG_START,
-    FTSensorSet,
-    Wrench,
-    _Published,
-    registers_from_wrench,
-    wrench_from_registers,
-)
+from drivers.ft300 import FTSensorSet
+from drivers.ft_codec import REG_COUNT, REG_START, Wrench, registers_from_wrench, wrench_from_registers
 from drivers.ft_modbus import decode_read_response, encode_read_request, frame_length
+from drivers.ft_poll import Published
 from drivers.ft_process import SLOT_SIZE, SlotReader, SlotWriter
 from rig_runtime.config import FTBus, FTSensor
-from rig_runtime.errors import ConfigError
+from rig_runtime.errors import ConfigError, DeviceInitError
 from sim_backend.virtual_ft import VirtualFTServer
 
 TIMEOUT_S = 0.1
@@ -46,9 +40,13 @@ W_LEFT = Wrench(fx=-12.34, fy=0.5, fz=9.81, mx=-0.25, my=-0.5, mz=1.5)
 REGS_LEFT = [64302, 50, 981, 65286, 65036, 1500]
 
 
-def bus(*names: str, poll_hz: float = 100.0, timeout_s: float = TIMEOUT_S, **kw) -> FTBus:
+POLLERS = ("process", "thread", "inline")
+
+
+def bus(*names: str, poll_hz: float = 100.0, timeout_s: float = TIMEOUT_S, poller: str = "process",
+        **kw) -> FTBus:
     sensors = kw.pop("sensors", None) or tuple(FTSensor(name=n) for n in names)
-    return FTBus(poll_hz=poll_hz, timeout_s=timeout_s, stale_s=STALE_S, sensors=sensors)
+    return FTBus(poller=poller, poll_hz=poll_hz, timeout_s=timeout_s, stale_s=STALE_S, sensors=sensors)
 
 
 def wait_for(pred, timeout: float = 3.0, step: float = 0.005):
@@ -80,11 +78,14 @@ def server():
     srv.close()
 
 
-@pytest.fixture(params=["process", "thread"])
+@pytest.fixture(params=POLLERS)
 def driver(server, request):
-    """The driver polling in the background: in its own process (default) or in threads."""
-    d = FTSensorSet(bus("left", "right"), server.endpoints, poller=request.param)
-    d.open()
+    """The driver polling in real time: in its own process (default), in threads, or inline
+    (in the ``poll(time.monotonic())`` calls of the test; the server answers from its thread)."""
+    d = FTSensorSet(bus("left", "right", poller=request.param), server.endpoints)
+    d.configure()
+    # inline: the reads at open have no time on the caller's clock (STALE until polled)
+    wait_for(lambda: all(r.health.fresh for r in d.poll(time.monotonic()).values()))
     yield d
     d.close()
 
@@ -152,7 +153,7 @@ def test_codec_registers_survive_decode_encode(regs):
 
 # --------------------------------------------------------------------------- driver <-> virtual sensors
 def test_values_arrive_fresh(server, driver):
-    r = wait_for(lambda: (p := driver.poll(time.monotonic()))["right"].wrench is not None and p)
+    r = wait_for(lambda: (p := driver.poll(time.monotonic()))["right"].health.fresh and p)
     assert r["left"].wrench == W_LEFT
     assert r["right"].wrench == Wrench(fz=100.0)
     for reading in r.values():
@@ -175,6 +176,37 @@ def test_dropout_goes_stale_counts_timeouts_and_recovers(server, driver):
     assert driver.poll(time.monotonic())["right"].health.state is Freshness.FRESH
     server.clear("left", "dropout")
     wait_for(lambda: driver.poll(time.monotonic())["left"].health.fresh)
+
+
+def _value(h):
+    return (h.state, h.cause, h.bad_frames, h.timeouts, h.errors)
+
+
+def test_health_is_one_value_until_something_changes(server, driver):
+    """A new health is built when state, cause or a count changes, else the same object
+    is handed out again — through samples, an exception, a dropout going stale, recovery."""
+    wait_for(lambda: driver.poll(time.monotonic())["left"].health.fresh)
+    healths = []
+
+    def sample(n: int) -> None:
+        for _ in range(n):
+            healths.append(driver.poll(time.monotonic())["left"].health)
+            time.sleep(0.001)
+
+    sample(50)
+    server.inject("left", "out_of_range", code=4)
+    sample(50)
+    server.clear("left")
+    server.inject("left", "dropout")
+    wait_for(lambda: driver.poll(time.monotonic())["left"].health.state is Freshness.STALE)
+    sample(50)
+    server.clear("left")
+    wait_for(lambda: driver.poll(time.monotonic())["left"].health.fresh)
+    sample(50)
+    same = [a is b for a, b in zip(healths, healths[1:])]
+    assert all((a is b) == (_value(a) == _value(b)) for a, b in zip(healths, healths[1:]))
+    assert any(same) and not all(same)
+    assert {h.state for h in healths} == {Freshness.FRESH, Freshness.INVALID, Freshness.STALE}
 
 
 def test_exception_response_is_invalid_with_code(server, driver):
@@ -202,7 +234,8 @@ def test_stuck_and_offset_faults_change_what_arrives(server, driver):
     server.inject("left", "stuck")
     server.set_wrench("left", Wrench())
     n = server.served("left")
-    wait_for(lambda: server.served("left") >= n + 3)   # answered several reads since the change
+    # answered several reads since the change (inline: polled by the driver's poll() calls)
+    wait_for(lambda: driver.poll(time.monotonic()) and server.served("left") >= n + 3)
     r = driver.poll(time.monotonic())["left"]
     assert r.wrench == W_LEFT and r.health.fresh
     server.clear("left", "stuck")
@@ -210,13 +243,14 @@ def test_stuck_and_offset_faults_change_what_arrives(server, driver):
     wait_for(lambda: close_to(driver.poll(time.monotonic())["left"].wrench, Wrench(fz=2.5, mz=-0.1)))
 
 
-@pytest.mark.parametrize("poller", ["process", "thread"])
+@pytest.mark.parametrize("poller", POLLERS)
 def test_poll_never_waits_while_the_device_hangs(server, poller):
-    cfg = bus("left", "right", timeout_s=0.5)
-    with FTSensorSet(cfg, server.endpoints, poller=poller) as d:
+    cfg = bus("left", "right", timeout_s=0.5, poller=poller)
+    with FTSensorSet(cfg, server.endpoints) as d:
         server.inject("left", "dropout")
         server.inject("right", "dropout")
-        time.sleep(0.05)                           # both pollers now sit in a 0.5 s wait
+        d.poll(time.monotonic())                   # inline: the requests go out here
+        time.sleep(0.05)                           # both requests now hang (0.5 s timeout)
         before = d.poll(time.monotonic())["left"].health.timeouts
         rounds = [poll_costs(d, 500) for _ in range(5)]
         assert d.poll(time.monotonic())["left"].health.timeouts == before   # still hanging
@@ -239,58 +273,62 @@ def poll_costs(d: FTSensorSet, n: int) -> list[float]:
     return sorted(costs)
 
 
-@pytest.mark.parametrize("poller", ["process", "thread"])
+@pytest.mark.parametrize("poller", POLLERS)
 def test_refused_connection_at_open_names_the_endpoint(poller):
     port = free_port()
-    d = FTSensorSet(bus("left"), {"left": ("127.0.0.1", port)}, poller=poller)
+    d = FTSensorSet(bus("left", poller=poller), {"left": ("127.0.0.1", port)})
     with pytest.raises(DeviceInitError, match=rf"ft left \(127\.0\.0\.1:{port}\)") as ei:
-        d.open()
+        d.configure()
     assert isinstance(ei.value.__cause__, ConnectionRefusedError)
-    assert not d.is_open
+    assert not d.is_configured
     assert not multiprocessing.active_children() and not ft_threads()
     d.close()
 
 
-@pytest.mark.parametrize("poller", ["process", "thread"])
+@pytest.mark.parametrize("poller", POLLERS)
 def test_silent_device_at_open_is_an_init_error(server, poller):
     server.inject("right", "dropout")
-    d = FTSensorSet(bus("left", "right"), server.endpoints, poller=poller)
+    d = FTSensorSet(bus("left", "right", poller=poller), server.endpoints)
     with pytest.raises(DeviceInitError, match=r"ft right .*not reachable after 3 requests.*timeout"):
-        d.open()
+        d.configure()
     assert not ft_threads()
     assert not multiprocessing.active_children()
 
 
-@pytest.mark.parametrize("poller", ["process", "thread"])
+@pytest.mark.parametrize("poller", POLLERS)
 def test_close_is_idempotent_and_stops_the_poller(server, poller):
-    d = FTSensorSet(bus("left", "right"), server.endpoints, poller=poller)
-    d.open()
+    d = FTSensorSet(bus("left", "right", poller=poller), server.endpoints)
+    d.configure()
     if poller == "thread":
-        assert ft_threads() and d.poll_process is None
-    else:
+        assert ft_threads() and not multiprocessing.active_children()
+    elif poller == "process":
         assert not ft_threads()                   # no Modbus work in this process
-        pid = d.poll_process.pid
-        assert pid_alive(pid) and d.poll_process.name == "ft-poll"
+        pid = d.poller.process.pid
+        assert pid_alive(pid) and d.poller.process.name == "ft-poll"
+    else:
+        assert not ft_threads() and not multiprocessing.active_children()    # no helper at all
     d.close()
     d.close()
     assert not ft_threads()
-    assert not multiprocessing.active_children() and d.poll_process is None
+    assert not multiprocessing.active_children()
     if poller == "process":
-        assert not pid_alive(pid)
+        assert not pid_alive(pid) and d.poller.process is None
     assert set(d.poll(time.monotonic())) == {"left", "right"}   # still answers, never raises
     assert d.poll(time.monotonic())["left"].wrench == W_LEFT    # the last published sample
 
 
-@pytest.mark.parametrize("poller", ["process", "thread"])
+@pytest.mark.parametrize("poller", POLLERS)
 def test_connection_loss_is_reported_and_reconnected(poller):
     srv = VirtualFTServer(["left"]).start()
     srv.set_wrench("left", W_LEFT)
     endpoint = srv.endpoints["left"]
-    with FTSensorSet(bus("left"), srv.endpoints, reconnect_s=0.02, poller=poller) as d:
+    with FTSensorSet(bus("left", poller=poller), srv.endpoints, reconnect_s=0.02) as d:
+        wait_for(lambda: driver_health(d).fresh)
         srv.close()
         h = wait_for(lambda: (x := driver_health(d)).state is Freshness.STALE and x)
         assert "cannot connect" in h.cause and "refused" in h.cause
-        assert h.counters["disconnects"] == 1 and h.counters["connect_failures"] >= 1
+        c = d.counters()
+        assert c["left.disconnects"] == 1 and c["left.connect_failures"] >= 1
         srv2 = VirtualFTServer(["left"], ports={"left": endpoint[1]}).start()
         try:
             srv2.set_wrench("left", Wrench(fx=3.0))
@@ -302,54 +340,6 @@ def test_connection_loss_is_reported_and_reconnected(poller):
 
 def driver_health(d: FTSensorSet):
     return d.poll(time.monotonic())["left"].health
-
-
-def test_lockstep_polling_uses_the_given_clock_without_threads(server):
-    sim_t = [10.0]
-    d = FTSensorSet(bus("left", "right"), server.endpoints, clock=lambda: sim_t[0])
-    d.open(start_thread=False)
-    try:
-        assert not [t for t in threading.enumerate() if t.name.startswith("ft-poll")]
-        sim_t[0] = 10.02
-        server.set_wrench("left", Wrench(fx=1.0))
-        d.poll_devices_once()
-        r = d.poll(10.025)["left"]
-        assert r.wrench == Wrench(fx=1.0) and r.t == 10.02
-        assert r.age == pytest.approx(0.005) and r.health.fresh
-        stale = d.poll(10.02 + STALE_S + 0.001)["left"]       # simulated time alone makes it stale
-        assert stale.health.state is Freshness.STALE and stale.wrench == Wrench(fx=1.0)
-    finally:
-        d.close()
-
-
-def test_lockstep_round_keeps_the_requests_of_all_sensors_in_flight():
-    """Three sensors, two silent: one round waits one timeout, not one per sensor."""
-    names = ("a", "b", "c")
-    with VirtualFTServer(list(names)) as srv:
-        d = FTSensorSet(bus(*names, timeout_s=0.2), srv.endpoints, clock=lambda: 5.0)
-        d.open(start_thread=False)
-        try:
-            srv.inject("a", "dropout")
-            srv.inject("c", "dropout")
-            srv.set_wrench("b", Wrench(mx=0.5))
-            t0 = time.monotonic()
-            d.poll_devices_once()
-            took = time.monotonic() - t0
-            r = d.poll(5.0)
-            assert r["b"].wrench == Wrench(mx=0.5) and r["b"].health.fresh
-            assert r["a"].health.timeouts == 1 and r["c"].health.timeouts == 1
-            assert 0.2 <= took < 0.35, took
-            srv.clear("a")
-            srv.clear("c")
-            d.poll_devices_once()                  # reconnected (dropped after the timeout), answered
-            assert all(x.health.fresh for x in d.poll(5.0).values())
-        finally:
-            d.close()
-
-
-def test_invalid_poller_is_rejected():
-    with pytest.raises(ValueError, match="poller"):
-        FTSensorSet(bus("left"), poller="fork")
 
 
 def test_config_errors_are_caught_before_connecting():
@@ -387,7 +377,7 @@ def test_virtual_server_close_frees_ports_and_threads():
 # --------------------------------------------------------------------------- the poll process
 def test_process_poller_delivers_new_values_within_a_few_periods(server):
     cfg = bus("left", "right", poll_hz=100.0)
-    with FTSensorSet(cfg, server.endpoints, poller="process") as d:
+    with FTSensorSet(cfg, server.endpoints) as d:
         r = d.poll(time.monotonic())
         assert r["left"].wrench == W_LEFT and r["left"].health.fresh     # read once by open()
         for k in range(1, 4):
@@ -397,15 +387,16 @@ def test_process_poller_delivers_new_values_within_a_few_periods(server):
             got = wait_for(lambda w=w: (x := d.poll(time.monotonic())["left"]).wrench == w and x, timeout=2.0)
             # 100 Hz polling: normally within 1-2 periods; 0.5 s leaves room for a loaded machine
             assert time.monotonic() - t0 < 0.5
-            assert got.t >= t0 - 0.011 and got.health.fresh and got.health.counters["samples"] >= 2
+            assert got.t >= t0 - 0.011 and got.health.fresh and d.counters()["left.samples"] >= 2
 
 
 def test_process_poller_reports_the_counters_and_causes_of_the_child(server):
-    with FTSensorSet(bus("left", "right"), server.endpoints, poller="process") as d:
+    with FTSensorSet(bus("left", "right"), server.endpoints, ) as d:
         server.inject("right", "out_of_range", code=6)
         h = wait_for(lambda: (x := d.poll(time.monotonic())["right"].health).state is Freshness.INVALID and x)
         assert h.cause == "Modbus exception 6 (server device busy)" and h.errors >= 1
-        assert h.counters["connects"] == 1 and h.counters["samples"] >= 1
+        c = d.counters()
+        assert c["right.connects"] == 1 and c["right.samples"] >= 1
         server.clear("right")
         server.inject("left", "corrupt")
         h = wait_for(lambda: (x := d.poll(time.monotonic())["left"].health).state is Freshness.STALE and x)
@@ -415,18 +406,18 @@ def test_process_poller_reports_the_counters_and_causes_of_the_child(server):
 def test_killing_the_server_makes_the_process_poller_stale_with_a_cause():
     srv = VirtualFTServer(["left"]).start()
     srv.set_wrench("left", W_LEFT)
-    with FTSensorSet(bus("left"), srv.endpoints, reconnect_s=0.05, poller="process") as d:
+    with FTSensorSet(bus("left"), srv.endpoints, reconnect_s=0.05, ) as d:
         assert d.poll(time.monotonic())["left"].health.fresh
         srv.close()
         r = wait_for(lambda: (x := d.poll(time.monotonic())["left"]).health.state is not Freshness.FRESH and x)
         assert r.health.state is Freshness.STALE and r.wrench == W_LEFT
         assert "cannot connect" in r.health.cause or "connection lost" in r.health.cause
-        assert d.poll_process.is_alive()           # the poller itself keeps trying
+        assert d.poller.process.is_alive()           # the poller itself keeps trying
 
 
 def test_a_dead_poll_process_shows_as_stale_with_its_exit(server):
-    with FTSensorSet(bus("left", "right"), server.endpoints, poller="process") as d:
-        proc = d.poll_process
+    with FTSensorSet(bus("left", "right"), server.endpoints, ) as d:
+        proc = d.poller.process
         os.kill(proc.pid, signal.SIGKILL)
         h = wait_for(lambda: (x := d.poll(time.monotonic())["left"].health).state is Freshness.STALE and x)
         assert "poll process exited with code -9" in h.cause
@@ -442,8 +433,8 @@ def test_poll_process_runs_sched_other_even_when_started_from_a_fifo_thread(serv
         except (OSError, AttributeError) as exc:
             out["skip"] = repr(exc)
             return
-        d = FTSensorSet(bus("left"), {"left": server.endpoints["left"]}, poller="process")
-        d.open()
+        d = FTSensorSet(bus("left"), {"left": server.endpoints["left"]})
+        d.configure()
         out["d"] = d
 
     t = threading.Thread(target=opener)
@@ -453,7 +444,7 @@ def test_poll_process_runs_sched_other_even_when_started_from_a_fifo_thread(serv
         pytest.skip(f"cannot run SCHED_FIFO here: {out['skip']}")
     d = out["d"]
     try:
-        assert os.sched_getscheduler(d.poll_process.pid) == os.SCHED_OTHER
+        assert os.sched_getscheduler(d.poller.process.pid) == os.SCHED_OTHER
     finally:
         d.close()
 
@@ -465,8 +456,8 @@ from rig_runtime.config import FTBus, FTSensor
 from drivers.ft300 import FTSensorSet
 if __name__ == "__main__":
     d = FTSensorSet(FTBus(poll_hz=50.0, sensors=(FTSensor(name="left"),)), {{"left": ("127.0.0.1", {port})}})
-    d.open()
-    print(d.poll_process.pid, flush=True)
+    d.configure()
+    print(d.poller.process.pid, flush=True)
     time.sleep(60)
 """
 
@@ -487,16 +478,9 @@ def test_poll_process_dies_with_its_parent(server, tmp_path):
         parent.wait(5)
 
 
-def test_open_with_an_unpicklable_clock_is_refused_for_the_process_poller(server):
-    d = FTSensorSet(bus("left"), {"left": server.endpoints["left"]}, clock=lambda: 0.0)
-    with pytest.raises(ValueError, match="picklable"):
-        d.open()
-    assert not multiprocessing.active_children()
-
-
 # --------------------------------------------------------------------------- shared-memory seqlock
-def _pub(v: float, cause: str = "", n: int = 0) -> _Published:
-    return _Published(Wrench(v, v, v, v, v, v), v, cause, None, n, n, n,
+def _pub(v: float, cause: str = "", n: int = 0) -> Published:
+    return Published(Wrench(v, v, v, v, v, v), v, cause, None, n, n, n,
                       (("samples", n), ("connects", 1), ("connect_failures", 0), ("disconnects", 0)))
 
 
@@ -506,7 +490,7 @@ class _Holder:
 
 
 def _make(w6, *rest):
-    return _Published(None if w6 is None else Wrench(*w6), *rest)
+    return Published(None if w6 is None else Wrench(*w6), *rest)
 
 
 def test_seqlock_slot_round_trip_and_rejected_copies():
@@ -517,7 +501,7 @@ def test_seqlock_slot_round_trip_and_rejected_copies():
         reader, writer = SlotReader(shm.buf, holders, _make), SlotWriter(shm.buf)
         reader.refresh()
         assert holders[0].pub is None                     # nothing published yet
-        p = _Published(W_LEFT, 12.5, "ünïcode " + "x" * 400, 4, 1, 2, 3,
+        p = Published(W_LEFT, 12.5, "ünïcode " + "x" * 400, 4, 1, 2, 3,
                        (("samples", 7), ("connects", 2), ("connect_failures", 1), ("disconnects", 1)))
         writer.write(1, p)
         reader.refresh()
@@ -581,23 +565,20 @@ def test_seqlock_reader_never_sees_a_torn_sample_from_another_process():
 
 
 # --------------------------------------------------------------------------- RTU on a pty
-def test_rtu_over_pty_reads_values_and_counts_crc_errors():
+@pytest.mark.parametrize("poller", ["process", "thread"])
+def test_rtu_over_pty_reads_values_and_counts_crc_errors(poller):
     with VirtualFTServer(["r"], rtu=["r"]) as srv:
         srv.set_wrench("r", W_LEFT)
-        cfg = bus(sensors=(FTSensor(name="r", transport="rtu", serial_port=srv.serial_ports["r"]),))
-        d = FTSensorSet(cfg, clock=lambda: 1.0)
-        d.open(start_thread=False)
-        try:
-            assert d.poll(1.0)["r"].wrench == W_LEFT
+        cfg = bus(sensors=(FTSensor(name="r", transport="rtu", serial_port=srv.serial_ports["r"]),),
+                  poller=poller, poll_hz=20.0)
+        with FTSensorSet(cfg) as d:
+            assert d.poll(time.monotonic())["r"].wrench == W_LEFT
             srv.inject("r", "corrupt")              # RTU: CRC inverted
-            d.poll_devices_once()
-            h = d.poll(1.0)["r"].health
-            assert h.bad_frames == 1 and h.timeouts == 0
+            h = wait_for(lambda: (x := d.poll(time.monotonic())["r"].health).bad_frames >= 2 and x)
+            assert h.timeouts == 0 and h.errors == 0
             srv.clear("r")
-            d.poll_devices_once()
-            assert d.poll(1.0)["r"].health.fresh
-        finally:
-            d.close()
+            srv.set_wrench("r", Wrench(fy=2.0))
+            wait_for(lambda: (x := d.poll(time.monotonic())["r"]).health.fresh and x.wrench == Wrench(fy=2.0))
 
 
 # --------------------------------------------------------------------------- independent peers
@@ -623,20 +604,15 @@ class _PlainPymodbusServer:
         self.loop.close()
 
 
-@pytest.mark.parametrize("mode", ["lockstep", "process", "thread"])
-def test_driver_reads_a_plain_pymodbus_server(mode):
+@pytest.mark.parametrize("poller", POLLERS)
+def test_driver_reads_a_plain_pymodbus_server(poller):
     peer = _PlainPymodbusServer([-1234, 50, 981, -250, -500, 1500])
     try:
-        d = FTSensorSet(bus("left"), {"left": ("127.0.0.1", peer.port)},
-                        poller="thread" if mode == "lockstep" else mode)
-        d.open(start_thread=mode != "lockstep")
+        d = FTSensorSet(bus("left", poller=poller), {"left": ("127.0.0.1", peer.port)})
+        d.configure()
         try:
             assert d.poll(time.monotonic())["left"].wrench == W_LEFT
-            if mode == "lockstep":
-                d.poll_devices_once()
-                h = d.poll(time.monotonic())["left"].health
-            else:
-                h = wait_for(lambda: (x := d.poll(time.monotonic())["left"].health).counters["samples"] >= 3 and x)
+            h = wait_for(lambda: (x := d.poll(time.monotonic())["left"].health) and d.counters().get("left.samples", 0) >= 3 and x)
             assert h.fresh and h.bad_frames == h.timeouts == h.errors == 0
         finally:
             d.close()
@@ -669,11 +645,13 @@ def test_plain_pymodbus_client_reads_the_virtual_server(server):
         client.close()
 
 
-def test_wrong_unit_id_is_an_init_error_like_behind_a_gateway(server):
-    cfg = bus(sensors=(FTSensor(name="left", unit_id=5),))
+@pytest.mark.parametrize("poller", POLLERS)
+def test_wrong_unit_id_is_an_init_error_like_behind_a_gateway(server, poller):
+    cfg = bus(sensors=(FTSensor(name="left", unit_id=5),), poller=poller)
     d = FTSensorSet(cfg, {"left": server.endpoints["left"]})
     with pytest.raises(DeviceInitError, match=r"ft left .*unit 5 not reachable.*exception 11"):
-        d.open(start_thread=False)
+        d.configure()
+    assert not d.is_configured and not multiprocessing.active_children()
 
 
 def test_modbus_tcp_codec_checks_what_it_decodes():
@@ -691,26 +669,3 @@ def test_modbus_tcp_codec_checks_what_it_decodes():
         decode_read_response(reply[:8] + b"\xff" + reply[9:], 0x1234, 9, 6)
     with pytest.raises(ValueError, match="length field"):
         frame_length(bytes.fromhex("1234 0000 0000"))
-
-
-def test_lockstep_round_answered_inline():
-    """Lockstep: requests sent, the simulated sensors answer in the caller's thread (their
-    selector thread is detached), replies collected — the values arrive, the ports stay."""
-    cfg = bus("ft_fl", "ft_fr", "ft_rl", "ft_rr")
-    names = [s.name for s in cfg.sensors]
-    with VirtualFTServer(names) as srv:
-        ft = FTSensorSet(cfg, endpoints=srv.endpoints, clock=lambda: 1.0)
-        ft.open(start_thread=False)
-        try:
-            for k in range(3):
-                w = Wrench(10.0 + k, -2.0, 3.0, 0.1, -0.2, 0.3)
-                for n in names:
-                    srv.set_wrench(n, w)
-                ft.poll_devices_start()
-                assert srv.serve_inline()
-                ft.poll_devices_finish()
-                r = ft.poll(1.0)
-                assert all(r[n].wrench is not None and r[n].wrench.fx == pytest.approx(10.0 + k) for n in names)
-            assert not srv._tcp.running                 # the thread handed over for good
-        finally:
-            ft.close()

@@ -1,0 +1,77 @@
+"""FT 300 register codec: holding registers 180–185 <-> :class:`Wrench`.
+
+Fx, Fy, Fz are INT16 in 0.01 N per count, Mx, My, Mz INT16 in 0.001 N·m per count;
+Modbus delivers them as unsigned 0..65535. Written once for both ends of the wire: the
+driver decodes (:func:`wrench_from_registers`), the simulated sensors
+(``sim_backend.virtual_ft``) encode (:func:`registers_from_wrench`). No I/O here, and no
+import of the driver: the simulator imports this module, not the driver.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+__all__ = [
+    "REG_START", "REG_COUNT", "DEFAULT_UNIT_ID", "FORCE_COUNTS_PER_N", "TORQUE_COUNTS_PER_NM",
+    "INT16_MIN", "INT16_MAX", "Wrench", "wrench_from_registers", "registers_from_wrench",
+]
+
+REG_START = 180                 # holding register of Fx (0-based protocol address)
+REG_COUNT = 6                   # Fx, Fy, Fz, Mx, My, Mz
+DEFAULT_UNIT_ID = 9
+FORCE_COUNTS_PER_N = 100.0      # 1 count = 0.01 N
+TORQUE_COUNTS_PER_NM = 1000.0   # 1 count = 0.001 N·m
+INT16_MIN, INT16_MAX = -32768, 32767
+_SCALES = (FORCE_COUNTS_PER_N,) * 3 + (TORQUE_COUNTS_PER_NM,) * 3
+_U16x6, _I16x6 = struct.Struct("=6H"), struct.Struct("=6h")   # two's complement by reinterpretation
+
+
+@dataclass(frozen=True, slots=True)
+class Wrench:
+    """Forces (N) and moments (N·m) in the sensor frame."""
+
+    fx: float = 0.0
+    fy: float = 0.0
+    fz: float = 0.0
+    mx: float = 0.0
+    my: float = 0.0
+    mz: float = 0.0
+
+    def as_tuple(self) -> tuple[float, float, float, float, float, float]:
+        return (self.fx, self.fy, self.fz, self.mx, self.my, self.mz)
+
+
+def wrench_from_registers(regs: Sequence[int]) -> Wrench:
+    """Decode holding registers 180..185 (unsigned integers 0..65535) into a :class:`Wrench`;
+    ValueError for another count or a value that is not such an integer."""
+    if len(regs) != REG_COUNT:
+        raise ValueError(f"expected {REG_COUNT} registers, got {len(regs)}")
+    try:
+        fx, fy, fz, mx, my, mz = _I16x6.unpack(_U16x6.pack(*regs))
+    except struct.error as exc:
+        raise ValueError(f"registers must be integers 0..65535, got {list(regs)}") from exc
+    return Wrench(fx / FORCE_COUNTS_PER_N, fy / FORCE_COUNTS_PER_N, fz / FORCE_COUNTS_PER_N,
+                  mx / TORQUE_COUNTS_PER_NM, my / TORQUE_COUNTS_PER_NM, mz / TORQUE_COUNTS_PER_NM)
+
+
+def registers_from_wrench(w: Wrench) -> list[int]:
+    """Encode a :class:`Wrench` as the six registers a sensor would hold (rounded to the
+    nearest count, saturated at the INT16 range; NaN is refused)."""
+    return [_to_register(v, s) for v, s in zip(w.as_tuple(), _SCALES)]
+
+
+def _to_register(value: float, counts_per_unit: float) -> int:
+    """SI value -> unsigned 16-bit register (rounded, saturated at the INT16 range)."""
+    if math.isnan(value):
+        raise ValueError("NaN cannot be encoded as a register")
+    counts = value * counts_per_unit
+    if counts >= INT16_MAX:
+        n = INT16_MAX
+    elif counts <= INT16_MIN:
+        n = INT16_MIN
+    else:
+        n = round(counts)
+    return n & 0xFFFF
