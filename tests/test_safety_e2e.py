@@ -10,7 +10,8 @@ import random
 import numpy as np
 import pytest
 
-from rig_runtime.hardware import Freshness
+from rig_runtime.hardware import Freshness, Health
+from rig_runtime.safety import Sample
 from rig_runtime import config
 from rig_runtime.recorder import Recorder
 from rig_runtime.scenario import Disturbance, FaultInjection, RefPoint, Scenario, load_scenario
@@ -57,10 +58,12 @@ def test_nan_sample(tmp_path):
         poll = devices.poll
 
         def bad_poll(now):
-            poll(now)
+            inp = poll(now)
             if now > 2.0:
-                devices.channels[3].value = math.nan
-                devices.channels[3].state = Freshness.FRESH
+                s = list(inp.samples)
+                s[3] = Sample(math.nan, now, Health(Freshness.FRESH))
+                inp = inp._replace(samples=tuple(s))
+            return inp
         devices.poll = bad_poll
     r = run(tmp_path, STEP, duration_s=4.0, prepare=prepare)
     assert_safe_stop(r, "s_fr", "nan")

@@ -287,8 +287,7 @@ class _Runtime:
         self.laser = {r: [] for r in self.fds}          # bytes read per cycle
         self.frames: list[list[tuple[int, bytes]]] = []  # CAN frames seen per cycle
         self.releases: list[float] = []
-        self.db.open()
-        self.db.disable(0.0)
+        self.db.configure()                     # no power until activate()
 
     def run(self, cycles: int) -> "_Runtime":
         k = 1
@@ -299,7 +298,7 @@ class _Runtime:
                 self.laser[r].append(_read_all(fd))
             self.db.poll(t)
             if k == self.enable_at:
-                self.db.enable(t)
+                self.db.activate(t)
             a = 0.4 * math.sin(2 * math.pi * 3.0 * t)
             self.db.write({"fl": a, "fr": -a, "rl": 0.5 * a, "rr": -0.5 * a}, t)
             got = []

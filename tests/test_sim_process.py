@@ -242,7 +242,8 @@ def test_can_responder_serves_the_drives(mode):
         bus = can.Bus(interface="rig_slcan", channel=rt.can_port, bitrate=cc.bitrate)
         db = DriveBus(cc, bus=bus, period_s=cfg.controller.h)
         try:
-            db.open()
+            db.configure()
+            db.activate(time.monotonic())   # the following writes walk the drives to OPERATION ENABLED
             t_end = time.monotonic() + 0.5
             while time.monotonic() < t_end:
                 now = time.monotonic()
@@ -262,8 +263,7 @@ def test_can_responder_serves_the_drives(mode):
             r = db.poll(time.monotonic())
             assert all(x.health.state.value == "fresh" for x in r), r
         finally:
-            db.disable(time.monotonic())
-            db.close()
+            db.close()                      # deactivates first
             bus.shutdown()
         deadline = time.monotonic() + 2.0
         while rt.session_active and time.monotonic() < deadline:
@@ -294,8 +294,7 @@ def test_session_starts_when_every_drive_is_enabled_not_at_the_first_sync():
                 time.sleep(h)
 
         try:
-            db.open()                       # the blocking start-up enables the drives …
-            db.disable(time.monotonic())    # … a runtime that enables at ARM has not yet
+            db.configure()                  # no power: the drives are enabled only at ARM
             deadline = time.monotonic() + 2.0
             while rt.session_active and time.monotonic() < deadline:
                 time.sleep(0.01)
@@ -307,9 +306,9 @@ def test_session_starts_when_every_drive_is_enabled_not_at_the_first_sync():
             assert not st["session"]["active"] and st["session"]["count"] == count
             assert st["session"]["last_sync_t"] is not None
             t_enable = time.monotonic()
-            db.enable(t_enable)
+            db.activate(t_enable)
             deadline = time.monotonic() + 2.0
-            while not db.ready and time.monotonic() < deadline:
+            while not db.enabled and time.monotonic() < deadline:
                 cycles(1)
             cycles(2)
             st = rt.status()
@@ -317,8 +316,7 @@ def test_session_starts_when_every_drive_is_enabled_not_at_the_first_sync():
             assert st["session"]["t0"] >= t_enable
             assert all(st["drives"][w]["state"] == "OPERATION ENABLED" for w in WHEELS)
         finally:
-            db.disable(time.monotonic())
-            db.close()
+            db.close()                      # deactivates first
             bus.shutdown()
         deadline = time.monotonic() + 2.0
         while rt.session_active and time.monotonic() < deadline:
