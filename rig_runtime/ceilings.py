@@ -103,7 +103,7 @@ def bounds(cfg: Any) -> Iterator[Bound]:
     yield Bound("devices.can.heartbeat_ms x heartbeat_timeout_factor", can.heartbeat_ms * f,
                 c.heartbeat_timeout_ms, "ms (the drives' heartbeat consumer time)", hb)
     for i, d in enumerate(can.drives):
-        yield Bound(f"devices.can.drives[{i}].heartbeat_ms x devices.can.heartbeat_timeout_factor",
+        yield Bound(f"devices.can.drives[{i}].heartbeat_ms x heartbeat_timeout_factor",
                     d.heartbeat_ms * f, c.heartbeat_timeout_ms, "ms (the runtime's timeout for this drive)", hb)
 
 

@@ -55,7 +55,7 @@ LOOSENED = [
     ("sim.yaml", _set("devices", "heartbeat_timeout_factor", 1000.0, sub="can"),
      "devices.can.heartbeat_ms x heartbeat_timeout_factor", 100000.0, "500"),
     ("sim.yaml", _drive(2, "heartbeat_ms", 1000),
-     "devices.can.drives[2].heartbeat_ms x devices.can.heartbeat_timeout_factor", 2500.0, "500"),
+     "devices.can.drives[2].heartbeat_ms x heartbeat_timeout_factor", 2500.0, "500"),
     ("sim.yaml", _drive(1, "rated_current_A", 20.0), "devices.can.drives[1].rated_current_A", 20.0, "8"),
 ]
 

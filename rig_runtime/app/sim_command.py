@@ -59,6 +59,14 @@ def _cpus(text: str) -> list[int]:
           "process of their own, so no plant-side thread delays a TPDO) or thread (in this process)")
 def cmd_sim(args: argparse.Namespace) -> int:
     from sim_backend.process import serve
+
+    from .. import preflight
+    preflight.check_duration(args.duration)
+    preflight.check_duration(args.status_period, "--status-period")
+    if args.write_config:
+        preflight.check_output_file(args.write_config, "--write-config", create_dir=True)
+    if args.status_file:
+        preflight.check_output_file(args.status_file, "--status-file", create_dir=True)
     return serve(args.config, args.scenario, args.seed, write_config=args.write_config,
                  status_file=args.status_file, status_period_s=args.status_period, duration_s=args.duration,
                  rt_priority=args.rt_priority, cpu_affinity=args.cpu_affinity,
