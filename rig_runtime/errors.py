@@ -59,3 +59,12 @@ class DeviceIOError(DeviceError):
 
 class DeviceTimeoutError(DeviceIOError):
     """A device did not answer within its configured time."""
+
+
+class LogError(RigError):
+    """A file given as a log is not a readable rig log (not HDF5, another program's HDF5,
+    empty or truncated); names the file and why."""
+
+    def __init__(self, path: object, why: str):
+        self.path = str(path)
+        super().__init__(f"{path}: not a readable rig log ({why})")

@@ -58,8 +58,6 @@ def _cpus(text: str) -> list[int]:
      help="where the emulated SLCAN adapter and the virtual drives run: process (default: a child "
           "process of their own, so no plant-side thread delays a TPDO) or thread (in this process)")
 def cmd_sim(args: argparse.Namespace) -> int:
-    from sim_backend.process import serve
-
     from .. import preflight
     preflight.check_duration(args.duration)
     preflight.check_duration(args.status_period, "--status-period")
@@ -67,6 +65,11 @@ def cmd_sim(args: argparse.Namespace) -> int:
         preflight.check_output_file(args.write_config, "--write-config", create_dir=True)
     if args.status_file:
         preflight.check_output_file(args.status_file, "--status-file", create_dir=True)
+    if args.scenario:       # the faults and disturbances it will inject must fit the simulated rig
+        from .. import config
+        from ..scenario import load_scenario
+        preflight.validate_scenario(config.load(args.config), load_scenario(args.scenario))
+    from sim_backend.process import serve
     return serve(args.config, args.scenario, args.seed, write_config=args.write_config,
                  status_file=args.status_file, status_period_s=args.status_period, duration_s=args.duration,
                  rt_priority=args.rt_priority, cpu_affinity=args.cpu_affinity,
