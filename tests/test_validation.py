@@ -357,7 +357,8 @@ def test_export_recognises_what_is_not_a_rig_log(tmp_path):
             read_log(p)
     r = rig("export", good, "--csv", tmp_path / "missing" / "out.csv")
     one_line_error(r, "--csv", "does not exist")
-    assert to_csv(good, tmp_path / "ok.csv") == 5000
+    one_line_error(rig("export", good, "--csv", good), "--csv", "other than the log itself")
+    assert to_csv(good, tmp_path / "ok.csv") == 5000         # the log is intact
 
 
 def test_errors_are_rig_errors():

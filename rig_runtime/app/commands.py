@@ -116,8 +116,10 @@ def cmd_export(args: argparse.Namespace) -> int:
     from ..export import events_path_for, to_csv
     if not Path(args.log).exists():
         raise ConfigError(args.log, "", "an existing log file")
-    preflight.check_output_file(args.csv, "--csv")
-    preflight.check_output_file(events_path_for(args.csv), "--csv (its events file)")
+    for out, what in ((Path(args.csv), "--csv"), (events_path_for(args.csv), "--csv (its events file)")):
+        if out.resolve() == Path(args.log).resolve():
+            raise ConfigError(None, what, "a file other than the log itself", str(out))
+        preflight.check_output_file(out, what)
     n = to_csv(args.log, args.csv)
     print(f"{n} rows -> {args.csv}")
     return EXIT_OK
