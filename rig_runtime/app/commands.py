@@ -73,7 +73,11 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
         summary, code = run_lockstep(cfg, scenario, log, seed=args.seed, duration_s=args.duration)
     if args.report:
         from .report import write_report
-        summary["report"] = [str(p) for p in write_report(log, args.report, scenario, summary)]
+        try:
+            summary["report"] = [str(p) for p in write_report(log, args.report, scenario, summary)]
+        except (OSError, RuntimeError) as e:     # checked before the run; a disk can still fail: keep the summary
+            summary["report_error"] = str(e)
+            print(f"rig dry-run: report not written: {e}", file=sys.stderr)
     _print_summary(summary, args.json)
     return code
 
