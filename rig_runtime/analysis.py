@@ -169,9 +169,13 @@ def sampled_instability(cfg: RigConfig) -> tuple[float, complex] | None:
     Re >= 0; None if it is stable at both."""
     p = cfg.plant
     for D in dict.fromkeys((p.D_min, p.D_max)):
-        ev = sampled_loop(cfg, D)
+        try:
+            with np.errstate(all="ignore"):
+                ev = sampled_loop(cfg, D)
+        except (ArithmeticError, ValueError):    # parameters so extreme the matrices overflow (LinAlgError is a ValueError)
+            return D, complex(np.nan)
         worst = complex(ev[np.argmax(ev.real)]) if len(ev) else 0j
-        if not worst.real < 0:
+        if not worst.real < 0:           # NaN (not computable) counts as unstable
             return D, worst
     return None
 
@@ -187,7 +191,8 @@ def stability_gate(cfg: RigConfig) -> None:
         raise UnstableLoopError(
             cfg.source or None, "controller.K_P" if law == "p" else "controller.pipd",
             f"gains whose sampled closed loop ({law}, h = {cfg.controller.h:g} s, plant (10) with D = {D:g}) "
-            f"is stable, but it has an eigenvalue at {_ev_txt(ev)} (`rig tune` shows the analysis)")
+            "is stable, but " + ("it cannot be computed with these parameters (numbers overflow)" if ev != ev
+                                 else f"it has an eigenvalue at {_ev_txt(ev)} (`rig tune` shows the analysis)"))
 
 
 def tune_failures(cfg: RigConfig, r: "TuneResult") -> list[str]:

@@ -124,6 +124,9 @@ def test_gate_covers_the_p_law_and_both_dampings(cfg):
         analysis.stability_gate(p)
     analysis.stability_gate(dataclasses.replace(p, controller=dataclasses.replace(p.controller, K_P=5000.0)))
     assert analysis.sampled_instability(cfg) is None
+    huge = dataclasses.replace(cfg, plant=dataclasses.replace(cfg.plant, omega0=1e200))   # overflows: refused
+    with pytest.raises(analysis.UnstableLoopError, match="cannot be computed"):
+        analysis.stability_gate(huge)
 
 
 # --------------------------------------------------------------------------- durations

@@ -28,7 +28,12 @@ def cmd_tune(args: argparse.Namespace) -> int:
     cfg = config.load(args.config)
     if args.plot:
         preflight.check_plot_dir(args.plot, "--plot")
-    r = analysis.tune(cfg)
+    try:
+        r = analysis.tune(cfg)
+    except (ArithmeticError, ValueError) as e:          # numpy's LinAlgError is a ValueError
+        from ..errors import ConfigError
+        raise ConfigError(cfg.source, "plant", "parameters the tuning analysis can compute with "
+                          f"({type(e).__name__}: {str(e)[:80]})") from None
     failures = analysis.tune_failures(cfg, r)
     files = analysis.plot(cfg, r, args.plot) if args.plot else []
     if args.json:
