@@ -85,8 +85,9 @@ def bounds(cfg: Any) -> Iterator[Bound]:
     yield Bound("limits.psi_rate_max", lim.psi_rate_max, c.psi_rate_max, "rad/s", hk + "psi_rate_max")
     yield Bound("limits.du_max", lim.du_max, c.du_max, "A/s", hk + "du_max")
 
-    def periods(seconds: float) -> int:
-        return math.floor(seconds / h + 1e-9)
+    def periods(seconds: float) -> float:
+        q = seconds / h + 1e-9
+        return math.floor(q) if q < 2.0 ** 62 else q      # whole periods (a huge ceiling stays a float)
     per = f"periods of h = {_fmt(h)} s"
     yield Bound("limits.stale_periods", lim.stale_periods, periods(c.stale_s), per,
                 f"{hk}stale_s = {_fmt(c.stale_s)} s / h")

@@ -146,3 +146,15 @@ def test_hardware_description_is_required_and_a_file_of_its_own(tmp_path):
                        lambda d: d.__setitem__("include", d["include"] + [str(other / "hw2.yaml")]))
     with pytest.raises(ConfigError, match="defined once"):
         config.load(main)
+
+
+def test_a_huge_time_ceiling_is_not_a_crash(tmp_path):
+    def m(d):
+        d["hardware"]["ceilings"]["stale_s"] = 1e308
+    d = tmp_path / "configs"
+    shutil.copytree(ROOT / "configs", d)
+    p = d / "hardware.yaml"
+    data = yaml.safe_load(p.read_text())
+    m(data)
+    p.write_text(yaml.safe_dump(data))
+    assert config.load(d / "sim.yaml").hardware.ceilings.stale_s == 1e308
