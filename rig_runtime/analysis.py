@@ -16,6 +16,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from .config import RigConfig
+from .errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -100,15 +101,21 @@ def closed_loop_matrix(cfg: RigConfig) -> np.ndarray:
     return M
 
 
-def sampled_closed_loop(cfg: RigConfig) -> np.ndarray:
-    """Eigenvalues of the loop as implemented: plant (10) (with (10)'s own lateral pole)
-    held over h, the Tustin PI-PD of ``control.py``; returned as ln(z)/h (1/s)."""
+def _held_plant(cfg: RigConfig, D: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Plant (10) with its input held over one sample time h (zero-order hold)."""
+    A, B = model_10(cfg, D=D)
+    n = 3
+    Md = expm(np.block([[A, B[:, None]], [np.zeros((1, n + 1))]]) * cfg.controller.h)
+    return Md[:n, :n], Md[:n, n]
+
+
+def sampled_closed_loop(cfg: RigConfig, D: float | None = None) -> np.ndarray:
+    """Eigenvalues of the loop as implemented: plant (10) (with (10)'s own lateral pole,
+    damping ``D``, default D_min) held over h, the Tustin PI-PD of ``control.py``;
+    returned as ln(z)/h (1/s)."""
     c = cfg.controller
     g, h = c.pipd, c.h
-    A, B = model_10(cfg)
-    n = 3
-    Md = expm(np.block([[A, B[:, None]], [np.zeros((1, n + 1))]]) * h)
-    Ad, Bd = Md[:n, :n], Md[:n, n]
+    Ad, Bd = _held_plant(cfg, D)
     # controller states: x_I, e_y_prev, e_psi_prev, de (Tustin); u_k depends on x_k
     a_f = (2 * g.T_f_psi - h) / (2 * g.T_f_psi + h)
     b_f = 2 / (2 * g.T_f_psi + h)
@@ -126,9 +133,85 @@ def sampled_closed_loop(cfg: RigConfig) -> np.ndarray:
     Phi = np.zeros((N, N))
     Phi[:3] = np.hstack([Ad, np.zeros((3, 4))]) + np.outer(Bd, u)
     Phi[3], Phi[4], Phi[5], Phi[6] = x_I, e_y, e_psi, de
-    z = np.linalg.eigvals(Phi)
+    return _continuous(np.linalg.eigvals(Phi), h)
+
+
+def _continuous(z: np.ndarray, h: float) -> np.ndarray:
+    """ln(z)/h: |z| < 1 (stable sampled pole) is Re < 0. Poles at z = 0 (deadbeat) dropped."""
     z = z[np.abs(z) > 1e-9]
     return np.log(z.astype(complex)) / h
+
+
+def sampled_p_loop(cfg: RigConfig, D: float | None = None) -> np.ndarray:
+    """Eigenvalues (ln(z)/h, 1/s) of the P law of Sec. 5.1 as implemented: u_k = K_P (y_ref − y_k)
+    on plant (10) held over h."""
+    Ad, Bd = _held_plant(cfg, D)
+    C = np.array([1.0, 0.0, 0.0])
+    return _continuous(np.linalg.eigvals(Ad - cfg.controller.K_P * np.outer(Bd, C)), cfg.controller.h)
+
+
+def sampled_loop(cfg: RigConfig, D: float | None = None) -> np.ndarray:
+    """The sampled closed loop of the configured law (``controller.law``), as implemented."""
+    return sampled_p_loop(cfg, D) if cfg.controller.law == "p" else sampled_closed_loop(cfg, D)
+
+
+class UnstableLoopError(ConfigError):
+    """The configured gains give an unstable closed loop: they are never armed."""
+
+
+def _ev_txt(e: complex) -> str:
+    return f"{e.real:+.3g}" + (f"{e.imag:+.3g}j" if abs(e.imag) > 1e-9 else "") + " 1/s"
+
+
+def sampled_instability(cfg: RigConfig) -> tuple[float, complex] | None:
+    """(D, eigenvalue) of the first damping at which the sampled closed loop as implemented
+    (the configured law, h, Tustin; plant (10) at D_min, then D_max) has an eigenvalue with
+    Re >= 0; None if it is stable at both."""
+    p = cfg.plant
+    for D in dict.fromkeys((p.D_min, p.D_max)):
+        try:
+            with np.errstate(all="ignore"):
+                ev = sampled_loop(cfg, D)
+        except (ArithmeticError, ValueError):    # parameters so extreme the matrices overflow (LinAlgError is a ValueError)
+            return D, complex(np.nan)
+        worst = complex(ev[np.argmax(ev.real)]) if len(ev) else 0j
+        if not worst.real < 0:           # NaN (not computable) counts as unstable
+            return D, worst
+    return None
+
+
+def stability_gate(cfg: RigConfig) -> None:
+    """Refuse (``UnstableLoopError``) gains whose sampled closed loop is unstable
+    (:func:`sampled_instability`). ``rig run``, ``rig dry-run`` and ``rig check`` call this
+    before anything is opened; ``rig tune`` fails on it too."""
+    bad = sampled_instability(cfg)
+    if bad is not None:
+        D, ev = bad
+        law = cfg.controller.law
+        raise UnstableLoopError(
+            cfg.source or None, "controller.K_P" if law == "p" else "controller.pipd",
+            f"gains whose sampled closed loop ({law}, h = {cfg.controller.h:g} s, plant (10) with D = {D:g}) "
+            "is stable, but " + ("it cannot be computed with these parameters (numbers overflow)" if ev != ev
+                                 else f"it has an eigenvalue at {_ev_txt(ev)} (`rig tune` shows the analysis)"))
+
+
+def tune_failures(cfg: RigConfig, r: "TuneResult") -> list[str]:
+    """What makes ``rig tune`` fail: a loop of (15), (16), (19) or the sampled loop as
+    implemented with an eigenvalue Re >= 0, or a design check of Sec. 5.2.3 that fails."""
+    out = []
+    for name, ev in (("inner loop (15)", r.inner), ("inner loop with differentiator (16)", r.inner_filtered),
+                     ("complete closed loop (19)", r.closed_loop)):
+        bad = [e for e in ev if not e.real < 0]
+        if bad:
+            out.append(f"{name} unstable: eigenvalue at {_ev_txt(max(bad, key=lambda e: e.real))}")
+    bad = sampled_instability(cfg)    # r.closed_loop_sampled is its D_min case (pipd)
+    if bad is not None:
+        out.append(f"sampled loop as implemented ({cfg.controller.law}, D = {bad[0]:g}) unstable: "
+                   f"eigenvalue at {_ev_txt(bad[1])}")
+    for k, c in r.checks.items():
+        if not c["ok"]:
+            out.append(f"design check {k} fails: {c['value']:.4g} (limit {c['limit']:g})")
+    return out
 
 
 def p_control_boundary(cfg: RigConfig, D: float | None = None, kp_hi: float = 1e7) -> float:
@@ -160,7 +243,7 @@ def root_locus(cfg: RigConfig, kps: np.ndarray, D: float | None = None) -> np.nd
 def design_checks(cfg: RigConfig, outer: np.ndarray) -> dict:
     """The criteria of Sec. 5.2.3 (worst-case input and reference yaw angle, slowest pole)."""
     t, g = cfg.tuning, cfg.controller.pipd
-    terms = [g.K_P_psi * t.psi_design, g.K_D_psi * t.psi_rate_design]
+    terms = [abs(g.K_P_psi) * t.psi_design, abs(g.K_D_psi) * t.psi_rate_design]   # worst case: signs aligned
     u_worst = sum(terms)
     psi_ref_worst = g.K_P_y * t.y_design
     slowest = float(np.max(outer.real))

@@ -9,6 +9,7 @@ Units are SI (m, rad, s, A) unless a key says otherwise (``*_mm``, ``*_hz``, ``*
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from dataclasses import dataclass, field
@@ -18,6 +19,8 @@ from typing import Any, Literal, Optional
 import yaml
 
 from . import schema
+from .ceilings import HardwareDescription
+from .ceilings import check as check_ceilings
 from .errors import ConfigError
 from .schema import check, nonneg, positive, unit_interval
 
@@ -259,6 +262,7 @@ class RigConfig:
     plant: Plant
     controller: Controller
     limits: Limits
+    hardware: HardwareDescription                   # the machine's ceilings (ceilings.py; a file of its own)
     controlled: tuple[Literal["front", "rear"], ...] = ("rear",)
     tuning: TuningCriteria = field(default_factory=TuningCriteria)
     devices: Devices = field(default_factory=Devices)
@@ -270,14 +274,38 @@ class RigConfig:
     def __post_init__(self) -> None:
         if not self.controlled:
             raise ConfigError(None, "controlled", "at least one of 'front', 'rear'")
+        check_ceilings(self)     # every limit at most its hardware ceiling, however the object was made
 
 
 _SECTION_FILES = ("geometry", "plant", "controller", "limits", "controlled", "tuning",
-                  "devices", "realtime", "recorder", "sim")
+                  "devices", "realtime", "recorder", "sim", "hardware")
+HARDWARE_FILE = CONFIG_DIR / "hardware.yaml"
+
+# Bounds of a YAML file: a config is a few kB; a "billion laughs" file of a few hundred
+# bytes expands to 10^9 nodes through aliases. Both are refused before construction.
+MAX_YAML_BYTES = 256 * 1024
+MAX_YAML_DEPTH = 32                 # nesting levels of mappings and lists
+MAX_YAML_NODES = 100_000            # nodes after alias expansion
+
+
+class _TooBig(Exception):
+    """A YAML document beyond the loader's bounds."""
 
 
 class _Loader(yaml.SafeLoader):
-    """safe_load, but ``1.0e5`` is a float (YAML 1.2 style), as engineers write it."""
+    """safe_load, but ``1.0e5`` is a float (YAML 1.2 style), as engineers write it; nesting
+    is bounded while composing (``MAX_YAML_DEPTH``)."""
+
+    _depth = 0
+
+    def compose_node(self, parent, index):  # noqa: D102 - PyYAML hook
+        self._depth += 1
+        try:
+            if self._depth > MAX_YAML_DEPTH:
+                raise _TooBig(f"nesting deeper than {MAX_YAML_DEPTH} levels")
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
 
 
 _Loader.add_implicit_resolver(
@@ -291,15 +319,67 @@ _Loader.add_implicit_resolver(
 )
 
 
+def _node_children(node: yaml.Node) -> list[yaml.Node]:
+    if isinstance(node, yaml.MappingNode):
+        return [n for kv in node.value for n in kv]
+    if isinstance(node, yaml.SequenceNode):
+        return list(node.value)
+    return []
+
+
+def _check_expansion(root: yaml.Node) -> None:
+    """Refuse a node graph whose alias expansion exceeds ``MAX_YAML_NODES`` or that refers
+    to itself (each shared node is sized once: milliseconds, whatever it expands to)."""
+    size: dict[int, int] = {}
+    active: set[int] = set()
+    stack: list[tuple[yaml.Node, bool]] = [(root, False)]
+    while stack:
+        node, done = stack.pop()
+        k = id(node)
+        if done:
+            active.discard(k)
+            n = 1 + sum(size[id(c)] for c in _node_children(node))
+            if n > MAX_YAML_NODES:
+                raise _TooBig(f"more than {MAX_YAML_NODES} values after alias expansion")
+            size[k] = n
+        elif k not in size:
+            if k in active:
+                raise _TooBig("an alias that refers to itself")
+            active.add(k)
+            stack.append((node, True))
+            stack.extend((c, False) for c in _node_children(node) if id(c) not in size)
+
+
+def _load_yaml_bounded(text: str) -> Any:
+    loader = _Loader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        _check_expansion(node)
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
 def _read_yaml(path: Path) -> dict[str, Any]:
     try:
-        text = path.read_text()
+        with open(path, "rb") as fh:
+            raw = fh.read(MAX_YAML_BYTES + 1)
     except FileNotFoundError:
         raise ConfigError(str(path), "", "an existing config file") from None
     except OSError as e:
         raise ConfigError(str(path), "", f"a readable file ({e.strerror})") from e
+    if len(raw) > MAX_YAML_BYTES:
+        raise ConfigError(str(path), "", f"a YAML file of at most {MAX_YAML_BYTES // 1024} KiB")
     try:
-        data = yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ConfigError(str(path), "", f"UTF-8 text (invalid byte at offset {e.start})") from None
+    try:
+        data = _load_yaml_bounded(text)
+    except _TooBig as e:
+        raise ConfigError(str(path), "", f"a YAML file within the loader's bounds ({e})") from None
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "?"
@@ -337,8 +417,21 @@ def load_sections(path: Path, _seen: tuple[Path, ...] = ()) -> dict[str, tuple[A
     for k, v in data.items():
         if k not in _SECTION_FILES:
             raise ConfigError(str(path), str(k), "no such section (known: include, " + ", ".join(_SECTION_FILES) + ")")
+        if k == "hardware":
+            _hardware_file_rules(path, data, inc, out)
         out[k] = (v, str(path))  # the including file overrides an included section
     return out
+
+
+def _hardware_file_rules(path: Path, data: dict, inc: list, out: dict) -> None:
+    """The hardware description is a file of its own (only ``hardware:``, no includes),
+    defined once: a run config can include it but neither carry nor override ceilings."""
+    k = str(path)
+    if len(data) != 1 or inc:
+        raise ConfigError(k, "hardware", "the hardware description in a file of its own (only a `hardware:` "
+                          "section, no includes; the run config includes that file, e.g. hardware.yaml)")
+    if "hardware" in out:
+        raise ConfigError(k, "hardware", f"one hardware description (also in {out['hardware'][1]})")
 
 
 def load(path: str | Path | None = None) -> RigConfig:
@@ -353,9 +446,14 @@ def load(path: str | Path | None = None) -> RigConfig:
             continue
         value, file = sections[name]
         kwargs[name] = schema._convert(hints[name], value, name, file)
+        if name == "hardware":
+            kwargs[name] = dataclasses.replace(kwargs[name], source=file)
     for required in ("geometry", "plant", "controller", "limits"):
         if required not in kwargs:
             raise ConfigError(str(p.resolve()), required, "a section (missing; add it or include a file that has it)")
+    if "hardware" not in kwargs:
+        raise ConfigError(str(p.resolve()), "hardware", "the hardware description (missing; include "
+                          f"{HARDWARE_FILE.name} or this rig's own hardware file: docs/safety.md)")
     try:
         return RigConfig(source=str(p.resolve()), **kwargs)
     except ConfigError as e:

@@ -33,6 +33,19 @@ class CycleInput(NamedTuple):
     converters: Converters
 
 
+def require_complete(cfg: RigConfig) -> None:
+    """The device set a run needs: a laser for every role, a drive for every wheel."""
+    dcfg = cfg.devices
+    have = {l.role for l in dcfg.lasers}
+    missing = [r for r in LASER_ROLES if r not in have]
+    if missing:
+        raise ConfigError(cfg.source, "devices.lasers", "one laser for each of " + ", ".join(LASER_ROLES) +
+                          f" (missing {', '.join(missing)})")
+    wheels = {d.wheel for d in dcfg.can.drives}
+    if wheels != set(WHEELS):
+        raise ConfigError(cfg.source, "devices.can.drives", "one drive for each wheel fl, fr, rl, rr")
+
+
 class RigDevices:
     """Owns the drivers. ``configure`` brings everything up without power (blocking);
     ``activate`` (the supervisor's ARM) enables the power stages; ``poll``/``write`` are the
@@ -43,14 +56,8 @@ class RigDevices:
         dcfg = cfg.devices
         h = cfg.controller.h
         stale = cfg.limits.stale_periods * h
+        require_complete(cfg)
         by_role = {l.role: l for l in dcfg.lasers}
-        missing = [r for r in LASER_ROLES if r not in by_role]
-        if missing:
-            raise ConfigError(cfg.source, "devices.lasers", "one laser for each of " + ", ".join(LASER_ROLES) +
-                              f" (missing {', '.join(missing)})")
-        wheels = {d.wheel for d in dcfg.can.drives}
-        if wheels != set(WHEELS):
-            raise ConfigError(cfg.source, "devices.can.drives", "one drive for each wheel fl, fr, rl, rr")
         self.cfg = cfg
         self._stale = stale
         self.lasers = []

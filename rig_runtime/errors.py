@@ -6,6 +6,23 @@ message tells the operator the cause. Library errors are wrapped with ``raise â€
 
 from __future__ import annotations
 
+import reprlib
+
+_SHORT = reprlib.Repr()
+_SHORT.maxlevel, _SHORT.maxlist, _SHORT.maxtuple, _SHORT.maxdict = 2, 4, 4, 4
+_SHORT.maxstring, _SHORT.maxother, _SHORT.maxlong = 60, 60, 40
+MAX_VALUE_CHARS = 80
+
+
+def short_repr(value: object) -> str:
+    """A value for an error message: nested containers and long strings cut (``...``),
+    at most ``MAX_VALUE_CHARS`` characters whatever the value (never formats it whole)."""
+    try:
+        text = _SHORT.repr(value)
+    except Exception:  # noqa: BLE001 - a broken __repr__ must not hide the error itself
+        text = f"<{type(value).__name__}>"
+    return text if len(text) <= MAX_VALUE_CHARS else text[:MAX_VALUE_CHARS - 3] + "..."
+
 
 class RigError(Exception):
     """Base of every error rig-runtime raises on purpose."""
@@ -19,7 +36,7 @@ class ConfigError(RigError):
         self.key_path = key_path
         self.expected = expected
         self.got = got
-        got_txt = "" if got is None else f", got {got!r}"
+        got_txt = "" if got is None else f", got {short_repr(got)}"
         parts = [p for p in (file, key_path) if p]
         super().__init__(": ".join(parts + [f"expected {expected}{got_txt}"]))
 
@@ -42,3 +59,12 @@ class DeviceIOError(DeviceError):
 
 class DeviceTimeoutError(DeviceIOError):
     """A device did not answer within its configured time."""
+
+
+class LogError(RigError):
+    """A file given as a log is not a readable rig log (not HDF5, another program's HDF5,
+    empty or truncated); names the file and why."""
+
+    def __init__(self, path: object, why: str):
+        self.path = str(path)
+        super().__init__(f"{path}: not a readable rig log ({why})")

@@ -7,15 +7,17 @@ beside it as ``<out>.events.csv``. Layout: ``docs/log-format.md``.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import h5py
 import numpy as np
 
-from .recorder import EVENT_FIELDS, EVENT_STR_FIELDS
+from .errors import ConfigError, LogError
+from .recorder import EVENT_FIELDS, EVENT_STR_FIELDS, LOG_FORMAT
 
 _BLOCK = 65536          # rows read per block when exporting
 
@@ -36,9 +38,68 @@ def _column_names(f: h5py.File) -> list[str]:
     return list(f["cycles"].keys()) if "cycles" in f else []
 
 
-def _open(path: str | Path) -> h5py.File:
-    # locking=False: a log still being written (flushed state) can be looked at, too
-    return h5py.File(path, "r", locking=False)
+@contextlib.contextmanager
+def _open(path: str | Path) -> Iterator[h5py.File]:
+    """The log, open for reading, once it is known to be a rig log; any failure to read it
+    (not HDF5, empty, truncated, another program's HDF5, a dataset cut short) is a
+    :class:`LogError` naming the file."""
+    p = Path(path)
+    if p.is_dir():
+        raise LogError(p, "a directory")
+    try:
+        # locking=False: a log still being written (flushed state) can be looked at, too
+        f = h5py.File(p, "r", locking=False)
+    except FileNotFoundError:
+        raise LogError(p, "no such file") from None
+    except OSError as e:
+        size = p.stat().st_size if p.exists() else 0
+        raise LogError(p, "empty file" if size == 0 else f"not an HDF5 file, or truncated: {_first_line(e)}") from None
+    try:
+        fmt = _decode(f.attrs.get("log_format", b""))
+        if fmt != LOG_FORMAT or "cycles" not in f:
+            raise LogError(p, f"an HDF5 file, but no {LOG_FORMAT} (attribute log_format and group cycles missing)")
+        try:
+            yield f
+        except (OSError, KeyError, ValueError, RuntimeError) as e:
+            raise LogError(p, f"truncated or damaged: {_first_line(e)}") from None
+    finally:
+        f.close()
+
+
+class _Out:
+    """An output text file whose open, write and close failures are a ConfigError naming
+    it (not mistaken for a damaged log while the log is open)."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+
+    def _error(self, e: OSError) -> ConfigError:
+        return ConfigError(str(self.path), "", f"a writable output file ({e.strerror or _first_line(e)})")
+
+    def __enter__(self) -> "_Out":
+        try:
+            self.fh = open(self.path, "w", newline="", encoding="utf-8")
+        except OSError as e:
+            raise self._error(e) from None
+        return self
+
+    def write(self, text: str) -> None:
+        try:
+            self.fh.write(text)
+        except OSError as e:
+            raise self._error(e) from None
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            self.fh.close()
+        except OSError as e:
+            if exc[0] is None:
+                raise self._error(e) from None
+
+
+def _first_line(e: BaseException) -> str:
+    text = str(e).splitlines()[0] if str(e) else type(e).__name__
+    return text[:120]
 
 
 def _read_events(f: h5py.File) -> dict[str, np.ndarray]:
@@ -101,7 +162,7 @@ def to_csv(log_path: str | Path, out_path: str | Path, *, events: bool = True) -
         names = _column_names(f)
         dsets = [f["cycles"][n] for n in names]
         rows = min((d.shape[0] for d in dsets), default=0)
-        with open(out, "w", newline="", encoding="utf-8") as fh:
+        with _Out(out) as fh:
             fh.write(",".join(names) + "\n")
             for a in range(0, rows, _BLOCK):
                 b = min(a + _BLOCK, rows)
@@ -117,7 +178,7 @@ def events_to_csv(log_path: str | Path, out_path: str | Path) -> int:
     with _open(log_path) as f:
         ev = _read_events(f)
     n = len(ev["t"])
-    with open(out_path, "w", newline="", encoding="utf-8") as fh:
+    with _Out(out_path) as fh:
         w = csv.writer(fh, lineterminator="\n")
         w.writerow(EVENT_FIELDS)
         for i in range(n):

@@ -213,7 +213,7 @@ class Supervisor:
 
     def __init__(self, limits: Limits, h: float, channels: Sequence[Channel], carriers: Sequence[str],
                  hardware: Hardware, on_event: Callable | None = None, activate_timeout_s: float = 0.5):
-        self.limits = limits
+        self._limits = limits           # frozen, and not replaceable: see the property
         self.h = h
         self.channels = list(channels)
         self.carriers = tuple(carriers)
@@ -235,6 +235,12 @@ class Supervisor:
         self._ramp = limits.u_max * h / limits.stop_ramp_s if limits.stop_ramp_s > 0 else math.inf
         self._psi_prev = [math.nan] * len(self.carriers)
         self._on_event = on_event or (lambda *a: None)
+
+    @property
+    def limits(self) -> Limits:
+        """The limits given at construction: a frozen value the supervisor cannot be handed
+        another of while it exists (the rate and ramp steps are derived from it once)."""
+        return self._limits
 
     # ------------------------------------------------------------------ requests
     def request_arm(self, deadline: float) -> None:

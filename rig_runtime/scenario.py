@@ -43,6 +43,12 @@ class OpenLoop:
     steps: tuple[tuple[float, float], ...] = ()      # [[t, u_A], ...]
     sine: Optional[tuple[SineInput, ...]] = None      # consecutive sines (e.g. 4.8 then 2.4 mHz)
 
+    def __post_init__(self) -> None:
+        if bool(self.steps) == bool(self.sine):
+            raise ConfigError(None, "steps", "either steps or sine (one of them, not both)")
+        _increasing([t for t, _ in self.steps], "steps", "[t, u_A] pairs with times >= 0, increasing")
+        _increasing([s.t0 for s in self.sine or ()], "sine", "sines whose t0 increase")
+
 
 @dataclass(frozen=True, kw_only=True)
 class Disturbance:
@@ -77,9 +83,16 @@ class Scenario:
     source: str = ""
 
     def __post_init__(self) -> None:
-        ts = [p.t for p in self.reference]
-        if ts != sorted(ts):
-            raise ConfigError(None, "reference", "points in increasing time order")
+        if not self.reference:
+            raise ConfigError(None, "reference", "at least one point {t, y_mm}")
+        _increasing([p.t for p in self.reference], "reference", "points in increasing time order")
+
+
+def _increasing(ts: list[float], key: str, expected: str) -> None:
+    """Times >= 0 and strictly increasing (two points at one time would be ambiguous)."""
+    for i, t in enumerate(ts):
+        if t < 0 or (i and not t > ts[i - 1]):
+            raise ConfigError(None, f"{key}[{i}]", expected, t)
 
 
 def load_scenario(name_or_path: str | Path) -> Scenario:

@@ -15,9 +15,16 @@ from . import commands, sim_command, tune_command  # noqa: F401 - each registers
 from .command import COMMANDS
 
 
+class _Parser(argparse.ArgumentParser):
+    """A usage error is one line and exit 2, like every other operator mistake."""
+
+    def error(self, message: str):  # noqa: D102 - argparse hook
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
-    p = argparse.ArgumentParser(prog="rig", description="rig-runtime: control runtime for the 1:5 IRDW roller rig")
+    p = _Parser(prog="rig", description="rig-runtime: control runtime for the 1:5 IRDW roller rig")
     p.add_argument("--version", action="version", version=f"rig-runtime {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (fn, add, help) in COMMANDS.items():

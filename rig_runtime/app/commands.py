@@ -1,4 +1,7 @@
-"""``rig run``, ``rig dry-run``, ``rig export`` (registered with the CLI on import)."""
+"""``rig run``, ``rig dry-run``, ``rig check``, ``rig export`` (registered with the CLI on import).
+
+``rig run`` and ``rig dry-run`` call ``preflight.check_run`` (what ``rig check`` runs and
+prints) before a device is opened or a log created."""
 
 from __future__ import annotations
 
@@ -8,6 +11,7 @@ import logging
 import sys
 from pathlib import Path
 
+from .. import preflight
 from ..metrics import clean
 from .command import arg, command
 from .runner import EXIT_OK, default_log_path, execute
@@ -59,6 +63,7 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
     cfg = config.load(args.config)
     scenario = load_scenario(args.scenario)
     log = Path(args.log) if args.log else default_log_path("dry-run")
+    preflight.check_run(cfg, scenario, args.duration, log=log, log_is_default=not args.log, report=args.report)
     if args.realtime:
         from ..metrics import steps_from_log
         from .realtime_dryrun import run_realtime_dry_run
@@ -70,7 +75,11 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
         summary, code = run_lockstep(cfg, scenario, log, seed=args.seed, duration_s=args.duration, stops=args.stops)
     if args.report:
         from .report import write_report
-        summary["report"] = [str(p) for p in write_report(log, args.report, scenario, summary)]
+        try:
+            summary["report"] = [str(p) for p in write_report(log, args.report, scenario, summary)]
+        except (OSError, RuntimeError) as e:     # checked before the run; a disk can still fail: keep the summary
+            summary["report_error"] = str(e)
+            print(f"rig dry-run: report not written: {e}", file=sys.stderr)
     _print_summary(summary, args.json)
     return code
 
@@ -90,6 +99,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = config.load(args.config or config.CONFIG_DIR / "rig.yaml")
     scenario = load_scenario(args.scenario) if args.scenario else None
     log = Path(args.log) if args.log else default_log_path("run")
+    preflight.check_run(cfg, scenario, args.duration, log=log, log_is_default=not args.log)
     devices = RigDevices(cfg)
     rt_report = apply_realtime(cfg.realtime)
     if not args.json:
@@ -109,9 +119,32 @@ def cmd_run(args: argparse.Namespace) -> int:
 @arg("--csv", required=True, metavar="OUT", help="CSV file to write (events go to OUT.events.csv)")
 def cmd_export(args: argparse.Namespace) -> int:
     from ..errors import ConfigError
-    from ..export import to_csv
+    from ..export import events_path_for, to_csv
     if not Path(args.log).exists():
         raise ConfigError(args.log, "", "an existing log file")
+    for out, what in ((Path(args.csv), "--csv"), (events_path_for(args.csv), "--csv (its events file)")):
+        if out.resolve() == Path(args.log).resolve():
+            raise ConfigError(None, what, "a file other than the log itself", str(out))
+        preflight.check_output_file(out, what)
     n = to_csv(args.log, args.csv)
     print(f"{n} rows -> {args.csv}")
+    return EXIT_OK
+
+
+@command("check", "validate a config and scenario exactly as `rig run`/`rig dry-run` do before they start, "
+                  "and print what would run (exit 0: all fine, 2: one line naming the cause)")
+@arg("--config", help="config file (default: configs/sim.yaml; the rig PC's is configs/rig.yaml)")
+@arg("--scenario", help="scenario name in configs/scenarios or a path (default: none, hold y_ref = 0)")
+@arg("--duration", type=float, help="seconds of RUNNING (default: the scenario's)")
+@arg("--log", help="the HDF5 log path to check (default: logs/run-<time>.h5)")
+def cmd_check(args: argparse.Namespace) -> int:
+    from .. import config
+    from ..scenario import load_scenario
+    cfg = config.load(args.config)
+    scenario = load_scenario(args.scenario) if args.scenario else None
+    log = Path(args.log) if args.log else default_log_path("run")
+    plan = preflight.check_run(cfg, scenario, args.duration, log=log, log_is_default=not args.log)
+    for line in preflight.describe(plan):
+        print(line)
+    print("ok: every check passed")
     return EXIT_OK

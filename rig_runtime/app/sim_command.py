@@ -32,6 +32,27 @@ def _cpus(text: str) -> list[int]:
     return cpus
 
 
+def _checked(fn):
+    """Check the operator's input before anything is served (one line and exit 2 each): the
+    durations, the output files, and the scenario's faults and disturbances against the
+    simulated rig (``preflight.validate_scenario``)."""
+    import functools
+
+    @functools.wraps(fn)
+    def run(args: argparse.Namespace) -> int:
+        from .. import config, preflight
+        from ..scenario import load_scenario
+        preflight.check_duration(args.duration)
+        preflight.check_duration(args.status_period, "--status-period")
+        for path, what in ((args.write_config, "--write-config"), (args.status_file, "--status-file")):
+            if path:
+                preflight.check_output_file(path, what, create_dir=True)
+        if args.scenario:
+            preflight.validate_scenario(config.load(args.config), load_scenario(args.scenario))
+        return fn(args)
+    return run
+
+
 @command("sim", "serve the simulated rig in real time for `rig run` in another process "
                 "(lasers on ptys, SLCAN adapter on a pty, Modbus TCP F/T sensors)")
 @arg("--config", help="config file of the simulated rig (default: configs/sim.yaml)")
@@ -57,6 +78,7 @@ def _cpus(text: str) -> list[int]:
 @arg("--can-responder", default="process", choices=("process", "thread"),
      help="where the emulated SLCAN adapter and the virtual drives run: process (default: a child "
           "process of their own, so no plant-side thread delays a TPDO) or thread (in this process)")
+@_checked
 def cmd_sim(args: argparse.Namespace) -> int:
     from sim_backend.serve import serve
     return serve(args.config, args.scenario, args.seed, write_config=args.write_config,

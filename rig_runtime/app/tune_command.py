@@ -1,4 +1,8 @@
-"""``rig tune``: the tuning analysis of Sec. 5.1/5.2.3 for the configured gains."""
+"""``rig tune``: the tuning analysis of Sec. 5.1/5.2.3 for the configured gains.
+
+Exit 0 when every loop of (15), (16), (19) and the sampled loop as implemented is stable
+and every design check holds; otherwise the analysis is printed all the same and the
+program ends with exit 2 and one line naming what failed (``analysis.tune_failures``)."""
 
 from __future__ import annotations
 
@@ -20,16 +24,25 @@ def _fmt_ev(ev) -> str:
 @arg("--json", action="store_true", help="print one JSON object instead of a table")
 @arg("--plot", metavar="DIR", help="write root-locus and eigenvalue PNGs into DIR (needs matplotlib)")
 def cmd_tune(args: argparse.Namespace) -> int:
-    from .. import analysis, config
+    from .. import analysis, config, preflight
     cfg = config.load(args.config)
-    r = analysis.tune(cfg)
+    if args.plot:
+        preflight.check_plot_dir(args.plot, "--plot")
+    try:
+        r = analysis.tune(cfg)
+    except (ArithmeticError, ValueError) as e:          # numpy's LinAlgError is a ValueError
+        from ..errors import ConfigError
+        raise ConfigError(cfg.source, "plant", "parameters the tuning analysis can compute with "
+                          f"({type(e).__name__}: {str(e)[:80]})") from None
+    failures = analysis.tune_failures(cfg, r)
     files = analysis.plot(cfg, r, args.plot) if args.plot else []
     if args.json:
         out = analysis.to_json(r)
+        out["ok"], out["failures"] = not failures, failures
         if files:
             out["plots"] = [str(f) for f in files]
         print(json.dumps(out))
-        return 0
+        return _verdict(failures)
     P = analysis.PAPER
     rows = [
         ("inner loop (15)", r.inner, P["inner"]),
@@ -55,4 +68,12 @@ def cmd_tune(args: argparse.Namespace) -> int:
         print(f"  {'ok  ' if c['ok'] else 'FAIL'} {k:<28} {c['value']:.4g} (limit {c['limit']:g})")
     if files:
         print("\nplots: " + ", ".join(str(f) for f in files))
+    print("\n" + ("FAIL: " + "; ".join(failures) if failures else "ok: every loop stable, every design check holds"))
+    return _verdict(failures)
+
+
+def _verdict(failures: list[str]) -> int:
+    if failures:
+        from ..errors import RigError
+        raise RigError(f"{len(failures)} check(s) fail: " + "; ".join(failures))
     return 0

@@ -1,0 +1,228 @@
+"""Everything checked before anything starts: the scenario against the configured rig,
+the duration, the gains (the stability gate), and the output paths.
+
+``rig check`` runs exactly :func:`check_run` and prints the :class:`Plan`; ``rig run`` and
+``rig dry-run`` call the same function before a device is opened or a log created. Every
+refusal is a :class:`~rig_runtime.errors.ConfigError` (one line, exit 2) naming the file,
+key or option, what was expected and (shortened) what was found.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+from . import analysis, ceilings
+from .config import LASER_ROLES, WHEELS, RigConfig
+from .devices import require_complete
+from .errors import ConfigError
+from .scenario import Scenario
+
+# what a fault injection can do to each kind of device (the simulated devices implement
+# these: sim_backend.virtual_laser/virtual_drive/virtual_ft.FAULT_KINDS; a test keeps them equal)
+LASER_FAULTS = ("dropout", "corrupt", "stuck", "offset", "out_of_range")
+DRIVE_FAULTS = ("dropout", "no_heartbeat", "bus_error", "out_of_range", "stuck", "offset", "corrupt")
+FT_FAULTS = ("dropout", "corrupt", "stuck", "offset", "out_of_range")
+NO_DEVICE_FAULTS = ("stall",)       # the runtime itself
+
+
+# --------------------------------------------------------------------------- scenario vs rig
+def validate_scenario(cfg: RigConfig, sc: Scenario) -> None:
+    """The scenario fits the configured rig: every fault names a configured device that can
+    have that fault; open-loop inputs and disturbances act on controlled (supervised)
+    carriers; the reference stays inside ``±limits.y_max``; open-loop inputs inside
+    ``±limits.u_max``. One function for ``rig check``, ``rig run``, ``rig dry-run``."""
+    f = sc.source or sc.name
+    lim = cfg.limits
+    devices = {l.role: ("laser", LASER_FAULTS) for l in cfg.devices.lasers}
+    devices.update({d.wheel: ("drive", DRIVE_FAULTS) for d in cfg.devices.can.drives})
+    devices.update({s.name: ("F/T sensor", FT_FAULTS) for s in cfg.devices.ft.sensors})
+    for i, fi in enumerate(sc.faults):
+        key = f"faults[{i}].device"
+        if fi.kind in NO_DEVICE_FAULTS:
+            if fi.device:
+                raise ConfigError(f, key, f"no device for a {fi.kind} fault (it acts on the runtime)", fi.device)
+            continue
+        if fi.device not in devices:
+            known = ", ".join(devices) or "none configured"
+            raise ConfigError(f, key, f"a device of the configured rig ({known})", fi.device)
+        what, kinds = devices[fi.device]
+        if fi.kind not in kinds:
+            raise ConfigError(f, f"faults[{i}].kind", f"a fault a {what} can have ({', '.join(kinds)})", fi.kind)
+    controlled = ", ".join(cfg.controlled)
+    if sc.open_loop is not None and sc.open_loop.carrier not in cfg.controlled:
+        raise ConfigError(f, "open_loop.carrier", f"a controlled (supervised) carrier ({controlled})",
+                          sc.open_loop.carrier)
+    for i, d in enumerate(sc.disturbances):
+        if d.carrier not in cfg.controlled:
+            raise ConfigError(f, f"disturbances[{i}].carrier", f"a controlled (supervised) carrier ({controlled})",
+                              d.carrier)
+    for i, p in enumerate(sc.reference):
+        if abs(p.y_mm) * 1e-3 > lim.y_max:
+            raise ConfigError(f, f"reference[{i}].y_mm", f"|y_ref| <= limits.y_max = {lim.y_max * 1e3:g} mm", p.y_mm)
+    if sc.open_loop is not None:
+        for i, (_, u) in enumerate(sc.open_loop.steps):
+            if abs(u) > lim.u_max:
+                raise ConfigError(f, f"open_loop.steps[{i}]", f"|u| <= limits.u_max = {lim.u_max:g} A", u)
+        for i, s in enumerate(sc.open_loop.sine or ()):
+            peak = abs(s.bias_A) + abs(s.amplitude_A)
+            if peak > lim.u_max:
+                raise ConfigError(f, f"open_loop.sine[{i}]",
+                                  f"|bias_A| + |amplitude_A| <= limits.u_max = {lim.u_max:g} A", peak)
+
+
+def check_duration(value: Optional[float], what: str = "--duration") -> None:
+    """A duration is a finite number of seconds > 0 (None: the default applies)."""
+    if value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise ConfigError(None, what, "a finite number of seconds > 0", value)
+
+
+# --------------------------------------------------------------------------- output paths
+def _writable_dir(d: Path) -> str | None:
+    """Why ``d`` cannot take a new file (None: it can). Tried, not guessed from mode bits
+    (root, read-only mounts): a probe file is created and removed at once."""
+    if not d.exists():
+        return f"directory {d} does not exist"
+    if not d.is_dir():
+        return f"{d} is not a directory"
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".rig-probe-", dir=d)
+    except OSError as e:
+        return f"directory {d} is not writable ({e.strerror})"
+    os.close(fd)
+    os.unlink(probe)
+    return None
+
+
+def _creatable_dir(d: Path) -> str | None:
+    """Why directory ``d`` can neither be used nor created (None: it can)."""
+    if d.exists():
+        return _writable_dir(d)
+    anc = d.parent
+    while not anc.exists() and anc.parent != anc:
+        anc = anc.parent
+    return _writable_dir(anc) if anc.is_dir() else f"{anc} is not a directory"
+
+
+def check_new_file(path: str | Path, what: str, *, create_dir: bool = False) -> None:
+    """A file to be created: it does not exist, its directory exists (or, with
+    ``create_dir``, can be created) and is writable."""
+    p = Path(path)
+    if p.exists() or p.is_symlink():
+        raise ConfigError(None, what, "a file that does not exist yet (logs are never overwritten)", str(p))
+    why = (_creatable_dir if create_dir else _writable_dir)(p.parent)
+    if why:
+        raise ConfigError(None, what, f"a path in a writable directory ({why})", str(p))
+
+
+def check_output_file(path: str | Path, what: str, *, create_dir: bool = False) -> None:
+    """A file to be (over)written: not a directory, its directory writable (or creatable)."""
+    p = Path(path)
+    if p.is_dir():
+        raise ConfigError(None, what, "a file name (this is a directory)", str(p))
+    if p.exists() and not os.access(p, os.W_OK):
+        raise ConfigError(None, what, "a writable file", str(p))
+    why = (_creatable_dir if create_dir else _writable_dir)(p.parent)
+    if why:
+        raise ConfigError(None, what, f"a path in a writable directory ({why})", str(p))
+
+
+def check_plot_dir(path: str | Path, what: str) -> None:
+    """A directory for PNG plots: matplotlib importable, the path a directory (or creatable)."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        raise ConfigError(None, what, "matplotlib installed for plots (pip install 'rig-runtime[plot]')") from None
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ConfigError(None, what, "a directory (this is a file)", str(p))
+    why = _creatable_dir(p)
+    if why:
+        raise ConfigError(None, what, f"a writable directory ({why})", str(p))
+
+
+# --------------------------------------------------------------------------- the whole check
+@dataclass(frozen=True)
+class Plan:
+    """What a run would do, once every check passed (``rig check`` prints it)."""
+
+    cfg: RigConfig
+    scenario: Optional[Scenario]
+    duration_s: float            # inf: until SIGINT/SIGTERM
+    duration_from: str
+    log: Optional[Path]
+    slowest: dict                # damping D -> the slowest sampled eigenvalue (1/s)
+
+
+def check_run(cfg: RigConfig, scenario: Optional[Scenario], duration_s: Optional[float], *,
+              log: Optional[Path] = None, log_is_default: bool = False,
+              report: Optional[str] = None) -> Plan:
+    """Every check a run makes before it opens anything (``rig check`` is exactly this):
+    the device set, the scenario against the rig, the duration, the stability gate, the
+    log path (and the report directory). Returns the :class:`Plan`."""
+    require_complete(cfg)
+    if scenario is not None:
+        validate_scenario(cfg, scenario)
+    check_duration(duration_s)
+    analysis.stability_gate(cfg)
+    if log is not None:
+        check_new_file(log, "--log", create_dir=log_is_default)
+    if report is not None:
+        check_plot_dir(report, "--report")
+    if duration_s is not None:
+        d, src = duration_s, "--duration"
+    elif scenario is not None:
+        d, src = scenario.duration_s, "the scenario's duration_s"
+    else:
+        d, src = math.inf, "until SIGINT/SIGTERM"
+    slowest = {D: float(max(analysis.sampled_loop(cfg, D).real)) for D in (cfg.plant.D_min, cfg.plant.D_max)}
+    return Plan(cfg, scenario, d, src, Path(log) if log is not None else None, slowest)
+
+
+def describe(plan: Plan) -> list[str]:
+    """``rig check``'s report: config, hardware, carriers, gains, limits with their
+    ceilings, scenario, duration, log."""
+    cfg, sc = plan.cfg, plan.scenario
+    c, g = cfg.controller, cfg.controller.pipd
+    hw = cfg.hardware
+    out = [f"config: {cfg.source}",
+           f"hardware: {hw.source}" + (f" ({hw.name})" if hw.name else ""),
+           f"controlled carriers: {', '.join(cfg.controlled)}"]
+    if c.law == "p":
+        out.append(f"law: p   K_P = {c.K_P:g} A/m   h = {c.h:g} s")
+    else:
+        out.append(f"law: pipd   K_P,y = {g.K_P_y:g}  K_I,y = {g.K_I_y:g}  K_P,psi = {g.K_P_psi:g}  "
+                   f"K_D,psi = {g.K_D_psi:g}  T_f,psi = {g.T_f_psi:g} s   h = {c.h:g} s")
+    out.append("sampled closed loop: stable (slowest eigenvalue " +
+               ", ".join(f"{ev:+.3f} 1/s at D = {D:g}" for D, ev in plan.slowest.items()) + ")")
+    out.append("limits (value <= hardware ceiling):")
+    rows = list(ceilings.bounds(cfg))
+    w = max(len(b.key) for b in rows)
+    for b in rows:
+        v = "off" if b.value is None else f"{b.value:g}"
+        out.append(f"  {b.key:<{w}}  {v:>8} <= {b.ceiling:<8g} {b.unit}")
+    lim = cfg.limits
+    out.append(f"  (no ceiling: stuck_periods {lim.stuck_periods}, laser_step_max {lim.laser_step_max} m, "
+               f"corrupt_cycles {lim.corrupt_cycles})")
+    if sc is None:
+        out.append("scenario: none (hold y_ref = 0)")
+    else:
+        ys = [p.y_mm for p in sc.reference]
+        parts = [f"reference {len(ys)} point(s), y_ref in [{min(ys):g}, {max(ys):g}] mm"]
+        if sc.open_loop is not None:
+            parts.append(f"open loop on the {sc.open_loop.carrier} carrier")
+        parts.append(f"{len(sc.disturbances)} disturbance(s)")
+        parts.append(f"{len(sc.faults)} fault(s)" + (f": {', '.join(f'{x.kind} {x.device}'.strip() for x in sc.faults)}"
+                                                     if sc.faults else ""))
+        out.append(f"scenario: {sc.name} ({sc.source}): " + "; ".join(parts))
+    dur = "until SIGINT/SIGTERM" if math.isinf(plan.duration_s) else f"{plan.duration_s:g} s ({plan.duration_from})"
+    out.append(f"duration: {dur}")
+    if plan.log is not None:
+        out.append(f"log: {plan.log}" + ("" if plan.log.parent.exists() else f" (directory {plan.log.parent} will be created)"))
+    return out
