@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 from typing import Optional
 
-from .. import __version__, schema
+from .. import __version__, analysis, schema
 from ..clock import Clock
 from ..config import RigConfig
 from ..errors import DeviceInitError
@@ -59,6 +59,7 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     recorder, ``devices.configure()`` (no power), the loop (the supervisor's ARM activates the power stages), then devices and recorder
     closed on every path. ``stops``: the command's installed :class:`StopSignals` (a stop
     request before RUNNING raises :class:`Interrupted` after the clean stop)."""
+    analysis.stability_gate(cfg)        # also for callers that bypass the CLI's preflight
     reference = Reference(scenario.reference) if scenario else (lambda t: 0.0)
     open_loop = (scenario.open_loop.carrier, open_loop_input(scenario.open_loop)) if scenario and scenario.open_loop else None
     duration = duration_s if duration_s is not None else (scenario.duration_s if scenario else math.inf)
