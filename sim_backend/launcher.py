@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import queue
+import shutil
 import signal
 import subprocess
 import sys
@@ -32,6 +33,7 @@ class SimProcess:
     stderr_path: Path
     ports: dict[str, Any] = field(default_factory=dict)
     lines: list[str] = field(default_factory=list)
+    owns_workdir: bool = False      # a temporary directory of its own: removed on exit
 
     def status(self, timeout_s: float = 2.0) -> dict[str, Any]:
         """The latest status snapshot (rewritten every ``--status-period``, 50 ms)."""
@@ -79,6 +81,8 @@ class SimProcess:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+        if self.owns_workdir:
+            shutil.rmtree(self.workdir, ignore_errors=True)
 
 
 def start_sim_process(config: str | Path | None = None, scenario: str | Path | None = None, seed: Optional[int] = 0,
@@ -88,8 +92,10 @@ def start_sim_process(config: str | Path | None = None, scenario: str | Path | N
     """Spawn ``python -m rig_runtime sim --write-config … --status-file …`` and wait for ``ready``.
 
     The generated config, the status file and the simulator's stderr go to ``workdir``
-    (a new temporary directory if None). Stop it with ``.stop()`` (or use it as a context
-    manager). ``die_with_parent``: the simulator gets SIGTERM when the thread that started it
+    (a new temporary directory if None, removed when the context manager exits). Stop it
+    with ``.stop()`` (or use it as a context manager). The simulator runs in a session of
+    its own, so a Ctrl-C at the terminal reaches only the runtime, which stops it after its
+    own clean stop. ``die_with_parent``: the simulator gets SIGTERM when the thread that started it
     ends (Linux ``PR_SET_PDEATHSIG``), so a crashed test or benchmark leaves no simulator
     behind (with SCHED_FIFO, one would keep a CPU busy)."""
     wd = Path(workdir) if workdir is not None else Path(tempfile.mkdtemp(prefix="rig-sim-"))
@@ -107,11 +113,11 @@ def start_sim_process(config: str | Path | None = None, scenario: str | Path | N
     err = open(err_path, "wb")
     try:
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, stdin=subprocess.DEVNULL,
-                                env=env, text=True, bufsize=1,
+                                env=env, text=True, bufsize=1, start_new_session=True,
                                 preexec_fn=child_process.die_with_parent if die_with_parent else None)
     finally:
         err.close()
-    sp = SimProcess(proc, wd, cfg_path, status_path, err_path)
+    sp = SimProcess(proc, wd, cfg_path, status_path, err_path, owns_workdir=workdir is None)
     lines: "queue.SimpleQueue[Optional[str]]" = queue.SimpleQueue()
 
     def reader() -> None:                    # keeps draining stdout after ready
@@ -129,10 +135,14 @@ def start_sim_process(config: str | Path | None = None, scenario: str | Path | N
             line = lines.get(timeout=max(0.01, deadline - time.monotonic()))
         except queue.Empty:
             sp.stop(signal.SIGKILL)
-            raise TimeoutError(f"rig sim not ready within {timeout_s} s: {sp.stderr()[-2000:]}") from None
+            err = sp.stderr()[-2000:]
+            sp.__exit__()
+            raise TimeoutError(f"rig sim not ready within {timeout_s} s: {err}") from None
         if line is None:
             proc.wait(5.0)
-            raise RuntimeError(f"rig sim exited with {proc.returncode} before ready: {sp.stderr()[-2000:]}")
+            err = sp.stderr()[-2000:]
+            sp.__exit__()
+            raise RuntimeError(f"rig sim exited with {proc.returncode} before ready: {err}")
         if line == "ready":
             return sp
         parse_port_line(line, sp.ports)

@@ -34,9 +34,20 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    args.stops = StopSignals()
+def main(argv: list[str] | None = None, stops: StopSignals | None = None) -> int:
+    """``stops``: handlers already installed by the console script (rig_runtime.app.entry)."""
+    stops = stops if stops is not None else StopSignals().install()
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit:
+        stops.restore()
+        raise
+    args.stops = stops
+    if not args._fn.handles_stops:
+        stops.restore()             # default signal behaviour for commands without a clean stop
+        if stops.requested:
+            print(f"rig {args.command}: stopped by {stops.name} before it started", file=sys.stderr)
+            return 128 + (stops.signum or 0)
     try:
         if args._fn.handles_stops:
             with args.stops:

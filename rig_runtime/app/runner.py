@@ -85,7 +85,7 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
             phase = "while configuring the devices"
         if not stops.requested:
             devices.configure()
-            phase = "during warm-up"
+            phase = "after configuring the devices"
         if not stops.requested:
             result = loop.run(duration, arm_timeout_s=arm_timeout_s, status=StatusLine() if status else None)
     finally:
@@ -99,7 +99,9 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     if result is None or math.isnan(result.t_start):
         if stops.requested:
             what = "power stages disabled" if loop.supervisor.ever_armed else "power stages never enabled"
-            raise stops.interrupted(f"before RUNNING ({phase if result is None else 'while arming'}): {what}"
+            if result is not None:
+                phase = "while arming" if loop.supervisor.ever_armed else "during warm-up"
+            raise stops.interrupted(f"before RUNNING ({phase}): {what}"
                                     + (f", log closed: {log_path}" if log_path.exists() else ", no log written"))
         raise DeviceInitError("arming", "not every device is ready: " + "; ".join(result.arm_blockers[:4]))
     summary = {

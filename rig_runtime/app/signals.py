@@ -31,6 +31,8 @@ class StopSignals:
         self._old: dict[int, object] = {}
 
     def install(self) -> "StopSignals":
+        if self._old:
+            return self             # already installed (the console script did it first)
         for s in SIGNALS:
             try:
                 self._old[s] = signal.signal(s, self._on_signal)
