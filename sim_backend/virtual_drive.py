@@ -244,10 +244,9 @@ class VirtualDrive:
             if not (self._in_pdo and self.rpdo_type <= 240):    # SDO, or asynchronous RPDO
                 self.target = self.pending
         else:
-            self._cfg_dirty = True
-            if index == 0x1016:                 # the consumer runs from its configuration
-                self._load_config()
-                self.consumer_last = self.owner._now if self.consumer_s > 0 else None
+            self._cfg_dirty = True              # reloaded once canopen has stored ``data`` (after this hook)
+            if index == 0x1016 and subindex == 1:   # the consumer runs from its configuration
+                self.consumer_last = self.owner._now if int.from_bytes(data, "little") & 0xFFFF else None
 
     def _set_heartbeat_period(self, ms: int) -> None:
         self.hb_period_s = ms / 1000.0
