@@ -102,7 +102,7 @@ def main() -> int:
         with vdrives.serving(0.0):
             drive_bus.configure()
         drive_bus.activate(0.0)     # the warm-up cycles below walk the drives to OPERATION ENABLED
-        ft.open()
+        ft.configure()
         fifo = "not requested"
         if args.fifo:
             try:

@@ -71,6 +71,7 @@ def main() -> int:
            "reference_rtf": args.plant_seconds / t_ref, "plant_max_error_rel": err_rel,
            "plant_us_per_step": t_plant / len(sc.inputs) * 1e6,
            "full_path_us_per_cycle": s["wall_time_s"] / s["cycles"] * 1e6,
+           "full_path_per_plant_step": (s["wall_time_s"] / s["cycles"]) / (t_plant / len(sc.inputs)),
            "plant_seconds": args.plant_seconds, "dry_run_sim_seconds": s["sim_time_s"],
            "full_path_rtf_runs": [r["sim_time_s"] / r["wall_time_s"] for r in runs],
            "cpu_steal_pct_runs": [r["steal_pct"] for r in runs]}
