@@ -18,7 +18,7 @@ from rig_runtime.config import LaserDevice
 from rig_runtime.errors import DeviceInitError, DeviceIOError
 from rig_runtime.hardware import Driver, Freshness, Health, health
 
-from .optoncdt import MAX_DISTANCE_X, X_PER_PERCENT, FrameDecoder, error_reason
+from .optoncdt import MAX_DISTANCE_X, X_PER_PERCENT, Decoded, FrameDecoder, error_reason
 
 __all__ = ["LaserReading", "LaserDriver"]
 
@@ -26,6 +26,7 @@ _LDISC_FULL = 4095              # Linux n_tty holds this many unread bytes; more
 _READ_CHUNK = 65536
 _os_read = os.read              # module-level so a test can make the port fail
 _HUP = select.POLLHUP | select.POLLERR | select.POLLNVAL
+_NO_VALUES = Decoded(b"", [])
 
 
 # --------------------------------------------------------------------------- driver
@@ -81,7 +82,7 @@ class LaserDriver(Driver):
     def _reset_state(self) -> None:
         """Fresh decoder, counters and latest-value memory (each open starts a session)."""
         self._decoder = FrameDecoder()
-        self._last_list: list[int] = []         # raw values of the latest poll
+        self._last = _NO_VALUES                 # what the latest poll decoded
         self._counters = {"values": 0, "error_frames": 0, "read_errors": 0, "bytes": 0}
         self._errors = 0                # error codes received and read errors
         self._health = Health(Freshness.STALE, "no data yet")   # the latest value handed out
@@ -154,42 +155,44 @@ class LaserDriver(Driver):
         except Exception as exc:  # noqa: BLE001 - poll must not raise inside the loop
             self._errors += 1
             self._counters["read_errors"] += 1
-            self._last_list = []
+            self._last = _NO_VALUES
             self._decoder.reset()
             return self._reading(Freshness.INVALID, f"read error: {type(exc).__name__}: {exc}", math.nan, 0)
         if not data:
-            self._last_list = []
+            self._last = _NO_VALUES
             return self._classify(now, 0)
         self._counters["bytes"] += len(data)
-        values = self._last_list = self._decoder.feed(data)
-        return self._classify(now, self._take(values, now) if values else 0)
+        decoded = self._last = self._decoder.decode(data)
+        return self._classify(now, self._take(decoded, now) if len(decoded) else 0)
 
     @property
     def last_values(self) -> list[int]:
         """Raw values (distances and error codes) decoded by the latest poll."""
-        return self._last_list
+        return self._last.values()
 
-    def _take(self, values: list[int], now: float) -> int:
+    def _take(self, decoded: Decoded, now: float) -> int:
         """Update the latest value/error from this cycle's values; return how many are valid."""
-        last = values[-1]
+        last = decoded.last()
         self._raw_x = last
         self._last_rx_t = now
-        if max(values) <= MAX_DISTANCE_X:       # the usual case: all distances
-            valid = values
+        if decoded.all_distances():             # the usual case
+            n_valid = len(decoded)
+            valid = decoded.values() if self._average else None
         else:
-            valid = [x for x in values if x <= MAX_DISTANCE_X]
-            n_err = len(values) - len(valid)
+            valid = [x for x in decoded.values() if x <= MAX_DISTANCE_X]
+            n_valid = len(valid)
+            n_err = len(decoded) - n_valid
             self._errors += n_err
             self._counters["error_frames"] += n_err
-        self._counters["values"] += len(valid)
+        self._counters["values"] += n_valid
         if last > MAX_DISTANCE_X:
             self._latest_error = error_reason(last)    # _value keeps the last valid value
         else:
             self._latest_error = None
-            x = sum(valid) / len(valid) if self._average else last
+            x = sum(valid) / n_valid if self._average else last
             self._value = self._gain * x + self._bias
             self._value_t = now
-        return len(valid)
+        return n_valid
 
     def _classify(self, now: float, n_valid: int) -> LaserReading:
         """Freshness from the age of the latest value and whether it was an error code."""

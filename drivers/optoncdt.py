@@ -27,7 +27,7 @@ import numpy as np
 __all__ = [
     "MAX_DISTANCE_X", "MAX_X", "ERROR_CODES", "X_PER_PERCENT",
     "encode_value", "encode_values", "encode_list", "x_from_distance_mm", "xs_from_distance_mm",
-    "distance_mm_from_x", "error_reason", "FrameDecoder",
+    "distance_mm_from_x", "error_reason", "FrameDecoder", "Decoded",
 ]
 
 MAX_DISTANCE_X = 65520          # largest 16-bit distance value (d = 1.01·MR)
@@ -138,15 +138,20 @@ class FrameDecoder:
 
     def feed(self, data: bytes) -> list[int]:
         """Decode what ``data`` (plus the held partial frame) completes, in order."""
+        return self.decode(data).values()
+
+    def decode(self, data: bytes) -> "Decoded":
+        """Like :meth:`feed`, but the values come as a :class:`Decoded` that decodes them
+        only when asked (a poll usually needs the count and the latest value)."""
         buf = self._pending + data if self._pending else bytes(data)
         n = len(buf)
         if n == 0:
-            return []
+            return _NONE
         flags = buf.translate(_FLAG_TABLE)
         if n % 3 == 0 and _CLEAN.startswith(flags):   # the usual case: whole clean frames
             self._pending = b""
             self.frames += n // 3
-            return _values(buf, 0, n)
+            return Decoded(buf, None)
         out: list[int] = []
         pos = 0
         for m in _FRAME_RUN.finditer(flags):
@@ -158,7 +163,44 @@ class FrameDecoder:
         self.discarded += n - keep - pos
         self._pending = buf[n - keep:] if keep else b""
         self.frames += len(out)
-        return out
+        return Decoded(b"", out)
+
+
+class Decoded:
+    """The values of one :meth:`FrameDecoder.decode`: whole clean frames kept as bytes and
+    decoded on demand, or the list a resynchronising decode made."""
+
+    __slots__ = ("_buf", "_list")
+
+    def __init__(self, buf: bytes, values: list[int] | None) -> None:
+        self._buf = buf
+        self._list = values
+
+    def __len__(self) -> int:
+        return len(self._list) if self._list is not None else len(self._buf) // 3
+
+    def values(self) -> list[int]:
+        if self._list is None:
+            self._list = _values(self._buf, 0, len(self._buf))
+        return self._list
+
+    def last(self) -> int:
+        """The latest value (the chunk must not be empty)."""
+        if self._list is not None:
+            return self._list[-1]
+        b = self._buf
+        return b[-3] + (b[-2] << 6) + (b[-1] << 12) - _FLAG_SUM
+
+    def all_distances(self) -> bool:
+        """No error code (or value beyond the range end) among the values: decided from the
+        H bytes when they rule it out (H6 <= 14: below 15·4096 <= 65520), else by decoding."""
+        if self._list is None and max(self._buf[2::3]) <= _H_SAFE:
+            return True
+        return max(self.values()) <= MAX_DISTANCE_X
+
+
+_H_SAFE = _FLAG_H | 14
+_NONE = Decoded(b"", [])
 
 
 def _values(buf: bytes, start: int, end: int) -> list[int]:
