@@ -37,7 +37,9 @@ def devices_section(devices: Devices, laser_ports: Mapping[str, str], laser_rate
     can_d["interface"] = can_interface
     can_d["channel"] = can_channel
     can_d["eds"] = str(rig_config.resolve_config_path(can_d["eds"]).resolve())
-    d["ft"]["poller"] = "process"       # the runtime polls as on the rig (sim.yaml's lockstep dry run: inline)
+    # the runtime polls as on the rig (configs/devices-rig.yaml): sim.yaml's lockstep dry run
+    # polls inline at the 10 Hz its simulated sensors refresh at; `rig sim` refreshes at 100 Hz
+    d["ft"].update(poller="process", poll_hz=50.0)
     for s in d["ft"]["sensors"]:
         host, port = ft_endpoints[s["name"]]
         s.update(transport="tcp", host=host, port=int(port))
