@@ -1,0 +1,1 @@
+"""The application floor: the `rig` command and its wiring (run / dry-run / identify / design)."""
