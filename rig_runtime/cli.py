@@ -90,6 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
     # subcommands that live in other modules register themselves on import
     from . import commands  # noqa: F401
     from . import sim_command  # noqa: F401
+    from .app import ident_commands  # noqa: F401
     p = argparse.ArgumentParser(prog="rig", description="rig-runtime: control runtime for the 1:5 IRDW roller rig")
     p.add_argument("--version", action="version", version=f"rig-runtime {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")

@@ -24,6 +24,7 @@ from .model import simulate_psi, yaw_params
 AWAY_RAD = 2e-3      # a carrier this far from rest counts as deflected
 HOLD_S = 0.3         # held still at least this long before a release
 SEGMENT_S = 2.5      # seconds of free response fitted after each release
+LEFT_RAD = 3e-4      # the carrier has left the held angle (far above the sensor noise)
 
 
 @dataclass(frozen=True)
@@ -52,10 +53,15 @@ def releases(e: Experiment) -> list[Segment]:
         if run == need:
             holds.append(k - need + 1)
         if run >= need and not still[k + 1]:
-            starts.append(k)        # let go: the last still sample before it moves
+            # let go: the segment starts at the first sample clearly off the held angle (the
+            # rate test above reacts ~50 ms early); psi0, psi_dot0 there are fitted
+            held = float(np.nanmean(psi[k - need + 1:k + 1]))
+            off = np.flatnonzero(np.abs(psi[k:] - held) > LEFT_RAD)
+            if len(off):
+                starts.append(k + int(off[0]))
     segs = []
     m = int(SEGMENT_S / h)
-    for k0 in starts:
+    for k0 in sorted(set(starts)):
         # stop a second before the next hold begins (the hand pushes the carrier there)
         nxt = [k for k in holds if k > k0]
         k1 = min(k0 + m, n - 1, (nxt[0] - int(1.0 / h)) if nxt else n - 1)
