@@ -6,7 +6,6 @@ import argparse
 import json
 from pathlib import Path
 
-from rig_runtime import analysis
 from rig_runtime.config import RigConfig
 from rig_runtime.errors import ConfigError
 

@@ -43,7 +43,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
         print(json.dumps(out))
         return 0
     print(f"config: {cfg.source}")
-    print(f"experiments: " + ", ".join(f"{e.name} ({e.kind})" for e in exps))
+    print("experiments: " + ", ".join(f"{e.name} ({e.kind})" for e in exps))
     print(f"\n{'parameter':<16}{'identified':>14}  {'95 % interval':<30}{'configured':>12}")
     for name, p in out["parameters"].items():
         conf = cfg.plant

@@ -10,12 +10,21 @@ Correlations with |ρ| > 0.95 are flagged: those parameters are poorly identifia
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import multiprocessing
+import os
 from typing import Callable, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
 
 CORR_FLAG = 0.95
+WORKERS = min(2, os.cpu_count() or 1)   # processes for the Jacobian columns of the costly fits
+
+_FUN: Callable | None = None            # the objective, inherited by the forked workers
+
+
+def _eval(x: np.ndarray) -> np.ndarray:
+    return _FUN(x)
 
 
 @dataclass(frozen=True)
@@ -65,10 +74,36 @@ def _corr(cov: np.ndarray) -> np.ndarray:
 
 def solve(fun: Callable[[np.ndarray], np.ndarray], x0: Sequence[float], names: Sequence[str],
           lower: Sequence[float], upper: Sequence[float], *, loss: str = "linear",
-          x_scale: Sequence[float] | str = "jac", diff_step: float | None = None) -> Fit:
-    """Minimise ``sum(fun(x)**2)`` within bounds; intervals from the Jacobian at the optimum."""
-    r = least_squares(fun, np.asarray(x0, float), bounds=(np.asarray(lower, float), np.asarray(upper, float)),
-                      loss=loss, x_scale=x_scale, diff_step=diff_step, method="trf")
+          x_scale: Sequence[float] | str = "jac", diff_step: float | None = None, tol: float = 1e-8,
+          parallel: bool = False) -> Fit:
+    """Minimise ``sum(fun(x)**2)`` within bounds; intervals from the Jacobian at the optimum.
+    ``tol``: scipy's ftol = xtol (relative change of cost / parameters that ends the search).
+    ``parallel``: forward-difference Jacobian columns (steps relative to each parameter) evaluated
+    in ``WORKERS`` forked processes; the numbers do not depend on the number of workers."""
+    lo, hi = np.asarray(lower, float), np.asarray(upper, float)
+    kw = dict(bounds=(lo, hi), loss=loss, x_scale=x_scale, method="trf", ftol=tol, xtol=tol)
+    if not parallel or WORKERS < 2:
+        r = least_squares(fun, np.asarray(x0, float), diff_step=diff_step, **kw)
+        return from_result(names, r.x, r.jac, r.fun, r.nfev, r.message)
+    global _FUN
+    _FUN = fun
+    cache: dict = {}
+
+    def f(x):
+        y = fun(x)
+        cache["x"], cache["y"] = np.array(x), y
+        return y
+    rel = np.sqrt(np.finfo(float).eps) if diff_step is None else diff_step
+    with multiprocessing.get_context("fork").Pool(WORKERS) as pool:
+        def jac(x):
+            f0 = cache["y"] if "x" in cache and np.array_equal(cache["x"], x) else fun(x)
+            steps = rel * np.maximum(np.abs(x), 1e-6) * np.where(x >= 0, 1.0, -1.0)   # relative steps
+            steps = np.where((x + steps > hi) | (x + steps < lo), -steps, steps)
+            pts = [x + np.eye(len(x))[i] * steps[i] for i in range(len(x))]
+            cols = pool.map(_eval, pts)
+            return np.column_stack([(c - f0) / s_ for c, s_ in zip(cols, steps)])
+        r = least_squares(f, np.asarray(x0, float), jac=jac, **kw)
+    _FUN = None
     return from_result(names, r.x, r.jac, r.fun, r.nfev, r.message)
 
 

@@ -48,7 +48,7 @@ def identify_linear(P: PlantParams, exps: list[Experiment]) -> fit.Fit:
     return fit.solve(res, [P.K, 0.0], ("K", "psi_off"), [1e-5, -0.05], [1.0, 0.05])
 
 
-def identify_hysteresis(P: PlantParams, exps: list[Experiment], K: float) -> fit.Fit:
+def identify_hysteresis(P: PlantParams, exps: list[Experiment], K: float, tol: float = 1e-8) -> fit.Fit:
     """K, psi_off, a, beta, gamma; K starts at the linear fit's value and is fitted again:
     with the hysteresis the straight line through the loop is not the model's K (the
     simulated rig: 13 % above it)."""
@@ -62,7 +62,7 @@ def identify_hysteresis(P: PlantParams, exps: list[Experiment], K: float) -> fit
         Pp = yaw_params(P, K=k, psi_off=off, bouc_wen=bouc_wen(a, 0.5 * (s + d), 0.5 * (s - d)))
         return np.concatenate([(e.psi[idx] - simulate(Pp, e, idx))[ok] for e, (idx, ok) in zip(exps, grids)])
     f = fit.solve(res, [K, P.psi_off, a0, s0, d0], ("K", "psi_off", "a", "s", "d"),
-                  [1e-5, -0.05, 0.01, 1.0, 10.0], [1.0, 0.05, 0.99, 1e5, 1e6])
+                  [1e-5, -0.05, 0.01, 1.0, 10.0], [1.0, 0.05, 0.99, 1e5, 1e6], tol=tol, parallel=True)
     k, off, a, s, d = f.values
     T = np.array([[1, 0, 0, 0, 0], [0, 1, 0, 0, 0], [0, 0, 1, 0, 0], [0, 0, 0, 0.5, 0.5], [0, 0, 0, 0.5, -0.5]], float)
     return fit.transform(f, ("K", "psi_off", "bouc_wen.a", "bouc_wen.beta", "bouc_wen.gamma"),

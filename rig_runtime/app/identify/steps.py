@@ -152,36 +152,3 @@ def identify(P: PlantParams, exps: list[Experiment]) -> StepsResult:
     law = fit.transform(lf, ("c_udot_max",), np.array([c]), np.array([[c]]))
     return StepsResult(steps, tail, static, fast, law, psi_inf)
 
-
-def refine(P: PlantParams, exps: list[Experiment], start: tuple[float, float, float, float]) -> fit.Fit:
-    """D_min, D_max, c_udot_max and the steps' psi_off again, with the hysteresis of the sine fit
-    in the model (``P`` carries K and Bouc-Wen). The linear fits above see the hysteresis as
-    damping (on the simulated rig: D_max 1.5x, D_min 1.6x too high); the model written to
-    the plant uses the damping that goes with its own hysteresis. The whole record is
-    simulated from its first sample (z(0) = psi(0)), so each step starts from the hysteresis
-    state its history left."""
-    grids = []
-    for e in exps:
-        h = e.h
-        idx = [np.arange(a, min(a + int(1.0 / h), b)) for a, b in segments(e.u)]
-        idx.append(np.arange(0, len(e.u), TAIL_EVERY))
-        ii = np.unique(np.concatenate(idx))
-        y = e.psi[ii]
-        ok = np.isfinite(y) & (e.t[ii] >= 5.0)
-        grids.append((e, ii, y, ok))
-
-    def res(x):
-        dmin, dmax, lc, off = x
-        Pp = yaw_params(P, D_min=dmin, D_max=max(dmax, dmin), c_udot_max=float(np.exp(lc)), psi_off=off)
-        out = []
-        for e, ii, y, ok in grids:
-            p0 = float(e.psi[np.isfinite(e.psi)][0])
-            out.append((y - simulate_psi(Pp, e.u, e.h, 0, int(ii[-1]), ii, psi0=p0, z0=p0))[ok])
-        return np.concatenate(out)
-    dmin, dmax, c, off = start
-    f = fit.solve(res, [dmin, dmax, np.log(c), off], ("D_min", "D_max", "log_c", "psi_off"),
-                  [1e-2, 1.0, np.log(1e-9), -0.05], [1e3, 1e4, np.log(1e3), 0.05], diff_step=1e-4)
-    v = f.values.copy()
-    c = float(np.exp(v[2]))
-    return fit.transform(f, ("D_min", "D_max", "c_udot_max", "psi_off"), np.array([v[0], v[1], c, v[3]]),
-                         np.diag([1.0, 1.0, c, 1.0]))
