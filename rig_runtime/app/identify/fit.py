@@ -1,9 +1,9 @@
 """One optimisation problem (1): bounded nonlinear least squares with 95 % intervals.
 
 ``solve`` wraps ``scipy.optimize.least_squares``. Intervals come from the Jacobian at the
-optimum: cov = s² (JᵀJ)⁻¹ with s² = 2·cost/(m − n), interval = value ± 1.96 σ. They assume
-white residuals; where the model misses part of the dynamics the residuals are correlated
-and the intervals are too narrow (docs/identification.md says how to read them).
+optimum: cov = s² (JᵀJ)⁻¹ with s² = 2·cost/(m − n), inflated for the residual's lag-one
+autocorrelation, interval = value ± 1.96 σ (a local, linearised interval: where the model
+misses part of the dynamics it is still too narrow; docs/identification.md says how to read it).
 Correlations with |ρ| > 0.95 are flagged: those parameters are poorly identifiable apart.
 """
 
@@ -61,9 +61,15 @@ class Fit:
 
 
 def covariance(jac: np.ndarray, residual: np.ndarray) -> np.ndarray:
+    """s² (JᵀJ)⁻¹, inflated by (1 + ρ)/(1 − ρ) for the lag-one autocorrelation ρ > 0 of the
+    residual (an AR(1) reading of correlated residuals: fewer independent samples)."""
     m, n = jac.shape
     s2 = float(residual @ residual) / max(m - n, 1)
-    return np.linalg.pinv(jac.T @ jac) * s2
+    r = residual - residual.mean()
+    den = float(r @ r)
+    rho = float(r[1:] @ r[:-1]) / den if den > 0 and m > 2 else 0.0
+    rho = min(max(rho, 0.0), 0.99)
+    return np.linalg.pinv(jac.T @ jac) * s2 * (1 + rho) / (1 - rho)
 
 
 def _corr(cov: np.ndarray) -> np.ndarray:
