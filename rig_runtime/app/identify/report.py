@@ -3,6 +3,7 @@ configured (nominal) model, identified model. Needs matplotlib (the ``plot`` ext
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -98,9 +99,11 @@ def write_report(P0: PlantParams, P: PlantParams, exps: list[Experiment], result
         for a, sl in ((ax[0], slice(k0 - 20, k0 + int(1.0 / e.h))), (ax[1], slice(0, k1 + 1))):
             a.plot(e.t[sl], e.psi[sl] * 1e3, color="0.5", lw=1, label="measured")
             p0 = float(e.psi[0])
-            for PP, style, lab in ((P0, "b--", "configured"), (P, "g", "identified")):
+            for PP, style, lab in ((P0, "b--", "configured (6)-(9), law (7)"), (P, "g", "identified (6)-(9), law (7)"),
+                                   (replace(P, D_max=P.D_min), "c:", "identified, constant D_min"),
+                                   (replace(P, D_min=P.D_max), "m:", "identified, constant D_max")):
                 y = simulate_psi(PP, e.u, e.h, 0, k1, idx, psi0=p0, z0=p0)
-                a.plot(e.t[sl], y[sl] * 1e3, style, lw=1, label=lab + " (6)-(9), law (7)")
+                a.plot(e.t[sl], y[sl] * 1e3, style, lw=1, label=lab)
             a.set_xlabel("t (s)"); a.set_ylabel("psi (mrad)")
         ax[0].set_title("Fig. 8 style: first second of the step"); ax[1].set_title("whole step")
         ax[0].legend(fontsize=7)
@@ -113,7 +116,8 @@ def write_report(P0: PlantParams, P: PlantParams, exps: list[Experiment], result
         p0 = float(e.psi[0])
         fig, ax = plt.subplots(figsize=(6, 5))
         ax.plot(e.u[idx], e.psi[idx] * 1e3, color="0.5", lw=1, label="measured")
-        for PP, style, lab in ((P0, "b--", "configured"), (P, "g", "identified")):
+        for PP, style, lab in ((P0, "b--", "configured"), (P, "g", "identified"),
+                               (replace(P, bouc_wen=None), "C1", "identified K, D, without hysteresis")):
             y = simulate_psi(PP, e.u, e.h, 0, int(idx[-1]), idx, psi0=p0, z0=p0)
             ax.plot(e.u[idx], y * 1e3, style, lw=1, label=lab)
         ax.set_xlabel("u (A)"); ax.set_ylabel("psi (mrad)"); ax.legend(fontsize=8)
