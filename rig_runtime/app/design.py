@@ -41,6 +41,7 @@ class Design:
     gains: PIPDGains
     result: analysis.TuneResult       # the analysis of the proposed gains
     configured: analysis.TuneResult   # the analysis of the configured gains
+    configured_gains: PIPDGains
     checks: dict
     noise_gain: float
 
@@ -112,7 +113,7 @@ def design(cfg: RigConfig) -> Design:
     checks["sampled_loop_stable"] = {"value": _slowest(res.closed_loop_sampled), "limit": 0.0,
                                      "ok": _slowest(res.closed_loop_sampled) < 0}
     checks["noise_gain_A_per_rad"] = {"value": kd / Tf, "limit": NOISE_GAIN_MAX, "ok": kd / Tf <= NOISE_GAIN_MAX}
-    return Design(best, res, analysis.tune(cfg), checks, kd / Tf)
+    return Design(best, res, analysis.tune(cfg), cfg.controller.pipd, checks, kd / Tf)
 
 
 def to_json(d: Design) -> dict:
@@ -121,7 +122,7 @@ def to_json(d: Design) -> dict:
             "objective": OBJECTIVE,
             "eigenvalues": {k: analysis.pairs(getattr(d.result, k)) for k in
                             ("inner", "inner_filtered", "outer", "closed_loop", "closed_loop_sampled")},
-            "configured": {"gains": _gains(d.configured_gains) if hasattr(d, "configured_gains") else None,
+            "configured": {"gains": _gains(d.configured_gains),
                            "eigenvalues": {k: analysis.pairs(getattr(d.configured, k)) for k in
                                            ("inner", "inner_filtered", "outer", "closed_loop", "closed_loop_sampled")}},
             "checks": d.checks, "ok": all(c["ok"] for c in d.checks.values())}

@@ -34,7 +34,6 @@ def run_design(cfg: RigConfig, args: argparse.Namespace) -> int:
     g, c = d.gains, cfg.controller.pipd
     if args.json:
         out = _design.to_json(d)
-        out["configured"]["gains"] = _design._gains(c)
         out["paper"] = {**PAPER_GAINS, "T_f_psi": PAPER_NOTES_T_F}
         if args.write:
             out["written"] = args.write

@@ -29,7 +29,7 @@ from .model import bouc_wen
 SINE_TOL = 1e-3     # the sines' own fit only starts the joint refinement: a loose tolerance
 
 
-def _param(fit_, name, key=None) -> dict:
+def _param(fit_, name) -> dict:
     i = fit_.names.index(name)
     lo, hi = fit_.ci95[i]
     return {"value": float(fit_.values[i]), "ci95": [float(lo), float(hi)]}

@@ -109,7 +109,7 @@ def identify(P: PlantParams, exps: list[Experiment]) -> StepsResult:
     ps = list(psi_inf)
     for e in exps:
         lv = find_steps(e)[1]
-        if lv and (not e.u[0] != 0.0):
+        if lv and e.u[0] == 0.0 and lv[0][0] == 0.0:     # the rest level before the first step
             us.append(lv[0][0])
             ps.append(lv[0][1])
     us, ps = np.array(us), np.array(ps)
