@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -138,7 +139,8 @@ def test_standard_experiments_on_the_shipped_plant_round_to_table_3(tmp_path, ca
     cfg = config.load()
     logs = record(cfg, standard_scenarios(), tmp_path)
     out = tmp_path / "plant-identified.yaml"
-    assert main(["identify", *map(str, logs), "--json", "--write", str(out)]) == 0
+    rep = tmp_path / "report"
+    assert main(["identify", *map(str, logs), "--json", "--write", str(out), "--report", str(rep)]) == 0
     r = json.loads(capsys.readouterr().out)
     par = r["parameters"]
 
@@ -159,3 +161,7 @@ def test_standard_experiments_on_the_shipped_plant_round_to_table_3(tmp_path, ca
     assert written["omega0"] == pytest.approx(par["omega0"]["value"], rel=1e-5)
     assert math.isclose(written["bouc_wen"]["gamma"], par["bouc_wen.gamma"]["value"], rel_tol=1e-5)
     assert sum(r["timing_s"].values()) > 0
+    assert sorted(Path(f).name for f in r["report"]) == sorted(
+        f"fig{n}.png" for n in ("5_lateral", "6_wheel_speed", "7_free_response", "8_steps", "9_hysteresis",
+                                "10_verification"))
+    assert all(Path(f).stat().st_size > 10_000 for f in r["report"])

@@ -59,6 +59,10 @@ def cmd_identify(args: argparse.Namespace) -> int:
             extra.append(f"lifted D {_fmt(ex['lifted']['D']['value'])}, psi_off {_fmt(ex['lifted']['psi_off']['value'])} rad")
         if "K_stationary" in ex:
             extra.append(f"K from stationary values {_fmt(ex['K_stationary']['value'])} rad/A")
+        if ex.get("psi_off_with_hysteresis"):
+            extra.append(f"psi_off with the hysteresis (joint fit) {_fmt(ex['psi_off_with_hysteresis']['value'])} rad")
+        if "K_linear" in ex:
+            extra.append(f"K of the linear fit {_fmt(ex['K_linear']['value'])} rad/A")
         if "linear" in ex:
             lin = ex["linear"]
             extra.append("linear damping fits D_min {} D_max {} c_udot_max {}".format(

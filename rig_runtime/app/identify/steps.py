@@ -15,6 +15,7 @@ started at the mean of the last 5 s; K and psi_off are the straight line through
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -50,19 +51,22 @@ class StepsResult:
     psi_inf: np.ndarray
 
 
-def find_steps(e: Experiment) -> tuple[list[Step], list[tuple[float, float]]]:
-    """The steps, and (u, psi_end) of every long constant level (the first one included)."""
+def find_steps(e: Experiment) -> tuple[list[Step], Optional[tuple[float, float]]]:
+    """The steps, and (u, psi_end) of the level the record starts with if it lasts at least
+    2·SETTLED_S (the rest before the first step, Fig. 8), else None."""
     h = e.h
-    out, levels = [], []
+    out, start = [], None
     for a, b in segments(e.u):
-        if (b - a) * h < MIN_HOLD_S:
+        long_ = (b - a) * h >= MIN_HOLD_S
+        if not long_ and not (a == 0 and (b - a) * h >= 2 * SETTLED_S):   # the rest level at the start
             continue
         tail = e.psi[b - int(SETTLED_S / h):b]
         psi_end = float(np.nanmean(tail))
-        levels.append((float(e.u[a]), psi_end))
-        if a > 0:
+        if a == 0:
+            start = (float(e.u[a]), psi_end)
+        else:
             out.append(Step(e, a, b - 1, float(e.u[a]), float(e.u[a - 1]), psi_end))
-    return out, levels
+    return out, start
 
 
 def _start(s: Step) -> float:
@@ -109,9 +113,9 @@ def identify(P: PlantParams, exps: list[Experiment]) -> StepsResult:
     ps = list(psi_inf)
     for e in exps:
         lv = find_steps(e)[1]
-        if lv and e.u[0] == 0.0 and lv[0][0] == 0.0:     # the rest level before the first step
-            us.append(lv[0][0])
-            ps.append(lv[0][1])
+        if lv is not None:
+            us.append(lv[0])
+            ps.append(lv[1])
     us, ps = np.array(us), np.array(ps)
     static = fit.solve(lambda x: ps - (x[0] * us + x[1]), [P.K, 0.0], ("K", "psi_off"), [-1.0, -0.1], [1.0, 0.1])
 
