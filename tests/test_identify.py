@@ -165,3 +165,20 @@ def test_standard_experiments_on_the_shipped_plant_round_to_table_3(tmp_path, ca
         f"fig{n}.png" for n in ("5_lateral", "6_wheel_speed", "7_free_response", "8_steps", "9_hysteresis",
                                 "10_verification"))
     assert all(Path(f).stat().st_size > 10_000 for f in r["report"])
+
+
+def test_free_response_scenario_in_a_dry_run_lifts_the_carrier_and_logs_the_kind(tmp_path):
+    """The simulator's side of ident-free-response: the rear carrier starts at the initial yaw
+    angle, swings without roller contact (y_r still, no wheel-speed difference) and the log
+    carries the experiment kind."""
+    from rig_runtime.export import read_log
+    cfg, _ = plants()["shipped"]
+    (log,) = record(cfg, {"free-response": short_scenarios(tmp_path)["free-response"]}, tmp_path)
+    d = read_log(log)
+    assert d["attrs"]["experiment"] == "free-response"
+    c = d["columns"]
+    assert abs(c["psi_ar"][0] - 8e-3) < 0.2e-3                    # released at t = 0 from 8 mrad
+    assert np.ptp(c["y_r"]) < 20e-6                               # laser noise only
+    assert np.nanstd(c["dw_r"]) < 0.01                            # encoder noise only
+    late = c["psi_ar"][(c["t"] > 3.0) & (c["t"] < 4.0)]
+    assert abs(np.mean(late) - 1.7e-3) < 0.05e-3                  # at rest on the lifted offset
