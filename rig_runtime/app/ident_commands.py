@@ -25,7 +25,10 @@ def cmd_identify(args: argparse.Namespace) -> int:
 
     from .identify import plantfile, procedure
     from .identify.experiments import load_experiment
+    from pathlib import Path
     cfg = config.load(args.config)
+    if args.write and Path(args.write).exists():     # before minutes of fitting, not after
+        raise ConfigError(args.write, "", "a new file (refusing to overwrite an existing plant file)")
     exps = [load_experiment(p) for p in args.logs]
     try:
         result = procedure.run(cfg.plant, exps)
