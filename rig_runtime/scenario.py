@@ -80,6 +80,10 @@ class Scenario:
     disturbances: tuple[Disturbance, ...] = ()
     faults: tuple[FaultInjection, ...] = ()
     expect_fault: Optional[str] = None   # for fault scenarios: the check expected to trip
+    # identification experiments (Sec. 4; docs/identification.md): the kind is stored in the log
+    experiment: Optional[Literal["free-response", "steps", "sine", "open-loop-steps"]] = None
+    lifted_carrier: Optional[Literal["rear"]] = None   # simulator: the carrier off the rollers (Sec. 4.3.2)
+    initial_psi_mrad: Optional[float] = None   # simulator: the open-loop carrier's yaw angle at the start
     source: str = ""
 
     def __post_init__(self) -> None:

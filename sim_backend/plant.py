@@ -28,6 +28,10 @@ Lateral (2a)/(2b) with the offset of Sec. 4.1.2 and a lateral force as creep vel
 With ``front_contact`` false the front carrier is lifted: y_f == 0, its yaw still follows its own
 yaw dynamics, its wheels have no rolling contact (dw_f = 0).
 
+``rear_lifted`` (a ``LiftedCarrier``) lifts the rear carrier off the rollers, the set-up of the
+free-response experiment (Sec. 4.3.2): its yaw follows (6) with the contact-free damping and
+offset of ``LiftedCarrier`` and no hysteresis, y_r stays where it is, dw_r = 0.
+
 The integrator (``Plant.step``) is pure-Python scalar code: an exact solution of the yaw
 oscillator linearised about the (sub)step start (D frozen at its exact average over the
 (sub)step, Bouc-Wen stiffness as the secant slope of the exact z(psi) map, iterated), the
@@ -39,7 +43,7 @@ model as a vectorised numpy right-hand side for the stiff reference solver.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from math import ceil, cos, exp, expm1, log, log1p, sin, sqrt
 from typing import Any, Callable, Optional, Sequence
 
@@ -47,11 +51,7 @@ import numpy as np
 
 from rig_runtime.config import Plant as PlantParams
 
-__all__ = [
-    "PlantState", "Plant", "Scenario", "WHEEL_LOAD_N", "STATE_NAMES",
-    "scenario_open_loop_steps", "scenario_sine", "scenario_free_response",
-    "simulate", "reference", "loop_width",
-]
+__all__ = ["PlantState", "Plant", "LiftedCarrier", "WHEEL_LOAD_N", "STATE_NAMES"]
 
 #: ESTIMATE: static vertical load per wheel, N. A full-scale low-floor IRW wheel carries about
 #: 60 kN; scaled 1:5 with mass ~ 1/5^3 that is 480 N. Only used for the simulated Fz readings.
@@ -70,6 +70,16 @@ _TOL_D = 0.03        # max relative change of D within one sub-step (log ratio)
 _TOL_NL = 0.005      # max relative change of the Bouc-Wen stiffness within one sub-step
 _TOL_K = 1e-13       # secant iteration: accepted yaw-angle change caused by the slope update, rad
 _MAX_SUB = 4096      # hard cap on sub-steps per call
+
+
+@dataclass(frozen=True)
+class LiftedCarrier:
+    """Yaw parameters of a carrier lifted off the rollers (Sec. 4.3.2, Table 3 first row):
+    no wheel-roller contact, so a constant damping ``D`` and no hysteresis; ``omega0`` and
+    ``K`` are those of the plant. ``psi_off`` is the lifted carrier's own offset (rad)."""
+
+    D: float = 0.28
+    psi_off: float = 1.7e-3
 
 
 @dataclass(frozen=True, slots=True)
@@ -498,7 +508,7 @@ class Plant:
     """
 
     def __init__(self, params: PlantParams, wheel_dynamics: str = "static",
-                 substeps: Optional[int] = None):
+                 substeps: Optional[int] = None, rear_lifted: Optional[LiftedCarrier] = None):
         if wheel_dynamics not in ("static", "dynamic"):
             raise ValueError(f"wheel_dynamics: expected 'static' or 'dynamic', got {wheel_dynamics!r}")
         if substeps is not None and (not isinstance(substeps, int) or substeps < 1):
@@ -506,6 +516,9 @@ class Plant:
         if wheel_dynamics == "dynamic" and not params.v > 0:
             raise ValueError("wheel_dynamics='dynamic' needs v > 0: the creep pole "
                              "-c11 r0^2/(J_x v) of (3) is unstable/undefined otherwise")
+        if rear_lifted is not None and params.front_contact:
+            raise ValueError("rear_lifted needs the front carrier lifted too (front_contact: false): "
+                             "the identification set-up of Sec. 4.1.1 has no carrier on the rollers then")
         P = params
         self.params = P
         self.wheel_dynamics = wheel_dynamics
@@ -528,7 +541,10 @@ class Plant:
         self._lam = P.c11 * P.r0 ** 2 / (P.J_x * P.v) if self.dynamic else 0.0
         self._w_nom = P.v / P.r0
         self._front = _Carrier(P, substeps)
-        self._rear = _Carrier(P, substeps)
+        self.rear_lifted = rear_lifted
+        self._rear = _Carrier(P if rear_lifted is None else
+                              replace(P, D_min=rear_lifted.D, D_max=rear_lifted.D, bouc_wen=None,
+                                      psi_off=rear_lifted.psi_off), substeps)
         self._h = None
         self.reset()
 
@@ -550,7 +566,7 @@ class Plant:
         P = self.params
         for car, psi, rate, z, du in ((self._front, psi_af, psi_rate_f, z_f, du_f),
                                       (self._rear, psi_ar, psi_rate_r, z_r, du_r)):
-            car.psi = P.K * du + P.psi_off if psi is None else float(psi)
+            car.psi = car.K * du + car.psi_off if psi is None else float(psi)
             car.p = float(rate)
             car.z = (car.psi if z is None else float(z)) if car.hyst else 0.0
             car.du = float(du)
@@ -642,7 +658,7 @@ class Plant:
     def _dw_static(self) -> tuple[float, float]:
         """Relation (4) per carrier in contact (a lifted carrier has no rolling contact: 0)."""
         f, r = self._front, self._rear
-        dwr = self._gvb * self._y_r + self._b2r * r.p + self._vk * r.du
+        dwr = 0.0 if self.rear_lifted else self._gvb * self._y_r + self._b2r * r.p + self._vk * r.du
         dwf = (self._gvb * self._y_f + self._b2r * f.p + self._vk * f.du) if self.front_contact else 0.0
         return dwf, dwr
 
@@ -657,7 +673,7 @@ class Plant:
         P = self.params
         out = {}
         for name, car, F, contact in (("f", self._front, self._F_f, self.front_contact),
-                                      ("r", self._rear, self._F_r, True)):
+                                      ("r", self._rear, self._F_r, self.rear_lifted is None)):
             fx = P.k_tau * car.du / (2.0 * P.r0) if contact else 0.0
             fz = WHEEL_LOAD_N if contact else 0.0
             out[name + "l"] = (fx, 0.5 * F, fz, 0.0, 0.0, 0.5 * car.M)
@@ -716,7 +732,7 @@ class Plant:
                         + W1[0][1] * hr0 + W2[0][0] * gf1 + W2[0][1] * gr1 + W3[0][0] * hf1 + W3[0][1] * hr1)
             self._y_r = (P1[0] * yf0 + P1[1] * yr0 + W0[1][0] * gf0 + W0[1][1] * gr0 + W1[1][0] * hf0
                         + W1[1][1] * hr0 + W2[1][0] * gf1 + W2[1][1] * gr1 + W3[1][0] * hf1 + W3[1][1] * hr1)
-        else:
+        elif self.rear_lifted is None:
             phi, w00, w10, w01, w11 = self._lat1
             cr = self._off + fy * F_y_r
             yr0 = self._y_r
@@ -726,11 +742,13 @@ class Plant:
         # wheel speeds
         if not self.dynamic:
             gvb, b2r, vk = self._gvb, self._b2r, self._vk
-            self._dw_r = gvb * self._y_r + b2r * r.p + vk * du_r
+            self._dw_r = 0.0 if self.rear_lifted else gvb * self._y_r + b2r * r.p + vk * du_r
             if self.front_contact:
                 self._dw_f = gvb * self._y_f + b2r * f.p + vk * du_f
         else:
             self._wheel_dynamic(dt, start)
+            if self.rear_lifted:
+                self._dw_r = 0.0
 
     def _wheel_dynamic(self, dt: float, start: tuple) -> None:
         """Exact exponential update of (3): Delta-omega relaxes to the static value (4) with the
@@ -791,7 +809,8 @@ class Plant:
             dx[_I_YF] = a * yf - a * yr + cyv * x[_I_F] + self._fy * Fyf
         else:
             yf = 0.0
-        dx[_I_YR] = -a * yr + a * yf + cyv * x[_I_R] + self._off + self._fy * Fyr
+        if self.rear_lifted is None:
+            dx[_I_YR] = -a * yr + a * yf + cyv * x[_I_R] + self._off + self._fy * Fyr
         for car, i, du, M in ((self._front, _I_F, du_f, Mzf), (self._rear, _I_R, du_r, Mzr)):
             psi, p, z, ue = x[i], x[i + 1], x[i + 2], x[i + 3]
             udot = ue / car.tau
@@ -814,7 +833,10 @@ class Plant:
         if self.dynamic:
             lam = self._lam
             gvb, b2r, vk = self._gvb, self._b2r, self._vk
-            dx[_I_DW + 1] = lam * (gvb * yr + b2r * x[_I_R + 1] + vk * du_r - x[_I_DW + 1])
+            if self.rear_lifted is None:
+                dx[_I_DW + 1] = lam * (gvb * yr + b2r * x[_I_R + 1] + vk * du_r - x[_I_DW + 1])
+            else:
+                dx[_I_DW + 1] = -lam * x[_I_DW + 1]
             if self.front_contact:
                 dx[_I_DW] = lam * (gvb * yf + b2r * x[_I_F + 1] + vk * du_f - x[_I_DW])
             else:
@@ -828,126 +850,3 @@ class Plant:
         x[_I_F + 3] += new[0] - old[0]
         x[_I_R + 3] += new[1] - old[1]
         return x
-
-
-# --------------------------------------------------------------------------- scenarios
-@dataclass(frozen=True)
-class Scenario:
-    """Inputs held over each step k: columns du_f, du_r, F_y_f, F_y_r, M_z_f, M_z_r."""
-
-    name: str
-    params: PlantParams
-    dt: float
-    inputs: np.ndarray
-    initial: dict = field(default_factory=dict)
-
-    @property
-    def t(self) -> np.ndarray:
-        return np.arange(len(self.inputs) + 1) * self.dt
-
-
-def _inputs(n: int) -> np.ndarray:
-    return np.zeros((n, 6))
-
-
-def scenario_open_loop_steps(params: PlantParams, h: float = 0.005, t_end: float = 120.0,
-                             levels: Sequence[tuple[float, float]] = (
-                                 (0.0, 0.0), (20.0, 1.0), (40.0, 0.0), (60.0, -1.0),
-                                 (80.0, 0.5), (100.0, -0.5))) -> Scenario:
-    """Open-loop steps of du_r like Fig. 3: (start time, level) pairs, front lifted and idle."""
-    n = int(round(t_end / h))
-    U = _inputs(n)
-    tk = np.arange(n) * h
-    for t0, lv in levels:
-        U[tk >= t0 - 1e-9, 1] = lv
-    return Scenario("open_loop_steps", params, h, U)
-
-
-def scenario_sine(params: PlantParams, nu: float, amplitude: float = 0.7, h: float = 0.005,
-                  hold: Optional[float] = None, periods: float = 1.0) -> Scenario:
-    """du_r = amplitude sin(2 pi nu t) over ``periods`` periods (Fig. 9; one step more, so the
-    record ends just past the last rising zero crossing), sampled and held every ``hold``
-    seconds (default: every step h; ``hold`` is rounded to a multiple of h)."""
-    n = int(math.ceil(periods / nu / h - 1e-9)) + 1    # just past the end of the last period
-    m = 1 if hold is None else max(1, int(round(hold / h)))
-    tk = (np.arange(n) // m) * m * h
-    U = _inputs(n)
-    U[:, 1] = amplitude * np.sin(2.0 * np.pi * nu * tk)
-    return Scenario(f"sine_{nu * 1e3:g}mHz", params, h, U)
-
-
-def scenario_free_response(params: PlantParams, psi0: float = 0.01, D: float = 0.28,
-                           h: float = 0.005, t_end: float = 3.0) -> Scenario:
-    """Free response of the lifted, linear carrier (Sec. 4.3.2): du = 0, psi(0) = psi0, D fixed."""
-    P = replace(params, bouc_wen=None, D_min=D, D_max=D)
-    n = int(round(t_end / h))
-    return Scenario("free_response", P, h, _inputs(n), {"psi_ar": psi0})
-
-
-def simulate(scenario: Scenario, plant: Optional[Plant] = None, **plant_kw: Any) -> np.ndarray:
-    """Run the integrator over the scenario; returns states (n+1, n_states) at t = k dt
-    (layout ``STATE_NAMES``). A given ``plant`` is reset and used with its own parameters."""
-    pl = plant if plant is not None else Plant(scenario.params, **plant_kw)
-    pl.reset(**scenario.initial)
-    f, r = pl._front, pl._rear
-    dyn = pl.dynamic
-
-    def row() -> tuple:
-        x = (pl._y_f, pl._y_r, f.psi, f.p, f.z, f.e, r.psi, r.p, r.z, r.e)
-        return x + (pl._dw_f, pl._dw_r) if dyn else x
-    rows = [row()]
-    dt = scenario.dt
-    step = pl.step
-    for u in scenario.inputs.tolist():
-        step(dt, *u)
-        rows.append(row())
-    return np.array(rows)
-
-
-def reference(scenario: Scenario, rtol: float = 1e-10, atol: float = 1e-12, method: str = "Radau",
-              **plant_kw: Any) -> np.ndarray:
-    """The same scenario with ``scipy.integrate.solve_ivp`` (restarted wherever the held
-    inputs change, so it sees exactly the same ZOH input); states at t = k dt."""
-    from scipy.integrate import solve_ivp
-
-    pl = Plant(scenario.params, **plant_kw)
-    pl.reset(**scenario.initial)
-    U = scenario.inputs
-    n = len(U)
-    dt = scenario.dt
-    out = np.empty((n + 1, pl.n_states))
-    x = pl.state_vector()
-    out[0] = x
-    prev = (pl._front.du, pl._rear.du, 0.0, 0.0, 0.0, 0.0)
-    change = np.flatnonzero(np.any(np.diff(U, axis=0) != 0.0, axis=1)) + 1
-    bounds = np.concatenate(([0], change, [n]))
-    for k0, k1 in zip(bounds[:-1], bounds[1:]):
-        t_eval = np.arange(k0 + 1, k1 + 1) * dt
-        x = pl.input_jump(x, prev, U[k0])
-        prev = tuple(U[k0])
-        sol = solve_ivp(pl.rhs, (k0 * dt, k1 * dt), x, method=method, t_eval=t_eval,
-                        args=(tuple(U[k0]),), rtol=rtol, atol=atol)
-        if not sol.success:
-            raise RuntimeError(f"reference solver failed on [{k0 * dt}, {k1 * dt}]: {sol.message}")
-        out[k0 + 1:k1 + 1] = sol.y.T
-        x = sol.y[:, -1]
-    return out
-
-
-def loop_width(du: np.ndarray, psi: np.ndarray) -> float:
-    """Width of the psi-du loop (Fig. 9): psi where du crosses zero falling minus psi where it
-    crosses zero rising (the last crossing of each kind), by linear interpolation.  ``du`` and
-    ``psi`` are sampled at the same instants; |du| below 1e-12 max|du| counts as zero."""
-    du = np.asarray(du, dtype=float)
-    psi = np.asarray(psi, dtype=float)
-    s = np.sign(np.where(np.abs(du) <= 1e-12 * np.max(np.abs(du)), 0.0, du))
-    up = np.flatnonzero((s[:-1] < 0) & (s[1:] >= 0))
-    dn = np.flatnonzero((s[:-1] > 0) & (s[1:] <= 0))
-    if len(up) == 0 or len(dn) == 0:
-        raise ValueError("du has no rising and falling zero crossing")
-
-    def at(i: int) -> float:
-        w = 1.0 if s[i + 1] == 0 else du[i] / (du[i] - du[i + 1])
-        return float(psi[i] + w * (psi[i + 1] - psi[i]))
-
-    return at(dn[-1]) - at(up[-1])

@@ -41,7 +41,7 @@ from rig_runtime.scenario import Scenario
 
 from . import virtual_drive, virtual_ft, virtual_laser
 from .lockstep_bus import LockstepBus
-from .plant import Plant
+from .plant import LiftedCarrier, Plant
 from .simconfig import sim_config
 from .virtual_drive import VirtualDriveSet
 from .virtual_ft import VirtualFTServer
@@ -61,12 +61,15 @@ class SimulatedRig:
         self.h = cfg.controller.h
         self._rng = random.Random(self.seed)
         p = cfg.plant
-        self.plant = Plant(p, wheel_dynamics=self.sc.wheel_dynamics)
+        lifted = scenario is not None and scenario.lifted_carrier == "rear"
+        self.plant = Plant(p, wheel_dynamics=self.sc.wheel_dynamics,
+                           rear_lifted=LiftedCarrier(self.sc.lifted_D, self.sc.lifted_psi_off) if lifted else None)
         psi0 = p.psi_off
         y0 = p.c_y * p.v * psi0 / p.a_lat + p.y_off / (2 * p.l0) * p.v / p.a_lat
         if self.sc.initial_y_mm is not None:
             y0 = self.sc.initial_y_mm * 1e-3
-        self.plant.reset(y_r=y0)   # psi at rest (K·0 + psi_off), z = psi
+        psi_ar = None if scenario is None or scenario.initial_psi_mrad is None else scenario.initial_psi_mrad * 1e-3
+        self.plant.reset(y_r=y0, psi_ar=psi_ar)   # psi None: at rest (K·0 + psi_off), z = psi
         self.t = 0.0
         self._drive_bus = drive_bus
         self._check_scenario()

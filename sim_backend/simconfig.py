@@ -22,6 +22,10 @@ class SimConfig:
     seed: int = 0
     wheel_dynamics: Literal["static", "dynamic"] = "static"   # relation (4), or the dynamic form (3)
     can_bus: Literal["lockstep", "virtual"] = "lockstep"      # python-can bus of the in-process sim
+    # the rear carrier lifted off the rollers (scenario ``lifted_carrier: rear``, Sec. 4.3.2):
+    # its contact-free damping and offset (Table 3, first row)
+    lifted_D: float = check(positive, default=0.28)
+    lifted_psi_off: float = 1.7e-3
 
 
 def sim_config(cfg: RigConfig) -> SimConfig:

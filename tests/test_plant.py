@@ -13,9 +13,10 @@ from scipy.linalg import expm
 
 from rig_runtime.config import load
 from sim_backend.plant import (
-    STATE_NAMES, WHEEL_LOAD_N, Plant, PlantState, Scenario, _hermite_weights, _hermite_weights_coupled,
-    _osc_coef, loop_width, reference,
-    scenario_free_response, scenario_open_loop_steps, scenario_sine, simulate,
+    STATE_NAMES, WHEEL_LOAD_N, Plant, PlantState, _hermite_weights, _hermite_weights_coupled, _osc_coef,
+)
+from tests.plant_reference import (
+    Scenario, loop_width, reference, scenario_free_response, scenario_open_loop_steps, scenario_sine, simulate,
 )
 
 H = 0.005
@@ -411,3 +412,23 @@ def test_hysteresis_loop_width_is_rate_independent(P):
         w = 2 * np.pi * nu
         G = w0 ** 2 / (w0 ** 2 - w ** 2 + 2j * D * w0 * w)
         assert widths["lin", nu] == pytest.approx(-2 * P.K * 0.7 * G.imag, rel=2e-3)
+
+
+# --------------------------------------------------------------------------- lifted rear carrier
+def test_lifted_rear_carrier_free_response_matches_closed_form(P):
+    """Sec. 4.3.2 set-up: the lifted rear carrier swings with the contact-free damping about
+    its own offset, without hysteresis; y_r does not move and the wheels see no yaw (dw_r = 0)."""
+    from sim_backend.plant import LiftedCarrier
+    lc = LiftedCarrier(D=0.28, psi_off=1.7e-3)
+    pl = Plant(P, rear_lifted=lc)
+    pl.reset(psi_ar=0.01, y_r=1e-3)
+    w0, D = P.omega0, lc.D
+    wd = w0 * math.sqrt(1 - D * D)
+    x0 = 0.01 - lc.psi_off
+    for k in range(1, 401):
+        pl.step(H, 0.0, 0.0)
+        t = k * H
+        exact = lc.psi_off + x0 * math.exp(-D * w0 * t) * (math.cos(wd * t) + D * w0 / wd * math.sin(wd * t))
+        assert abs(pl.psi_ar - exact) < 1e-12
+    assert pl.y_r == 1e-3 and pl.dw_r == 0.0 and pl.z_r == 0.0
+    assert pl.ft_readings()["rl"][2] == 0.0

@@ -76,7 +76,8 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
             attrs = {"config": json.dumps(schema.to_dict(cfg)), "software_version": __version__,
                      "start_time": _dt.datetime.now(_dt.timezone.utc).isoformat(), "h": cfg.controller.h,
                      "config_source": cfg.source, "scenario": scenario.name if scenario else "",
-                     "scenario_source": scenario.source if scenario else ""}
+                     "scenario_source": scenario.source if scenario else "",
+                     "experiment": (scenario.experiment or "") if scenario else ""}
             attrs.update(extra_attrs or {})
             rec = Recorder(log_path, loop.columns, attrs=attrs, buffer_cycles=cfg.recorder.buffer_cycles,
                            flush_s=cfg.recorder.flush_s)

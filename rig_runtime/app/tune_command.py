@@ -23,9 +23,14 @@ def _fmt_ev(ev) -> str:
 @arg("--config", help="config file (default: the shipped simulated rig, configs/sim.yaml)")
 @arg("--json", action="store_true", help="print one JSON object instead of a table")
 @arg("--plot", metavar="DIR", help="write root-locus and eigenvalue PNGs into DIR (needs matplotlib)")
+@arg("--design", action="store_true", help="design the PI-PD gains for the configured plant (Sec. 5.2.3)")
+@arg("--write", metavar="CONTROLLER.yaml", help="with --design: write a controller: fragment with the proposal")
 def cmd_tune(args: argparse.Namespace) -> int:
     from .. import analysis, config, preflight
     cfg = config.load(args.config)
+    if args.design or args.write:
+        from .design_command import run_design
+        return run_design(cfg, args)
     if args.plot:
         preflight.check_plot_dir(args.plot, "--plot")
     try:

@@ -1,0 +1,149 @@
+"""Gain design of Sec. 5.2.3 for the configured plant (``rig tune --design``).
+
+Uses the linear model and the loop matrices of ``rig_runtime.analysis`` (nothing duplicated).
+Objective and constraints, in the paper's order:
+
+1. inner PD: the largest K_P,psi and K_D,psi for which each term alone stays within the input
+   criterion (``tuning.u_design_max`` at ``psi_design`` and ``psi_rate_design``; the per-term
+   reading of docs/paper-notes.md §5): K_P,psi = u/psi, K_D,psi = u/psi_dot. As much stiffness
+   and damping as the input bound allows; the eigenvalues of (15) are reported.
+2. T_f,psi: the largest (most noise filtering) time constant for which the slowest eigenvalue
+   of (16) stays within ``TF_SLOW_TOL`` of the slowest of (15) and every eigenvalue of (16) is
+   stable; the noise gain K_D,psi/T_f,psi (A per rad of sensor noise at high frequency) is
+   reported and must stay below ``NOISE_GAIN_MAX``.
+3. outer PI: K_P,y within the lateral criterion (K_P,y · y_design <= psi_ref_design_max) and the
+   integrator as strong as the constraints allow: the largest K_I,y with (17)'s eigenvalues
+   real and max Re <= ``tuning.slowest_eig_min``, the complete loop (19) stable with its
+   slowest eigenvalue no slower than ``SLOW_19`` and its complex poles damped at least
+   ``ZETA_MIN``, and the same for the sampled loop as implemented; among those, the K_P,y with the largest K_I,y (ties: the smaller K_P,y).
+4. the complete loop (19) and the sampled loop as implemented (h, Tustin) are checked stable.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from rig_runtime import analysis
+from rig_runtime.config import PIPDGains, RigConfig
+
+TF_SLOW_TOL = 0.03      # |λ_slow(16) − λ_slow(15)| <= 3 % of |λ_slow(15)|
+NOISE_GAIN_MAX = 1000.0  # A/rad: K_D/T_f; 5 µrad of yaw noise -> at most 5 mA
+SLOW_19 = -0.5          # 1/s: slowest eigenvalue of the complete loop (the paper's design has -0.5)
+ZETA_MIN = 0.7          # damping ratio of any complex pole pair of (19)
+KP_Y_GRID = 0.25        # rad/m
+KI_Y_GRID = 0.25        # rad/(m s)
+
+
+@dataclass(frozen=True)
+class Design:
+    gains: PIPDGains
+    result: analysis.TuneResult       # the analysis of the proposed gains
+    configured: analysis.TuneResult   # the analysis of the configured gains
+    configured_gains: PIPDGains
+    checks: dict
+    noise_gain: float
+
+
+def with_gains(cfg: RigConfig, g: PIPDGains) -> RigConfig:
+    return replace(cfg, controller=replace(cfg.controller, pipd=g))
+
+
+def _slowest(ev) -> float:
+    return float(np.max(np.real(ev)))
+
+
+def _zeta_ok(ev) -> bool:
+    for e in ev:
+        if abs(e.imag) > 1e-9 and -e.real / abs(e) < ZETA_MIN:
+            return False
+    return True
+
+
+def design_tf(cfg: RigConfig, kp: float, kd: float) -> float:
+    base = PIPDGains(K_P_y=0.0, K_I_y=0.0, K_P_psi=kp, K_D_psi=kd, T_f_psi=1e-3)
+    slow15 = _slowest(np.linalg.eigvals(analysis.inner_matrix(with_gains(cfg, base))))
+
+    def ok(T: float) -> bool:
+        ev = np.linalg.eigvals(analysis.inner_filtered_matrix(with_gains(cfg, replace(base, T_f_psi=T))))
+        return np.all(ev.real < 0) and abs(_slowest(ev) - slow15) <= TF_SLOW_TOL * abs(slow15)
+    lo, hi = max(kd / NOISE_GAIN_MAX, 1e-4), 2.0
+    if not ok(lo):
+        return lo
+    while ok(hi) and hi < 100:
+        hi *= 2
+    for _ in range(60):
+        mid = np.sqrt(lo * hi)
+        lo, hi = (mid, hi) if ok(mid) else (lo, mid)
+    return float(lo)
+
+
+def design(cfg: RigConfig) -> Design:
+    t = cfg.tuning
+    kp = t.u_design_max / t.psi_design
+    kd = t.u_design_max / t.psi_rate_design
+    Tf = design_tf(cfg, kp, kd)
+    kp_y_max = t.psi_ref_design_max / t.y_design
+    best = None
+    for kpy in np.arange(KP_Y_GRID, kp_y_max + 1e-9, KP_Y_GRID):
+        for kiy in np.arange(KI_Y_GRID, 200.0, KI_Y_GRID):
+            g = PIPDGains(K_P_y=float(kpy), K_I_y=float(kiy), K_P_psi=kp, K_D_psi=kd, T_f_psi=Tf)
+            c = with_gains(cfg, g)
+            outer = np.linalg.eigvals(analysis.outer_matrix(c))
+            if np.any(np.abs(outer.imag) > 1e-9) or _slowest(outer) > t.slowest_eig_min:
+                if np.any(np.abs(outer.imag) > 1e-9):
+                    break            # larger K_I only makes the pair more complex
+                continue
+            cl = np.linalg.eigvals(analysis.closed_loop_matrix(c))
+            if _slowest(cl) > SLOW_19 or not _zeta_ok(cl):
+                continue
+            if best is not None and kiy <= best.K_I_y + 1e-12:
+                continue
+            sl = analysis.sampled_closed_loop(c)
+            if _slowest(sl) >= 0 or not _zeta_ok(sl):
+                continue
+            if best is None or kiy > best.K_I_y + 1e-12:
+                best = g
+    if best is None:
+        raise ValueError("no outer gains satisfy the constraints of Sec. 5.2.3 for this plant")
+    res = analysis.tune(with_gains(cfg, best))
+    checks = dict(res.checks)
+    checks["complete_loop_stable"] = {"value": _slowest(res.closed_loop), "limit": 0.0, "ok": _slowest(res.closed_loop) < 0}
+    checks["sampled_loop_stable"] = {"value": _slowest(res.closed_loop_sampled), "limit": 0.0,
+                                     "ok": _slowest(res.closed_loop_sampled) < 0}
+    checks["noise_gain_A_per_rad"] = {"value": kd / Tf, "limit": NOISE_GAIN_MAX, "ok": kd / Tf <= NOISE_GAIN_MAX}
+    return Design(best, res, analysis.tune(cfg), cfg.controller.pipd, checks, kd / Tf)
+
+
+def to_json(d: Design) -> dict:
+    g = d.gains
+    return {"gains": {"K_P_y": g.K_P_y, "K_I_y": g.K_I_y, "K_P_psi": g.K_P_psi, "K_D_psi": g.K_D_psi, "T_f_psi": g.T_f_psi},
+            "objective": OBJECTIVE,
+            "eigenvalues": {k: analysis.pairs(getattr(d.result, k)) for k in
+                            ("inner", "inner_filtered", "outer", "closed_loop", "closed_loop_sampled")},
+            "configured": {"gains": _gains(d.configured_gains),
+                           "eigenvalues": {k: analysis.pairs(getattr(d.configured, k)) for k in
+                                           ("inner", "inner_filtered", "outer", "closed_loop", "closed_loop_sampled")}},
+            "checks": d.checks, "ok": all(c["ok"] for c in d.checks.values())}
+
+
+def _gains(g: PIPDGains) -> dict:
+    return {"K_P_y": g.K_P_y, "K_I_y": g.K_I_y, "K_P_psi": g.K_P_psi, "K_D_psi": g.K_D_psi, "T_f_psi": g.T_f_psi}
+
+
+def controller_yaml(cfg: RigConfig, g: PIPDGains) -> str:
+    c = cfg.controller
+    return ("# Gains designed by `rig tune --design` (Sec. 5.2.3, rig_runtime/app/design.py)\n"
+            f"# for the plant of {cfg.source}\n"
+            "controller:\n"
+            f"  h: {c.h!r}\n  law: {c.law}\n  pipd:\n"
+            f"    K_P_y: {g.K_P_y:.6g}\n    K_I_y: {g.K_I_y:.6g}\n    K_P_psi: {g.K_P_psi:.6g}\n"
+            f"    K_D_psi: {g.K_D_psi:.6g}\n    T_f_psi: {g.T_f_psi:.6g}\n"
+            f"  K_P: {c.K_P!r}\n  discretization: {c.discretization}\n")
+
+
+OBJECTIVE = ("inner: largest K_P,psi, K_D,psi with each term <= u_design_max at psi_design / psi_rate_design; "
+             f"T_f,psi: largest with the slowest eigenvalue of (16) within {TF_SLOW_TOL:.0%} of (15)'s and "
+             f"K_D/T_f <= {NOISE_GAIN_MAX:g} A/rad; outer: largest K_I,y with K_P,y y_design <= psi_ref_design_max, "
+             f"(17) real with max Re <= slowest_eig_min, (19) max Re <= {SLOW_19} and complex poles damped >= {ZETA_MIN}")
