@@ -4,7 +4,7 @@ An ``Experiment`` holds, per control cycle k (period h), the rear carrier's appl
 ``u[k]`` (A, held over [t_k, t_k+1)) and the measurements ``psi[k]``, ``y[k]``, ``dw[k]``
 taken at t_k (after the plant moved with u[0..k-1]). From a log the input is the commanded
 wheel current as the drives resolve it (CiA 402 target torque in per mille of the rated
-current, ``drivers.canopen402.amps_to_permille``), so a sine is the staircase the rig applied.
+current, ``drivers.cia402.amps_to_permille``), so a sine is the staircase the rig applied.
 
 CSV (logs recorded elsewhere): a first line ``# experiment: KIND`` and the columns
 ``t`` (s), ``u`` (A, the differential current applied over the next period), ``psi`` (rad),
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.canopen402 import amps_to_permille, permille_to_amps
+from drivers.cia402 import amps_to_permille, permille_to_amps
 from rig_runtime.errors import ConfigError
 
 KINDS = ("free-response", "steps", "sine", "open-loop-steps")
