@@ -14,6 +14,8 @@ CASES = [
     ("fault-no_heartbeat", "converters", "converter"),
     ("fault-bus_error", "converters", "converter"),
     ("fault-stall", "loop", "overrun"),
+    ("fault-two-wheels", "converters", "converter"),
+    ("fault-during-step", "s_rl", "stale"),
 ]
 
 
@@ -25,6 +27,12 @@ def test_fault_scenarios(tmp_path, scenario, device, check):
         assert "rl" in r.fault["message"] and "heartbeat" in r.fault["message"].lower()
     if scenario == "fault-bus_error":
         assert "bus error" in r.fault["message"]
+    if scenario == "fault-two-wheels":        # rl's short gap ended, rr's heartbeat stayed missing
+        assert "drive rr" in r.fault["message"] and "heartbeat" in r.fault["message"].lower()
+        assert r.fault["t"] - r.summary["run_started_t"] > 2.51
+    if scenario == "fault-during-step":       # the step was being driven when it tripped
+        k = r.fault_row()
+        assert max(abs(u) for u in r.col("rear_u_lim")[k - 20:k]) > 0.1
 
 
 def test_dropout_detection_latency(tmp_path, cfg):
