@@ -115,54 +115,66 @@ Finding = Optional[tuple]   # (check, value, limit, message) or None: the rule h
 
 
 # ---------------------------------------------------------------------- channel rules
-def invalid(c: Channel, t: float, lim: Limits) -> Finding:
-    if c.state is Freshness.INVALID:
-        return "invalid", c.value, math.nan, c.cause
+# A channel rule takes the channels and returns the first one that breaks it, with the
+# finding, or None. (Each rule loops over the channels itself: one call per rule and cycle.)
+Breach = Optional[tuple]    # (channel, (check, value, limit, message)) or None
+
+
+def invalid(chs: Sequence[Channel], t: float, lim: Limits) -> Breach:
+    for c in chs:
+        if c.state is Freshness.INVALID:
+            return c, ("invalid", c.value, math.nan, c.cause)
     return None
 
 
-def stale(c: Channel, t: float, lim: Limits) -> Finding:
-    age = t - c.t
-    if c.state is Freshness.STALE or age > c.stale_s:
-        return "stale", age, c.stale_s, c.cause or f"sample {age * 1e3:.1f} ms old"
+def stale(chs: Sequence[Channel], t: float, lim: Limits) -> Breach:
+    for c in chs:
+        age = t - c.t
+        if c.state is Freshness.STALE or age > c.stale_s:
+            return c, ("stale", age, c.stale_s, c.cause or f"sample {age * 1e3:.1f} ms old")
     return None
 
 
-def not_finite(c: Channel, t: float, lim: Limits) -> Finding:
-    v = c.value
-    if v != v or v == math.inf or v == -math.inf:
-        return "nan", v, math.nan, "value is not finite"
+def not_finite(chs: Sequence[Channel], t: float, lim: Limits) -> Breach:
+    for c in chs:
+        v = c.value
+        if v != v or v == math.inf or v == -math.inf:
+            return c, ("nan", v, math.nan, "value is not finite")
     return None
 
 
-def out_of_range(c: Channel, t: float, lim: Limits) -> Finding:
-    v = c.value
-    if v < c.lo or v > c.hi:
-        return "range", v, c.hi if v > c.hi else c.lo, "raw value outside the sensor range"
+def out_of_range(chs: Sequence[Channel], t: float, lim: Limits) -> Breach:
+    for c in chs:
+        v = c.value
+        if v < c.lo or v > c.hi:
+            return c, ("range", v, c.hi if v > c.hi else c.lo, "raw value outside the sensor range")
     return None
 
 
-def corrupt_link(c: Channel, t: float, lim: Limits) -> Finding:
+def corrupt_link(chs: Sequence[Channel], t: float, lim: Limits) -> Breach:
     n = lim.corrupt_cycles or _NEVER
-    if c.bad_run >= n:
-        return "corrupt", c.bad_run, n, f"garbled frames in {c.bad_run} consecutive cycles ({c.bad} in total)"
+    for c in chs:
+        if c.bad_run >= n:
+            return c, ("corrupt", c.bad_run, n, f"garbled frames in {c.bad_run} consecutive cycles ({c.bad} in total)")
     return None
 
 
-def stuck(c: Channel, t: float, lim: Limits) -> Finding:
+def stuck(chs: Sequence[Channel], t: float, lim: Limits) -> Breach:
     n = lim.stuck_periods or _NEVER
-    if c.same >= n:
-        return "stuck", c.same, n, f"value repeated bit-identically for {c.same} cycles"
+    for c in chs:
+        if c.same >= n:
+            return c, ("stuck", c.same, n, f"value repeated bit-identically for {c.same} cycles")
     return None
 
 
-def jump(c: Channel, t: float, lim: Limits) -> Finding:
-    if abs(c.delta) > c.step_max:
-        return "jump", c.delta, c.step_max, "implausible change between two cycles"
+def jump(chs: Sequence[Channel], t: float, lim: Limits) -> Breach:
+    for c in chs:
+        if abs(c.delta) > c.step_max:
+            return c, ("jump", c.delta, c.step_max, "implausible change between two cycles")
     return None
 
 
-CHANNEL_RULES: tuple[Callable[[Channel, float, Limits], Finding], ...] = (
+CHANNEL_RULES: tuple[Callable[[Sequence[Channel], float, Limits], Breach], ...] = (
     invalid, stale, not_finite, out_of_range, corrupt_link, stuck, jump)
 # what arming needs of every channel: a fresh, finite, in-range sample
 ARM_RULES = (invalid, stale, not_finite, out_of_range)
@@ -300,9 +312,9 @@ class Supervisor:
         lim = self.limits
         for c in self.channels:
             for rule in ARM_RULES:
-                f = rule(c, t, lim)
-                if f is not None:
-                    why.append(f"{c.name}: {f[3]}")
+                b = rule((c,), t, lim)
+                if b is not None:
+                    why.append(f"{c.name}: {b[1][3]}")
                     break
         if not conv.ok:
             why.append(f"converters: {conv.cause}")
@@ -365,11 +377,11 @@ class Supervisor:
         if self.state is State.RUNNING and not conv.enabled:
             return self.trip(t, "converters", "disabled", math.nan, math.nan,
                              "a power stage left OPERATION ENABLED while running")
+        chs = self.channels
         for rule in CHANNEL_RULES:
-            for c in self.channels:
-                f = rule(c, t, lim)
-                if f is not None:
-                    return self.trip(t, c.name, *f)
+            b = rule(chs, t, lim)
+            if b is not None:
+                return self.trip(t, b[0].name, *b[1])
         for rule in POSE_RULES:
             for p in poses:
                 f = rule(p, lim)
