@@ -20,7 +20,7 @@ from rig_runtime.config import Plant as PlantParams
 
 from . import fit
 from .experiments import Experiment
-from .model import bouc_wen, simulate_psi, yaw_params
+from .model import bouc_wen, simulate_record, yaw_params
 
 BURN_IN_S = 20.0
 EVERY_S = 0.25        # residual sample spacing (the sines are mHz)
@@ -35,8 +35,7 @@ def _grid(e: Experiment) -> tuple[np.ndarray, np.ndarray]:
 
 
 def simulate(Pp: PlantParams, e: Experiment, idx: np.ndarray) -> np.ndarray:
-    psi0 = float(e.psi[np.isfinite(e.psi)][0])
-    return simulate_psi(Pp, e.u, e.h, 0, int(idx[-1]), idx, psi0=psi0, z0=psi0)
+    return simulate_record(Pp, e.u, e.h, e.psi, idx)
 
 
 def identify_linear(P: PlantParams, exps: list[Experiment]) -> fit.Fit:

@@ -13,13 +13,11 @@ from rig_runtime.config import Plant as PlantParams
 
 from . import lateral
 from .experiments import Experiment
-from .model import simulate_psi
+from .model import simulate_record
 
 
 def simulate(P: PlantParams, e: Experiment) -> np.ndarray:
-    idx = np.arange(len(e.t))
-    p0 = float(e.psi[np.isfinite(e.psi)][0])
-    return simulate_psi(P, e.u, e.h, 0, len(e.t) - 1, idx, psi0=p0, z0=p0)
+    return simulate_record(P, e.u, e.h, e.psi, np.arange(len(e.t)))
 
 
 def errors(P: PlantParams, e: Experiment) -> dict:
