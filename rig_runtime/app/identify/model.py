@@ -24,7 +24,7 @@ import numpy as np
 from rig_runtime.config import BoucWen, Plant as PlantParams
 from sim_backend.plant import LiftedCarrier, Plant
 
-SETTLE_S = 1.0      # after an input change: D back at D_max, no more ringing
+SETTLE_S = 0.5      # after an input change: D back at D_max (~0.25 s), no more ringing
 FINE_STEP = 2       # samples per integrator call within SETTLE_S of an input change
 REST_S = 0.5        # the rest at the start of a record: its mean is the initial angle
 
