@@ -7,8 +7,8 @@ the sines barely reach the saturation of z (1/(beta+gamma)), which the long step
 stationary values. After the sequential fits, one problem (1) over both records refines
 K, a, beta, gamma, D_min, D_max, c_udot_max with one psi_off per experiment kind (the paper
 reports psi_off per experiment; the sines' one goes to the plant, as in Table 3's last row).
-Each record is simulated from its first sample with z(0) = psi(0); the first seconds are left
-out of the residual.
+Each record is simulated from its measured rest at the start (``model.record_start``); the
+first seconds are left out of the residual.
 """
 
 from __future__ import annotations

@@ -2,8 +2,8 @@
 Bouc-Wen parameters a, beta, gamma of (8)/(9) with A = 1, n = 1 (K, omega0 and the damping
 law fixed).
 
-The model is integrated over the whole record from the first sample with z(0) = psi(0) (the
-plant's rest convention); the first ``BURN_IN_S`` are left out of the residual so that an
+The model is integrated over the whole record from its measured rest at the start
+(``model.record_start``); the first ``BURN_IN_S`` are left out of the residual so that an
 unknown initial hysteresis state does not matter. beta and gamma are nearly opposite on the
 rig (7362, −7164): they are fitted as s = beta + gamma (sets the saturation 1/s of z) and
 d = beta − gamma (the stiffness right after a reversal), which are far better conditioned, and

@@ -1,7 +1,7 @@
 """Verification (Sec. 4.3.5): the identified model against the held-out open-loop steps.
 
-The yaw model (6)-(9) with law (7) is simulated over the whole record from its first sample
-(z(0) = psi(0)) with the measured input and compared with the measured yaw angle; the same
+The yaw model (6)-(9) with law (7) is simulated over the whole record from its measured rest
+at the start (``model.record_start``) with the measured input and compared with the measured yaw angle; the same
 for the configured (nominal) plant. The lateral displacement is simulated from the simulated
 yaw angle with (2b)."""
 
