@@ -1,9 +1,19 @@
 """Simulated identification experiments for the recovery tests and the benchmark: plants
 whose parameters differ from the shipped ones by up to ±30 % (offsets with other signs),
-and short versions of the ident-* scenarios (the shortest that still identify)."""
+and short versions of the ident-* scenarios (the shortest that still identify).
+
+``record_and_identify`` records every plant's short set and identifies it in worker
+processes (two: the machine's cores), each scenario one job, each plant's identification a
+job submitted once its four logs are there: the tests share one experiment set per plant.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import io
+import json
+import multiprocessing
+import os
 from dataclasses import replace
 from pathlib import Path
 
@@ -36,8 +46,8 @@ open_loop:
 """,
     "open-loop-steps": """name: t-open-loop-steps
 experiment: open-loop-steps
-duration_s: 150
-open_loop: {carrier: rear, steps: [[0, 0.0], [10, 0.4], [40, 0.8], [70, 0.0], [100, -0.8], [130, 0.0]]}
+duration_s: 110
+open_loop: {carrier: rear, steps: [[0, 0.0], [10, 0.4], [30, 0.8], [50, 0.0], [70, -0.8], [90, 0.0]]}
 """,
 }
 
@@ -90,3 +100,52 @@ def record(cfg, scenarios: dict, tmp: Path, seed: int = 0, prefix: str = "") -> 
         assert code == 0 and summary["final_state"] == "IDLE", (kind, summary["faults"])
         logs.append(log)
     return logs
+
+
+# ------------------------------------------------------------------ shared runs for the tests
+def _record_one(name: str, kind: str, tmp: str) -> str:
+    cfg, _ = plants()[name]
+    sc = short_scenarios(Path(tmp))[kind]
+    (log,) = record(cfg, {kind: sc}, Path(tmp), prefix=name)
+    return str(log)
+
+
+def _identify(name: str, logs: list[str], tmp: str) -> dict:
+    """``rig identify --json`` on the logs (for the shipped plant also --write and --report);
+    the JSON object and what the command wrote. The fits run serially here (a pool worker
+    cannot fork the Jacobian workers; the numbers do not depend on it)."""
+    from rig_runtime.app.cli import main
+    from rig_runtime.app.identify import fit
+    fit.WORKERS = 1
+    argv = ["identify", *logs, "--json"]
+    extra = {}
+    if name == "shipped":
+        extra = {"write": str(Path(tmp) / "plant-identified.yaml"), "report": str(Path(tmp) / "report")}
+        argv += ["--write", extra["write"], "--report", extra["report"]]
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(argv)
+    return {"code": code, "json": json.loads(out.getvalue()) if code == 0 else None, "stderr": err.getvalue(),
+            "logs": logs, **extra}
+
+
+def record_and_identify(names, tmp: Path, workers: int = 2) -> dict:
+    """name -> ``_identify``'s dict, every plant's short set recorded (seed 0) in ``tmp/name``."""
+    kinds = list(SHORT)
+    dirs = {n: tmp / n for n in names}
+    for d in dirs.values():
+        d.mkdir(parents=True, exist_ok=True)
+    ctx = multiprocessing.get_context("spawn")
+    with ctx.Pool(max(1, min(workers, os.cpu_count() or 1))) as pool:
+        recs = {n: [pool.apply_async(_record_one, (n, k, str(dirs[n]))) for k in kinds] for n in names}
+        idents = {}
+        pending = list(names)
+        while pending:
+            for n in list(pending):
+                if all(r.ready() for r in recs[n]):
+                    logs = [r.get() for r in recs[n]]
+                    idents[n] = pool.apply_async(_identify, (n, logs, str(dirs[n])))
+                    pending.remove(n)
+            if pending:
+                recs[pending[0]][-1].wait(0.2)
+        return {n: r.get() for n, r in idents.items()}

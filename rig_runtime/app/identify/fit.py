@@ -62,14 +62,23 @@ class Fit:
 
 def covariance(jac: np.ndarray, residual: np.ndarray) -> np.ndarray:
     """s² (JᵀJ)⁻¹, inflated by (1 + ρ)/(1 − ρ) for the lag-one autocorrelation ρ > 0 of the
-    residual (an AR(1) reading of correlated residuals: fewer independent samples)."""
+    residual (an AR(1) reading of correlated residuals: fewer independent samples).
+
+    (JᵀJ)⁻¹ is computed with J's columns scaled to unit norm: the columns differ by up to
+    10⁹ in size (K against beta − gamma), and a pseudo-inverse of the raw JᵀJ (condition
+    ~10¹⁷) drops the small singular directions, which made the interval of beta − gamma 100×
+    too narrow. A column that is zero (a parameter the data do not contain) keeps a zero
+    variance, as before."""
     m, n = jac.shape
+    norm = np.sqrt(np.sum(jac * jac, axis=0))
+    scale = np.where(norm > 0, 1.0 / np.where(norm > 0, norm, 1.0), 0.0)
+    js = jac * scale
     s2 = float(residual @ residual) / max(m - n, 1)
     r = residual - residual.mean()
     den = float(r @ r)
     rho = float(r[1:] @ r[:-1]) / den if den > 0 and m > 2 else 0.0
     rho = min(max(rho, 0.0), 0.99)
-    return np.linalg.pinv(jac.T @ jac) * s2 * (1 + rho) / (1 - rho)
+    return np.linalg.pinv(js.T @ js) * np.outer(scale, scale) * s2 * (1 + rho) / (1 - rho)
 
 
 def _corr(cov: np.ndarray) -> np.ndarray:

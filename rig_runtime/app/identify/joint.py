@@ -7,8 +7,8 @@ the sines barely reach the saturation of z (1/(beta+gamma)), which the long step
 stationary values. After the sequential fits, one problem (1) over both records refines
 K, a, beta, gamma, D_min, D_max, c_udot_max with one psi_off per experiment kind (the paper
 reports psi_off per experiment; the sines' one goes to the plant, as in Table 3's last row).
-Each record is simulated from its first sample with z(0) = psi(0); the first seconds are left
-out of the residual.
+Each record is simulated from its measured rest at the start (``model.record_start``); the
+first seconds are left out of the residual.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from rig_runtime.config import Plant as PlantParams
 
 from . import fit
 from .experiments import Experiment, segments
-from .model import bouc_wen, simulate_psi, yaw_params
+from .model import bouc_wen, simulate_record, yaw_params
 
 STEP_FINE_S = 1.0     # after every input change of a steps record: every sample for 1 s
 STEP_EVERY = 10       # then every 10th
@@ -40,8 +40,7 @@ def _sine_grid(e: Experiment):
 
 
 def _sim(P: PlantParams, e: Experiment, ii: np.ndarray) -> np.ndarray:
-    p0 = float(e.psi[np.isfinite(e.psi)][0])
-    return simulate_psi(P, e.u, e.h, 0, int(ii[-1]), ii, psi0=p0, z0=p0)
+    return simulate_record(P, e.u, e.h, e.psi, ii)
 
 
 NAMES = ("K", "bouc_wen.a", "bouc_wen.beta", "bouc_wen.gamma", "D_min", "D_max", "c_udot_max",

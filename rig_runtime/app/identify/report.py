@@ -12,7 +12,7 @@ from rig_runtime.config import Plant as PlantParams
 
 from . import free_response, lateral, verify, wheelspeed
 from .experiments import Experiment
-from .model import simulate_psi
+from .model import simulate_psi, simulate_record
 from sim_backend.plant import LiftedCarrier
 
 
@@ -98,11 +98,10 @@ def write_report(P0: PlantParams, P: PlantParams, exps: list[Experiment], result
         idx = np.arange(0, k1 + 1)
         for a, sl in ((ax[0], slice(k0 - 20, k0 + int(1.0 / e.h))), (ax[1], slice(0, k1 + 1))):
             a.plot(e.t[sl], e.psi[sl] * 1e3, color="0.5", lw=1, label="measured")
-            p0 = float(e.psi[0])
             for PP, style, lab in ((P0, "b--", "configured (6)-(9), law (7)"), (P, "g", "identified (6)-(9), law (7)"),
                                    (replace(P, D_max=P.D_min), "c:", "identified, constant D_min"),
                                    (replace(P, D_min=P.D_max), "m:", "identified, constant D_max")):
-                y = simulate_psi(PP, e.u, e.h, 0, k1, idx, psi0=p0, z0=p0)
+                y = simulate_record(PP, e.u, e.h, e.psi, idx)
                 a.plot(e.t[sl], y[sl] * 1e3, style, lw=1, label=lab)
             a.set_xlabel("t (s)"); a.set_ylabel("psi (mrad)")
         ax[0].set_title("Fig. 8 style: first second of the step"); ax[1].set_title("whole step")
@@ -113,12 +112,11 @@ def write_report(P0: PlantParams, P: PlantParams, exps: list[Experiment], result
     if sn:
         e = sn[0]
         idx = np.arange(0, len(e.t), 10)
-        p0 = float(e.psi[0])
         fig, ax = plt.subplots(figsize=(6, 5))
         ax.plot(e.u[idx], e.psi[idx] * 1e3, color="0.5", lw=1, label="measured")
         for PP, style, lab in ((P0, "b--", "configured"), (P, "g", "identified"),
                                (replace(P, bouc_wen=None), "C1", "identified K, D, without hysteresis")):
-            y = simulate_psi(PP, e.u, e.h, 0, int(idx[-1]), idx, psi0=p0, z0=p0)
+            y = simulate_record(PP, e.u, e.h, e.psi, idx)
             ax.plot(e.u[idx], y * 1e3, style, lw=1, label=lab)
         ax.set_xlabel("u (A)"); ax.set_ylabel("psi (mrad)"); ax.legend(fontsize=8)
         ax.set_title("Fig. 9 style: yaw angle over input, sines")

@@ -2,8 +2,8 @@
 Bouc-Wen parameters a, beta, gamma of (8)/(9) with A = 1, n = 1 (K, omega0 and the damping
 law fixed).
 
-The model is integrated over the whole record from the first sample with z(0) = psi(0) (the
-plant's rest convention); the first ``BURN_IN_S`` are left out of the residual so that an
+The model is integrated over the whole record from its measured rest at the start
+(``model.record_start``); the first ``BURN_IN_S`` are left out of the residual so that an
 unknown initial hysteresis state does not matter. beta and gamma are nearly opposite on the
 rig (7362, −7164): they are fitted as s = beta + gamma (sets the saturation 1/s of z) and
 d = beta − gamma (the stiffness right after a reversal), which are far better conditioned, and
@@ -20,7 +20,7 @@ from rig_runtime.config import Plant as PlantParams
 
 from . import fit
 from .experiments import Experiment
-from .model import bouc_wen, simulate_psi, yaw_params
+from .model import bouc_wen, simulate_record, yaw_params
 
 BURN_IN_S = 20.0
 EVERY_S = 0.25        # residual sample spacing (the sines are mHz)
@@ -35,8 +35,7 @@ def _grid(e: Experiment) -> tuple[np.ndarray, np.ndarray]:
 
 
 def simulate(Pp: PlantParams, e: Experiment, idx: np.ndarray) -> np.ndarray:
-    psi0 = float(e.psi[np.isfinite(e.psi)][0])
-    return simulate_psi(Pp, e.u, e.h, 0, int(idx[-1]), idx, psi0=psi0, z0=psi0)
+    return simulate_record(Pp, e.u, e.h, e.psi, idx)
 
 
 def identify_linear(P: PlantParams, exps: list[Experiment]) -> fit.Fit:

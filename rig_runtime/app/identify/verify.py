@@ -1,7 +1,7 @@
 """Verification (Sec. 4.3.5): the identified model against the held-out open-loop steps.
 
-The yaw model (6)-(9) with law (7) is simulated over the whole record from its first sample
-(z(0) = psi(0)) with the measured input and compared with the measured yaw angle; the same
+The yaw model (6)-(9) with law (7) is simulated over the whole record from its measured rest
+at the start (``model.record_start``) with the measured input and compared with the measured yaw angle; the same
 for the configured (nominal) plant. The lateral displacement is simulated from the simulated
 yaw angle with (2b)."""
 
@@ -13,13 +13,11 @@ from rig_runtime.config import Plant as PlantParams
 
 from . import lateral
 from .experiments import Experiment
-from .model import simulate_psi
+from .model import simulate_record
 
 
 def simulate(P: PlantParams, e: Experiment) -> np.ndarray:
-    idx = np.arange(len(e.t))
-    p0 = float(e.psi[np.isfinite(e.psi)][0])
-    return simulate_psi(P, e.u, e.h, 0, len(e.t) - 1, idx, psi0=p0, z0=p0)
+    return simulate_record(P, e.u, e.h, e.psi, np.arange(len(e.t)))
 
 
 def errors(P: PlantParams, e: Experiment) -> dict:
