@@ -7,20 +7,13 @@ from pathlib import Path
 
 
 from ..export import read_log
+from .plotting import pyplot
 
 
-def _plt():
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError as e:  # pragma: no cover - depends on the install
-        raise RuntimeError("reports need matplotlib: pip install 'rig-runtime[plot]'") from e
-    return plt
 
 
 def write_report(log: Path, out_dir, scenario, summary: dict) -> list[Path]:
-    plt = _plt()
+    plt = pyplot()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     d = read_log(log)

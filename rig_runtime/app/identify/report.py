@@ -14,20 +14,13 @@ from . import free_response, lateral, verify, wheelspeed
 from .experiments import Experiment
 from .model import simulate_psi, simulate_record
 from sim_backend.plant import LiftedCarrier
+from ..plotting import pyplot
 
 
-def _plt():
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError as e:  # pragma: no cover - depends on the install
-        raise RuntimeError("plotting needs matplotlib: pip install 'rig-runtime[plot]'") from e
-    return plt
 
 
 def write_report(P0: PlantParams, P: PlantParams, exps: list[Experiment], result: dict, out_dir) -> list[Path]:
-    plt = _plt()
+    plt = pyplot()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files: list[Path] = []
