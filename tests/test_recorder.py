@@ -189,6 +189,33 @@ def test_disk_almost_full_stops_cleanly(log, monkeypatch):
     assert not log.with_name("next.h5").exists()
 
 
+def test_log_deleted_while_recording_is_a_recorder_fault(log):
+    """The file unlinked under a running recorder: noticed at the next flush (unhealthy,
+    the cause names it), instead of writing on into a file nobody can open again."""
+    rec = Recorder(log, COLS, attrs={}, flush_s=0.05)
+    rec.open()
+    feed(rec, 0, 100)
+    wait_for(lambda: rec.rows_flushed == 100)
+    assert rec.healthy
+    log.unlink()
+    feed(rec, 100, 150)
+    wait_for(lambda: not rec.healthy)
+    assert "deleted while recording" in rec.error and str(log) in rec.error
+    rec.close()
+
+
+def test_flush_fsyncs_the_file(log, monkeypatch):
+    synced = []
+    real = recmod.os.fsync
+    monkeypatch.setattr(recmod.os, "fsync", lambda fd: (synced.append(fd), real(fd))[1])
+    rec = Recorder(log, COLS, attrs={}, flush_s=0.05)
+    rec.open()
+    feed(rec, 0, 50)
+    wait_for(lambda: rec.rows_flushed == 50)
+    rec.close()
+    assert synced
+
+
 def test_one_writer_thread_stores_every_batch(log, monkeypatch):
     """One path: a writer thread does all file I/O (the ``writer="inline"`` option is gone)."""
     threads = set()
