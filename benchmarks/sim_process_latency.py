@@ -161,7 +161,15 @@ def measure(cfg, duration: float, fifo: int | None, channel: str | None = None) 
     h = cfg.controller.h
     bus = can.Bus(interface="rig_slcan", channel=channel or cc.channel, bitrate=cc.bitrate)
     if channel is None:
-        DriveBus(cc, bus=bus, period_s=h).open()     # SDO configuration, NMT start, OPERATION ENABLED
+        db = DriveBus(cc, bus=bus, period_s=h)
+        db.configure()                               # SDO configuration, NMT start (no power)
+        db.activate(time.monotonic())                # the cyclic RPDOs walk the drives to OPERATION ENABLED
+        deadline = time.monotonic() + 2.0
+        while not db.enabled and time.monotonic() < deadline:
+            now = time.monotonic()
+            db.poll(now)
+            db.write([0.0] * len(cc.drives), now)
+            time.sleep(h)
     fd = bus._fd
 
     def line(cob_data) -> bytes:

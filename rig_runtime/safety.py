@@ -77,7 +77,7 @@ class Channel:
     in place every cycle by :meth:`Supervisor.cycle`)."""
 
     __slots__ = ("name", "kind", "value", "t", "state", "cause", "lo", "hi", "stale_s",
-                 "step_max", "stuck_check", "prev", "same", "delta", "bad", "bad_run")
+                 "step_max", "stuck_check", "same", "delta", "bad", "bad_run")
 
     def __init__(self, name: str, kind: str, lo: float, hi: float, stale_s: float,
                  step_max: float = math.inf, stuck_check: bool = False):
@@ -88,7 +88,6 @@ class Channel:
         self.t = -math.inf
         self.state = Freshness.STALE
         self.cause = "no sample yet"
-        self.prev = math.nan
         self.same = 0
         self.delta = 0.0
         self.bad = 0            # the driver's cumulative count of garbled frames / bytes
@@ -98,14 +97,14 @@ class Channel:
         """This cycle's sample, and the history the rules look at."""
         v = s.value
         h = s.health
-        self.delta = v - self.value
-        self.prev = self.value
+        prev = self.value
+        self.delta = v - prev
         self.value = v
         self.t = s.t if s.t == s.t else -math.inf
         self.state = h.state
         self.cause = h.cause
         if self.stuck_check:
-            self.same = self.same + 1 if v == self.prev else 0
+            self.same = self.same + 1 if v == prev else 0
         b = h.bad_frames
         self.bad_run = self.bad_run + 1 if b > self.bad else 0
         self.bad = b
