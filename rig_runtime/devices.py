@@ -106,14 +106,17 @@ class RigDevices:
 
     # ------------------------------------------------------------------ lifecycle
     def configure(self) -> None:
-        """Configure every device (no power); on failure close what was configured and
-        re-raise (the error names the device)."""
+        """Configure every device (no power), the drives last; on failure close what was
+        configured and re-raise (the error names the device)."""
         try:
             for d in self.lasers:
                 d.configure(); self._configured.append(d)
-            self.drives.configure(); self._configured.append(self.drives)
             if self.ft is not None:
                 self.ft.configure(); self._configured.append(self.ft)
+            # the drives last: their heartbeat consumers run from here, and the loop's first
+            # write (the runtime's first heartbeat) must follow within the consumer time —
+            # not after, say, an F/T poll process has been spawned
+            self.drives.configure(); self._configured.append(self.drives)
         except Exception as e:
             self.close()
             if isinstance(e, (DeviceInitError, ConfigError)):

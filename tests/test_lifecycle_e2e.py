@@ -97,3 +97,18 @@ def test_lockstep_runs_are_deterministic_for_a_seed(tmp_path):
             np.testing.assert_array_equal(a[k], b[k], err_msg=f"{p.stem}: column {k}")
         for k in ea:
             np.testing.assert_array_equal(ea[k], eb[k], err_msg=f"{p.stem}: event field {k}")
+
+
+def test_the_drives_are_configured_last():
+    """Their heartbeat consumers run from their configuration: nothing slow (an F/T poll
+    process being spawned) may sit between it and the loop's first heartbeat."""
+    from rig_runtime.devices import RigDevices
+    cfg = config.load(None)
+    dev = RigDevices(cfg, laser_ports={r: "/dev/null" for r in ("b_f", "b_r", "s_fl", "s_fr", "s_rl", "s_rr")},
+                     ft_endpoints={s.name: ("127.0.0.1", 1 + i) for i, s in enumerate(cfg.devices.ft.sensors)})
+    order = []
+    for d in [*dev.lasers, dev.drives, dev.ft]:
+        d.configure = (lambda d=d: order.append(d))
+        d.close = lambda: None
+    dev.configure()
+    assert order[-1] is dev.drives and len(order) == len(dev.lasers) + 2
