@@ -1,56 +1,25 @@
-"""Lossless cycle recorder: the loop appends a row per cycle, a writer thread stores it in HDF5
-(the same way in every mode).
+"""Lossless cycle recorder, loop side: the loop appends a row per cycle and events; a
+separate *sidecar* process (:mod:`rig_runtime.sidecar`) writes them to HDF5 and feeds the
+live outputs — the same way in every mode.
 
-Loop side (``append``, ``event``) never blocks, never does file I/O (thread mode) and allocates nothing
-per row beyond the call's own argument tuple: ``append`` packs the row's floats with :func:`struct.Struct.pack_into` straight into
-a preallocated ``numpy`` ring of ``buffer_cycles`` rows and advances a counter. Measured
-(``tests/test_recorder.py::test_append_cost``, timeit, warm cache): ≈0.4 µs for 8 columns,
-≈0.5–1.2 µs for 24, ≈1.5 µs for 48 on the 2-CPU development machine; the first call after
-the loop's sleep runs with cold caches and costs more (10–25 µs p50 measured there under
-load, against ≈3 µs for an empty call in the same spot).
+``append`` never blocks, never does I/O, takes no lock and makes no system call: it packs
+the row's floats with :func:`struct.Struct.pack_into` straight into a preallocated ring in
+shared memory (:mod:`rig_runtime.ring`) and publishes a counter. A full ring (the sidecar
+could not keep up, e.g. a stalled disk) is never waited on: the row is dropped, counted in
+``rows_dropped``, and the recorder turns unhealthy with a cause naming the overflow (a
+recorder fault for the supervisor). Later rows are recorded again as soon as the sidecar
+frees space (the ``t`` column then shows the gap). Events (state changes, faults, operator
+actions) go through a second ring the same way.
 
-Hand-off (single producer = the loop thread, single consumer = the writer thread)
---------------------------------------------------------------------------------
-Two monotonically increasing ints are the only shared state of the row ring:
+Health: the sidecar reports the log's first error (a write failure, a full disk, the file
+deleted while recording) through the shared header, read with one memory load per cycle;
+that the sidecar process is still alive is checked every ``_ALIVE_EVERY`` reads (a
+``waitpid`` without waiting).
 
-* ``_w`` — rows appended; written only by the loop thread, *after* the row's bytes are in
-  the ring. Slot of row ``k`` is ``k % buffer_cycles``.
-* ``_r`` — rows the writer has taken; written only by the writer thread, *after* it has
-  copied their slots out of the ring (into its own block, which it then writes to HDF5).
-
-Rebinding an attribute to an int is a single atomic store under CPython's GIL, and the GIL
-hand-over between threads is a full memory barrier, so a reader of ``_w`` sees every byte
-written before it was published (and the loop never overwrites a slot the writer has not
-released: the ring is full when ``_w - _r == buffer_cycles``). Counters instead of wrapped
-indices mean "full" and "empty" cannot be confused. There is no lock on the row path.
-
-A full ring (the writer could not keep up, e.g. a stalled disk) is never waited on:
-``append`` drops the row, returns ``False``, counts it in ``rows_dropped`` and the
-recorder turns unhealthy with a cause naming the overflow. Later rows are recorded again as
-soon as the writer frees space (the ``t`` column then shows the gap).
-
-Events (state changes, faults, operator actions) are rare and may come from more than one
-thread, so they go through a ``collections.deque`` (whose ``append``/``popleft`` are
-documented thread-safe and atomic) bounded by ``event_capacity``.
-
-Writer side
------------
-The writer thread wakes every ``_POLL_S`` (25 ms) and moves the pending rows and events
-into the file when a flush is due (every ``min(flush_s, 1 s)``: "flushed at least once a
-second"), when the ring is a quarter full, or on ``close``. Writing in batches (≈100 rows per
-flush at 200 Hz) keeps the number of HDF5 calls — each of which holds the interpreter lock —
-small (≈3 ms of writer time per batch of 100 rows × 24 columns measured); between column
-writes the writer yields the GIL (``time.sleep(0)``), so a loop thread that wakes up waits
-for at most one HDF5 call (tens of µs), not for a whole batch. After every successful flush the file on disk is
-complete, fsynced and readable up to that point, also if the process or the machine dies
-afterwards. A log file deleted while recording is noticed at the next flush (a recorder fault).
-
-Before each batch the writer checks the free disk space; below ``min_free_bytes`` it stops
-cleanly (unhealthy, file valid up to the last flush). Any exception while writing
-(``OSError`` of a failing disk, an h5py error) makes the recorder unhealthy with the cause;
-the writer then stops writing, trims the datasets back to the last flushed length and
-flushes that; if even this fails, the file descriptor is pointed at /dev/null so that
-closing writes nothing more to the failing device.
+The sidecar flushes (HDF5 flush + fsync) at least every ``min(flush_s, 1 s)``: after each
+flush the file on disk is complete and readable up to that point, also if the runtime or
+the machine dies afterwards. If the runtime process dies, the sidecar drains the ring,
+records an event saying so and closes the log.
 
 File layout: see ``docs/log-format.md``.
 """
@@ -58,169 +27,127 @@ File layout: see ``docs/log-format.md``.
 from __future__ import annotations
 
 import atexit
-import collections
-import datetime as _dt
 import json
 import math
+import multiprocessing
+import multiprocessing.connection
 import os
-import shutil
 import struct
-import threading
-import time
 from pathlib import Path
 from typing import Mapping, Sequence
 
-import h5py
-import numpy as np
-from h5py import h5s
-
-from .clock import as_background_thread
+from . import ring
 from .errors import DeviceInitError
+from .logfile import (EVENT_FIELDS, EVENT_NUM_FIELDS, EVENT_STR_FIELDS, LOG_FORMAT, LOG_FORMAT_VERSION,  # noqa: F401 - re-exported
+                      RESERVED_ATTRS, check_attrs, check_columns)
+from .sidecar import SidecarSpec, main as sidecar_main
 
-LOG_FORMAT = "rig-runtime-log"
-LOG_FORMAT_VERSION = 1
-
-EVENT_FIELDS = ("t", "kind", "device", "check", "value", "limit", "message")
-EVENT_STR_FIELDS = ("kind", "device", "check", "message")
-EVENT_NUM_FIELDS = ("t", "value", "limit")
-
-#: root attributes the recorder writes itself (the caller's ``attrs`` must not use them)
-RESERVED_ATTRS = frozenset({
-    "columns", "log_format", "log_format_version", "recorder_opened", "recorder_closed",
-    "rows_written", "rows_dropped", "events_written", "events_dropped", "recorder_error",
-})
-
-_POLL_S = 0.025            # writer wake-up period
-_MAX_FLUSH_S = 1.0         # documented guarantee: flushed at least once a second
-_CHUNK_ROWS = 1024         # cycles per HDF5 chunk (8 KiB per column; 5.1 s at 200 Hz)
-_EVENT_CHUNK = 64
-_STR = h5py.string_dtype("utf-8")
+_START_GRACE_S = 30.0       # interpreter start + imports on a loaded machine
+_ALIVE_EVERY = 50           # health reads between two looks at the sidecar process
+_MAX_FLUSH_S = 1.0
 
 
-def _utc_now_iso() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
-
-
-def _attr_value(key: str, v: object) -> object:
-    """Convert a caller attribute to something HDF5 stores portably (MATLAB-readable)."""
-    if isinstance(v, str):
-        return v
-    if isinstance(v, (bool, np.bool_)):
-        return np.int8(bool(v))                     # HDF5 has no bool; h5py's enum confuses MATLAB
-    if isinstance(v, (int, np.integer)):
-        return np.int64(v)
-    if isinstance(v, (float, np.floating)):
-        return np.float64(v)
-    if isinstance(v, Path):
-        return str(v)
-    if isinstance(v, (_dt.datetime, _dt.date)):
-        return v.isoformat()
-    if isinstance(v, (list, tuple)) and v:
-        if all(isinstance(x, str) for x in v):
-            return np.array(v, dtype=_STR)
-        if all(isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) for x in v):
-            return np.asarray(v, dtype=np.float64)
+def _sched_other(pid: int) -> None:
     try:
-        return json.dumps(v)                        # mappings, None, mixed lists: as JSON text
-    except (TypeError, ValueError) as e:
-        raise TypeError(f"recorder attribute {key!r}: cannot store a {type(v).__name__} ({e})") from None
+        os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))
+    except (OSError, AttributeError):
+        pass
 
 
 class Recorder:
     """Record one row of floats per control cycle (plus events) into an HDF5 file.
 
     ``columns`` names the row's values in order (SI units; see ``docs/log-format.md``);
-    ``attrs`` become root attributes (strings as UTF-8). The file must not exist yet:
-    a log is never overwritten. A background writer thread does all file I/O; ``append``
-    never does.
+    ``attrs`` become root attributes (strings as UTF-8). The file must not exist yet: a log
+    is never overwritten. ``outputs``: live outputs the sidecar feeds, as
+    ``("package.module:Class", {options})`` (see :mod:`rig_runtime.sidecar`).
     """
 
     def __init__(self, path: str | Path, columns: Sequence[str], *, attrs: Mapping[str, object],
                  buffer_cycles: int = 4096, flush_s: float = 0.5, event_capacity: int = 1024,
-                 min_free_bytes: int = 32 * 2**20):
+                 min_free_bytes: int = 32 * 2**20, outputs: Sequence[tuple[str, dict]] = ()):
         self.path = Path(path)
-        cols = tuple(columns)
-        if not cols:
-            raise ValueError("recorder: at least one column")
-        for c in cols:
-            if not isinstance(c, str) or not c or "/" in c or c in (".", "..") or c != c.strip():
-                raise ValueError(f"recorder: invalid column name {c!r} (non-empty, no '/', no surrounding blanks)")
-        dup = sorted({c for c in cols if cols.count(c) > 1})
-        if dup:
-            raise ValueError(f"recorder: duplicate column names {dup}")
+        self.columns: tuple[str, ...] = check_columns(columns)
+        self._attrs = check_attrs(attrs)
         if int(buffer_cycles) < 2:
             raise ValueError(f"recorder: buffer_cycles >= 2, got {buffer_cycles!r}")
         if not flush_s > 0:
             raise ValueError(f"recorder: flush_s > 0, got {flush_s!r}")
         if int(event_capacity) < 1:
             raise ValueError(f"recorder: event_capacity >= 1, got {event_capacity!r}")
-        self.columns: tuple[str, ...] = cols
-        self._attrs: dict[str, object] = {}
-        for k, v in attrs.items():
-            if not isinstance(k, str) or not k or "/" in k:
-                raise ValueError(f"recorder: invalid attribute name {k!r}")
-            if k in RESERVED_ATTRS:
-                raise ValueError(f"recorder: attribute name {k!r} is reserved for the recorder")
-            self._attrs[k] = _attr_value(k, v)
         self.buffer_cycles = int(buffer_cycles)
         self.flush_s = float(flush_s)
         self.flush_period = min(self.flush_s, _MAX_FLUSH_S)
         self.event_capacity = int(event_capacity)
         self.min_free_bytes = int(min_free_bytes)
-
-        n = len(cols)
-        self._ncols = n
-        # ring and the loop-side constants, all preallocated
-        self._buf = np.full((self.buffer_cycles, n), np.nan)
-        self._cap = self.buffer_cycles
-        self._room = self.buffer_cycles     # set to 0 once no more rows are accepted (closed / writer dead)
-        self._rowbytes = 8 * n
-        self._pack = struct.Struct(f"={n}d").pack_into
-        self._w = 0                         # rows appended (loop thread only)
-        self._r = 0                         # rows stored (writer thread only)
-        self._dropped = 0
-        self._ev: collections.deque = collections.deque()
-        self._ev_dropped = 0
-
+        self.outputs = tuple((str(n), dict(o)) for n, o in outputs)
+        self._ncols = len(self.columns)
+        self._prod: ring.Producer | None = None
+        self._mm = None
+        self._conn: multiprocessing.connection.Connection | None = None
+        self.process: multiprocessing.process.BaseProcess | None = None
         self._error = ""
-        self._refuse = False                # loop side: accept no more rows/events (closed or writer dead)
-        self._dead = False                  # writer side: a write failed, nothing more is written
-        self._rows_written = 0
-        self._rows_flushed = 0
-        self._frozen = False
-        self._events_written = 0
-        self._events_flushed = 0
-        self.flushes = 0                    # successful flushes (diagnostics, tests)
-
-        self._file: h5py.File | None = None
-        self._cyc: list[h5py.Dataset] = []
-        self._evds: dict[str, h5py.Dataset] = {}
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._refuse = True                 # nothing accepted before open / after close
+        self._dropped = 0
+        self._ev_dropped = 0
+        self._alive_countdown = _ALIVE_EVERY
+        self._final: dict | None = None
         self._opened = False
         self._closed = False
-        self._close_lock = threading.Lock()
+        self._mailbox = None
 
     # ------------------------------------------------------------------ status
     @property
     def healthy(self) -> bool:
-        """False after a write error or a buffer overflow (rows or events were lost)."""
-        return not self._error
+        """False after a write error, a buffer overflow (rows or events were lost) or the
+        sidecar's death."""
+        if self._error:
+            return False
+        p = self._prod
+        if p is None:
+            return True
+        if p.has_sidecar_error():
+            return False
+        self._alive_countdown -= 1
+        if self._alive_countdown <= 0:
+            self._alive_countdown = _ALIVE_EVERY
+            self._check_alive()
+            return not self._error
+        return True
 
     @property
     def error(self) -> str:
         """The first cause of unhealthiness; '' while healthy."""
-        return self._error
+        if self._error:
+            return self._error
+        if self._prod is not None:
+            return self._prod.sidecar_error()
+        return self._final.get("error", "") if self._final else ""
+
+    def _fail(self, cause: str) -> None:
+        if not self._error:
+            self._error = cause
+
+    def _check_alive(self) -> None:
+        proc = self.process
+        if proc is not None and not self._closed and not proc.is_alive():
+            self._fail(f"recorder sidecar process ended unexpectedly (exit code {proc.exitcode}); "
+                       f"file valid up to row {self.rows_flushed}")
+            self._refuse = True
 
     @property
     def rows_written(self) -> int:
         """Rows stored in the HDF5 datasets so far (all of them after ``close``)."""
-        return self._rows_written
+        if self._final is not None:
+            return self._final.get("rows_written", 0)
+        return self._prod.rows_written if self._prod is not None else 0
 
     @property
     def rows_flushed(self) -> int:
         """Rows durable in the file (written and flushed): what a crash now would leave."""
-        return self._rows_flushed
+        if self._final is not None:
+            return self._final.get("rows_flushed", 0)
+        return self._prod.rows_flushed if self._prod is not None else 0
 
     @property
     def rows_dropped(self) -> int:
@@ -233,73 +160,65 @@ class Recorder:
 
     @property
     def pending(self) -> int:
-        """Rows in the ring not yet stored (fill level)."""
-        return self._w - self._r
+        """Rows in the ring not yet taken by the sidecar (fill level)."""
+        return self._prod.pending if self._prod is not None else 0
 
-    def _fail(self, cause: str) -> None:
-        if not self._error:
-            self._error = cause
+    @property
+    def mailbox(self):
+        """The operator mailbox in the shared memory (loop side), or None before ``open``."""
+        if self._mailbox is None and self._prod is not None:
+            from .mailbox import Mailbox
+            self._mailbox = Mailbox(self._prod.mailbox_view())
+        return self._mailbox
 
     # ------------------------------------------------------------------ open
     def open(self) -> None:
-        """Create the file (never overwriting one), write the attributes, start the writer."""
+        """Start the sidecar; return once it has created the log (never overwriting one),
+        else raise ``DeviceInitError`` naming the cause."""
         if self._opened:
             raise RuntimeError(f"recorder {self.path}: already opened")
-        dev = f"recorder {self.path}"
-        try:
-            free = shutil.disk_usage(self.path.parent).free
-        except OSError:
-            free = None                             # missing directory: reported by the create below
-        if free is not None and free < self.min_free_bytes:
-            raise DeviceInitError(dev, f"disk almost full ({free / 2**20:.1f} MiB free, "
-                                       f"need {self.min_free_bytes / 2**20:.0f} MiB)")
-        try:
-            # 'x': fail if it exists; default libver -> HDF5 1.8 readable. The chunk cache is
-            # per dataset and 1 MiB by default: with ~90 columns it grew the process by ~90 MB
-            # over the first ten minutes of a run. Writing is append-only, so two chunks do.
-            f = h5py.File(self.path, "x", rdcc_nbytes=2 * _CHUNK_ROWS * 8, rdcc_nslots=7)
-        except FileExistsError as e:
-            raise DeviceInitError(dev, "log file exists already (logs are never overwritten)") from e
-        except (OSError, ValueError) as e:
-            raise DeviceInitError(dev, f"cannot create log file: {e}") from e
-        try:
-            for k, v in self._attrs.items():
-                f.attrs[k] = v
-            f.attrs["columns"] = np.array(self.columns, dtype=_STR)
-            f.attrs["log_format"] = LOG_FORMAT
-            f.attrs["log_format_version"] = np.int64(LOG_FORMAT_VERSION)
-            f.attrs["recorder_opened"] = _utc_now_iso()
-            g = f.create_group("cycles")
-            g.attrs["columns"] = np.array(self.columns, dtype=_STR)
-            self._cyc = []
-            for i, c in enumerate(self.columns):
-                d = g.create_dataset(c, shape=(0,), maxshape=(None,), chunks=(_CHUNK_ROWS,),
-                                     dtype="f8", fillvalue=np.nan)
-                d.attrs["index"] = np.int64(i)
-                self._cyc.append(d)
-            e = f.create_group("events")
-            self._evds = {}
-            for name in EVENT_FIELDS:
-                if name in EVENT_STR_FIELDS:
-                    self._evds[name] = e.create_dataset(name, shape=(0,), maxshape=(None,),
-                                                        chunks=(_EVENT_CHUNK,), dtype=_STR)
-                else:
-                    self._evds[name] = e.create_dataset(name, shape=(0,), maxshape=(None,),
-                                                        chunks=(_EVENT_CHUNK,), dtype="f8", fillvalue=np.nan)
-            f.flush()
-        except Exception as exc:  # noqa: BLE001 - any failure here is an init failure of the log
-            try:
-                f.close()
-            finally:
-                try:
-                    os.unlink(self.path)            # we created it (mode 'x'); it is empty
-                except OSError:
-                    pass
-            raise DeviceInitError(dev, f"cannot initialise log file: {exc}") from exc
-        self._file = f
         self._opened = True
-        self._thread = threading.Thread(target=self._run, name=f"recorder:{self.path.name}", daemon=True)
-        self._thread.start()
+        layout = ring.Layout(self._ncols, self.buffer_cycles, self.event_capacity)
+        path, self._mm = ring.create(layout)
+        spec = SidecarSpec(str(self.path), self.columns, self._attrs, self.flush_s, self.min_free_bytes,
+                           self.outputs, os.getpid())
+        ctx = multiprocessing.get_context("spawn")
+        here, there = ctx.Pipe(duplex=True)
+        proc = ctx.Process(target=sidecar_main, args=(path, spec, there), name="rig-recorder", daemon=False)
+        try:
+            try:
+                proc.start()
+            finally:
+                there.close()               # the child has its own copy: EOF for it once we are gone
+            _sched_other(proc.pid)
+            ready = multiprocessing.connection.wait([here, proc.sentinel], _START_GRACE_S)
+            msg = None
+            if here in ready:
+                try:
+                    msg = here.recv()
+                except (EOFError, OSError):
+                    msg = None
+            if msg is None:
+                proc.join(0.5)
+                what = (f"exited with code {proc.exitcode}" if proc.exitcode is not None
+                        else f"did not report within {_START_GRACE_S:g} s")
+                raise DeviceInitError(f"recorder {self.path}", f"sidecar process {what} before creating the log")
+            if msg[0] == "error":
+                _, device, message, cause = msg
+                raise DeviceInitError(device, message) from cause
+        except BaseException:
+            self._stop_process(proc, here)
+            self._release()
+            try:
+                os.unlink(path)             # the sidecar unlinks it once attached; else we do
+            except OSError:
+                pass
+            self._closed = True
+            raise
+        self.process = proc
+        self._conn = here
+        self._prod = ring.Producer(self._mm, layout)
+        self._refuse = False
         atexit.register(self.close)
 
     # ------------------------------------------------------------------ loop side
@@ -310,242 +229,95 @@ class Recorder:
         or the recorder is closed/failed). Raises ValueError for a row of the wrong length or
         with a non-number (a programming error, caught in tests).
         """
-        w = self._w
-        if w - self._r >= self._room:
-            return self._reject()
-        try:
-            self._pack(self._buf, (w % self._cap) * self._rowbytes, *row)
-        except struct.error as e:
-            raise ValueError(f"recorder row: expected {self._ncols} numbers in column order {self.columns} ({e})") from None
-        self._w = w + 1                   # publish: the writer may now read slot w
-        return True
-
-    def _reject(self) -> bool:
         if self._refuse:
             return False
+        try:
+            if self._prod.append(row):      # type: ignore[union-attr]
+                return True
+        except struct.error as e:
+            raise ValueError(f"recorder row: expected {self._ncols} numbers in column order {self.columns} ({e})") from None
         self._dropped += 1
-        if not self._error:
-            self._error = (f"recorder buffer overflow: the writer fell behind, ring of {self._cap} "
-                           f"cycles full at row {self._w + self._dropped - 1}; rows dropped")
+        self._prod.count_dropped(self._dropped, self._ev_dropped)   # type: ignore[union-attr]
+        self._fail(f"recorder buffer overflow: the sidecar fell behind, ring of {self.buffer_cycles} "
+                   f"cycles full; {self._dropped} rows dropped")
         return False
 
     def event(self, t: float, kind: str, device: str = "", check: str = "", value: float = math.nan,
               limit: float = math.nan, message: str = "") -> None:
-        """Record an event (state change, fault, operator action). Non-blocking, thread-safe."""
+        """Record an event (state change, fault, operator action). Non-blocking."""
         if self._refuse:
             return
-        ev = self._ev
-        if len(ev) >= self.event_capacity:
+        if not self._prod.event(t, kind, device, check, value, limit, message):   # type: ignore[union-attr]
             self._ev_dropped += 1
-            if not self._error:
-                self._error = f"recorder event buffer overflow: {self.event_capacity} events pending; events dropped"
-            return
-        ev.append((t, kind, device, check, value, limit, message))
+            self._prod.count_dropped(self._dropped, self._ev_dropped)         # type: ignore[union-attr]
+            self._fail(f"recorder event buffer overflow: {self.event_capacity} events pending; events dropped")
 
-    # ------------------------------------------------------------------ writer side
-    def _run(self) -> None:
-        as_background_thread()          # the loop (SCHED_FIFO) must preempt the writer
-        next_flush = time.monotonic() + self.flush_period
-        while True:
-            closing = self._stop.wait(_POLL_S)
-            now = time.monotonic()
-            flush_due = now >= next_flush
-            if flush_due:
-                next_flush = now + self.flush_period
-            if not self._dead and (closing or flush_due or self._w - self._r >= self._cap // 4
-                                   or len(self._ev) >= self.event_capacity // 4):
-                self._service(flush=closing or flush_due)
-            if closing:
-                break
-        self._finish()
-
-    def _service(self, flush: bool) -> None:
-        try:
-            if self._disk_low():
-                return
-            self._write_pending()
-            if flush:
-                self._flush()
-        except Exception as e:  # noqa: BLE001 - every write failure is reported the same way
-            self._on_write_error(e)
-
-    def _write_pending(self) -> None:
-        # events first: cheap, and a fault event should not wait behind rows
-        ev = self._ev
-        m = len(ev)
-        if m:
-            items = [ev.popleft() for _ in range(m)]
-            self._write_events(items)
-        w = self._w                       # snapshot; rows beyond it are left for the next pass
-        r = self._r
-        n = w - r
-        if n <= 0:
-            return
-        cap = self._cap
-        i0 = r % cap
-        if i0 + n <= cap:
-            block = self._buf[i0:i0 + n].T.copy()
-        else:
-            block = np.concatenate((self._buf[i0:], self._buf[:i0 + n - cap])).T.copy()
-        self._r = w                       # slots copied: release them to the loop
-        start = self._rows_written
-        end = start + n
-        for j, d in enumerate(self._cyc):
-            self._store_column(d, start, block[j])
-            time.sleep(0)                 # offer the GIL to the loop between HDF5 calls
-        self._rows_written = end
-
-    @staticmethod
-    def _store_column(d: h5py.Dataset, start: int, data: np.ndarray) -> None:
-        """Extend a 1-D float64 dataset by ``data`` (contiguous) at ``start``.
-
-        Low-level h5py calls: about 3x cheaper than ``d.resize(); d[a:b] = data`` (≈30 µs
-        instead of ≈100 µs per column and batch), and the writer holds the GIL for less time.
-        """
-        n = data.shape[0]
-        d.id.set_extent((start + n,))
-        fspace = d.id.get_space()
-        fspace.select_hyperslab((start,), (n,))
-        d.id.write(h5s.create_simple((n,)), fspace, data)
-
-    def _write_events(self, items: list[tuple]) -> None:
-        cols: dict[str, list] = {k: [] for k in EVENT_FIELDS}
-        for it in items:
-            for k, v in zip(EVENT_FIELDS, it):
-                if k in EVENT_STR_FIELDS:
-                    cols[k].append(v if isinstance(v, str) else str(v))
-                else:
-                    try:
-                        cols[k].append(float(v))
-                    except (TypeError, ValueError):
-                        cols[k].append(math.nan)
-        start = self._events_written
-        end = start + len(items)
-        for k, d in self._evds.items():
-            d.resize((end,))
-            if k in EVENT_STR_FIELDS:
-                d[start:end] = np.array(cols[k], dtype=object)
-            else:
-                d[start:end] = np.array(cols[k], dtype=np.float64)
-        self._events_written = end
-
-    def _flush(self) -> None:
-        if self._rows_written == self._rows_flushed and self._events_written == self._events_flushed:
-            return                        # nothing new: the file on disk is already current
-        assert self._file is not None
-        self._file.flush()
-        fd = self._file.id.get_vfd_handle()
-        os.fsync(fd)                      # durable: survives a crash of the machine, not just of the process
-        if os.fstat(fd).st_nlink == 0:
-            raise FileNotFoundError(f"the log file {self.path} was deleted while recording")
-        self._rows_flushed = self._rows_written
-        self._events_flushed = self._events_written
-        self.flushes += 1
-
-    def _on_write_error(self, e: BaseException) -> None:
-        self._fail(f"recorder write failed ({type(e).__name__}: {e}); recording stopped, "
-                   f"file valid up to row {self._rows_flushed}")
-        self._stop_writing()
-
-    def _stop_writing(self) -> None:
-        """After a failure: accept nothing more and bring the file back to the last flush.
-
-        The extents are trimmed to what the last successful flush made durable and flushed
-        once more, so that closing publishes no half-written rows. If even that fails (the
-        device itself is failing), the file's descriptor is pointed at /dev/null so that
-        closing cannot write anything more to the device ("freeze").
-        """
-        self._dead = True
-        self._refuse = True
-        self._room = 0
-        try:
-            for d in self._cyc:
-                if d.shape[0] != self._rows_flushed:
-                    d.id.set_extent((self._rows_flushed,))
-            for d in self._evds.values():
-                if d.shape[0] != self._events_flushed:
-                    d.id.set_extent((self._events_flushed,))
-            assert self._file is not None
-            self._file.flush()
-        except Exception:  # noqa: BLE001 - the device is failing: stop touching it
-            self._freeze()
-        self._rows_written = self._rows_flushed
-        self._events_written = self._events_flushed
-
-    def _freeze(self) -> None:
-        try:
-            assert self._file is not None
-            fd = self._file.id.get_vfd_handle()
-            nul = os.open(os.devnull, os.O_RDWR)
-            try:
-                os.dup2(nul, fd)
-            finally:
-                os.close(nul)
-            self._frozen = True
-        except Exception:  # noqa: BLE001
-            pass
-
-    def _disk_low(self) -> bool:
-        """True (and unhealthy, writer stopped cleanly) when free space fell below the margin."""
-        try:
-            free = shutil.disk_usage(self.path.parent).free
-        except OSError:
-            return False
-        if free >= self.min_free_bytes:
-            return False
-        self._fail(f"recorder stopped: disk almost full ({free / 2**20:.1f} MiB free on {self.path.parent}, "
-                   f"margin {self.min_free_bytes / 2**20:.0f} MiB); file valid up to row {self._rows_flushed}")
-        self._stop_writing()
-        return True
-
-    def _finish(self) -> None:
-        """Writer thread, last: final attributes, close the file."""
-        f = self._file
-        if f is None:
-            return
-        if not self._dead:
-            try:
-                f.attrs["recorder_closed"] = _utc_now_iso()
-                f.attrs["rows_written"] = np.int64(self._rows_written)
-                f.attrs["rows_dropped"] = np.int64(self._dropped)
-                f.attrs["events_written"] = np.int64(self._events_written)
-                f.attrs["events_dropped"] = np.int64(self._ev_dropped)
-                f.attrs["recorder_error"] = self._error
-            except Exception as e:  # noqa: BLE001
-                self._on_write_error(e)
-        self._cyc = []                    # drop our dataset handles before the file goes
-        self._evds = {}
-        try:
-            f.close()
-        except Exception as e:  # noqa: BLE001
-            if not self._frozen:
-                self._fail(f"recorder close failed ({type(e).__name__}: {e}); "
-                           f"file valid up to row {self._rows_flushed}")
-        self._file = None
+    def publish_status(self, status: dict) -> None:
+        """Hand a status snapshot (JSON-able) to the sidecar's live outputs."""
+        if self._prod is not None and not self._refuse:
+            self._prod.publish_status(json.dumps(status, default=str).encode())
 
     # ------------------------------------------------------------------ close
     def close(self, timeout: float | None = None) -> None:
-        """Drain the ring, write and flush everything, close the file. Idempotent.
-
-        Call it after the loop has stopped appending (an ``append`` racing with ``close``
-        may be lost). Afterwards every row ``append`` accepted is in the file, unless the
-        recorder is unhealthy. ``timeout`` bounds the wait for the writer (None: wait).
-        """
-        with self._close_lock:
-            if self._closed:
-                return
-            self._closed = True
-        self._refuse = True               # refuse rows/events from now on (without marking unhealthy)
-        self._room = 0
-        if self._thread is not None:
-            self._stop.set()
-            self._thread.join(timeout)
-            if self._thread.is_alive():
-                self._fail(f"recorder close timed out after {timeout} s; file valid up to row {self._rows_flushed}")
+        """Let the sidecar drain the ring, write and flush everything and close the file;
+        wait for it. Idempotent. Afterwards every row ``append`` accepted is in the file,
+        unless the recorder is unhealthy. ``timeout`` bounds the wait (None: wait)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._refuse = True
+        proc, conn = self.process, self._conn
+        if conn is not None and proc is not None:
+            try:
+                conn.send(("close", {"error": self._error}))
+            except (OSError, ValueError):
+                pass
+            ready = multiprocessing.connection.wait([conn, proc.sentinel], timeout)
+            if conn in ready:
+                try:
+                    msg = conn.recv()
+                    if msg[0] == "closed":
+                        self._final = msg[1]
+                except (EOFError, OSError):
+                    pass
+            if self._final is None:
+                rows = self._prod.rows_flushed if self._prod is not None else 0
+                self._fail(f"recorder sidecar did not close the log (exit code {proc.exitcode}); "
+                           f"file valid up to row {rows}")
+                self._final = {"rows_written": rows, "rows_flushed": rows}
+        if self._final is not None and self._final.get("error"):
+            self._fail(self._final["error"])
+        self._stop_process(proc, conn)
+        self._release()
         try:
             atexit.unregister(self.close)
         except Exception:  # noqa: BLE001
             pass
+
+    @staticmethod
+    def _stop_process(proc, conn) -> None:
+        if proc is not None:
+            proc.join(10.0)
+            if proc.exitcode is None:
+                proc.terminate()
+                proc.join(2.0)
+            if proc.exitcode is None:
+                proc.kill()
+                proc.join(2.0)
+        if conn is not None:
+            conn.close()
+
+    def _release(self) -> None:
+        self._mailbox = None
+        if self._prod is not None:
+            self._prod.release()
+            self._prod = None
+        if self._mm is not None:
+            try:
+                self._mm.close()
+            except BufferError:             # a view is still exported somewhere: leave it to the GC
+                pass
+            self._mm = None
 
     def __enter__(self) -> "Recorder":
         self.open()
@@ -557,4 +329,4 @@ class Recorder:
     def __repr__(self) -> str:
         state = "closed" if self._closed else ("open" if self._opened else "new")
         return (f"Recorder({str(self.path)!r}, {len(self.columns)} columns, {state}, "
-                f"rows_written={self._rows_written}, healthy={self.healthy})")
+                f"rows_written={self.rows_written}, healthy={self.healthy})")

@@ -3,6 +3,7 @@
 import errno
 import json
 import math
+import os
 import signal
 import subprocess
 import sys
@@ -15,7 +16,9 @@ import h5py
 import numpy as np
 import pytest
 
-from rig_runtime import recorder as recmod
+from rig_runtime import logfile as logmod
+from rig_runtime import sidecar
+from rig_runtime.logfile import LogFile
 from rig_runtime.errors import DeviceInitError
 from rig_runtime.export import events_path_for, read_log, to_csv
 from rig_runtime.recorder import Recorder
@@ -97,17 +100,12 @@ def test_round_trip(log):
     assert a["recorder_error"] == "" and a["log_format"] == "rig-runtime-log"
 
 
-def test_append_never_blocks_when_writer_stalls(log, monkeypatch):
-    stall = threading.Event()
-    real = Recorder._write_pending
-
-    def stalled(self):
-        stall.wait(10)                            # the disk "hangs"
-        real(self)
-
-    monkeypatch.setattr(Recorder, "_write_pending", stalled)
+def test_append_never_blocks_when_the_sidecar_stalls(log):
+    """The sidecar stopped (SIGSTOP: a hung disk): the ring fills, ``append`` refuses at once
+    (a recorder fault), and recording resumes when the sidecar does."""
     rec = Recorder(log, COLS, attrs={}, buffer_cycles=64, event_capacity=4)
     rec.open()
+    os.kill(rec.process.pid, signal.SIGSTOP)
     try:
         for i in range(64):
             assert rec.append(row(i))
@@ -116,13 +114,13 @@ def test_append_never_blocks_when_writer_stalls(log, monkeypatch):
         refused = [rec.append(row(i)) for i in range(64, 164)]
         elapsed = time.perf_counter() - t0
         assert refused == [False] * 100
-        assert elapsed < 0.5                      # no waiting on the (10 s) stalled writer
+        assert elapsed < 0.5                      # no waiting on the stopped sidecar
         assert not rec.healthy and "overflow" in rec.error and rec.rows_dropped == 100
         for k in range(10):
             rec.event(k, "operator")              # event ring (capacity 4) overflows, never blocks
         assert rec.events_dropped == 6
     finally:
-        stall.set()
+        os.kill(rec.process.pid, signal.SIGCONT)
     wait_for(lambda: rec.pending == 0)
     for i in range(164, 200):                     # recording resumes once there is room again
         assert rec.append(row(i))
@@ -133,34 +131,29 @@ def test_append_never_blocks_when_writer_stalls(log, monkeypatch):
     assert len(d["events"]["t"]) == 4
     assert d["attrs"]["rows_dropped"] == 100 and "overflow" in d["attrs"]["recorder_error"]
 
-
 def test_write_failure_keeps_flushed_data(log, monkeypatch):
-    fail = threading.Event()
-    real = Recorder._store_column
-
+    """The log file's failure handling (what the sidecar runs): a batch dying half-way
+    leaves the file as the last flush made it, readable by a plain reader."""
+    lf = LogFile(log, COLS, {"h": 0.005})
+    lf.create()
+    block = np.array([row(i) for i in range(300)])
+    lf.write(block, [(0.5, "state", "", "", math.nan, math.nan, "before the failure")], flush=True)
+    assert lf.rows_flushed == 300 and not lf.error
+    real = LogFile.store_column
     stored = []
 
     def store(d, start, data):
-        if fail.is_set():
-            stored.append(d.name)
-            if len(stored) == 3:                  # a batch dies half-way: two columns are
-                d.id.set_extent((start + len(data),))   # longer already, this one extended
-                raise OSError(errno.ENOSPC, "No space left on device")
+        stored.append(d.name)
+        if len(stored) == 3:                      # two columns are longer already, this one extended
+            d.id.set_extent((start + len(data),))
+            raise OSError(errno.ENOSPC, "No space left on device")
         real(d, start, data)
 
-    monkeypatch.setattr(Recorder, "_store_column", staticmethod(store))
-    rec = Recorder(log, COLS, attrs={"h": 0.005}, buffer_cycles=4096, flush_s=0.05)
-    rec.open()
-    feed(rec, 0, 300)
-    rec.event(0.5, "state", message="before the failure")
-    wait_for(lambda: rec.rows_flushed == 300)
-    fail.set()
-    feed(rec, 300, 400)
-    wait_for(lambda: not rec.healthy)
-    assert "write failed" in rec.error and "No space left" in rec.error and "row 300" in rec.error
-    assert rec.append(row(400)) is False          # refused at once, nothing more is written
-    rec.close()
-    assert not rec.healthy
+    monkeypatch.setattr(LogFile, "store_column", staticmethod(store))
+    lf.write(np.array([row(i) for i in range(300, 400)]), [], flush=False)
+    assert lf.dead and "write failed" in lf.error and "No space left" in lf.error and "row 300" in lf.error
+    lf.write(np.array([row(400)]), [], flush=True)      # nothing more is written
+    lf.close({})
     with h5py.File(log, "r") as f:                # a plain reader opens it
         assert f["/cycles/t"].shape == (300,)
     d = read_log(log)
@@ -168,26 +161,36 @@ def test_write_failure_keeps_flushed_data(log, monkeypatch):
     np.testing.assert_array_equal(d["columns"]["y"], [row(i)[3] for i in range(300)])
     assert list(d["events"]["message"]) == ["before the failure"]
 
-
 def test_disk_almost_full_stops_cleanly(log, monkeypatch):
-    rec = Recorder(log, COLS, attrs={}, flush_s=0.05, min_free_bytes=10 * 2**20)
-    rec.open()
-    feed(rec, 0, 200)
-    wait_for(lambda: rec.rows_flushed == 200)
-    real = recmod.shutil.disk_usage
-    monkeypatch.setattr(recmod.shutil, "disk_usage",
-                        lambda p: real(p)._replace(free=2**20))        # 1 MiB left
-    feed(rec, 200, 250)
-    wait_for(lambda: not rec.healthy)
-    assert "disk almost full" in rec.error
-    rec.close()
+    lf = LogFile(log, COLS, {}, min_free_bytes=10 * 2**20)
+    lf.create()
+    lf.write(np.array([row(i) for i in range(200)]), [], flush=True)
+    real = logmod.shutil.disk_usage
+    monkeypatch.setattr(logmod.shutil, "disk_usage", lambda p: real(p)._replace(free=2**20))   # 1 MiB left
+    lf.write(np.array([row(i) for i in range(200, 250)]), [], flush=True)
+    assert lf.dead and "disk almost full" in lf.error
+    lf.close({})
     d = read_log(log)
     assert d["rows"] == 200
     np.testing.assert_array_equal(d["columns"]["t"], [row(i)[0] for i in range(200)])
-    with pytest.raises(DeviceInitError, match="disk almost full"):   # and no new run starts on it
-        Recorder(log.with_name("next.h5"), COLS, attrs={}, min_free_bytes=10 * 2**20).open()
+    with pytest.raises(DeviceInitError, match="disk almost full"):   # and no new log starts on it
+        LogFile(log.with_name("next.h5"), COLS, {}, min_free_bytes=10 * 2**20).create()
     assert not log.with_name("next.h5").exists()
 
+
+def test_sidecar_write_failure_reaches_the_loop(log):
+    """A failure inside the sidecar (here: the log's disk-space margin larger than any disk)
+    turns the loop-side recorder unhealthy with the sidecar's cause."""
+    rec = Recorder(log, COLS, attrs={}, flush_s=0.05)
+    rec.open()
+    feed(rec, 0, 50)
+    wait_for(lambda: rec.rows_flushed == 50)
+    rec.close()
+    assert rec.healthy and rec.rows_written == 50
+    rec = Recorder(log.with_name("b.h5"), COLS, attrs={}, flush_s=0.05, min_free_bytes=1 << 62)
+    with pytest.raises(DeviceInitError, match="disk almost full"):
+        rec.open()
+    assert not log.with_name("b.h5").exists() and rec.process is None
 
 def test_log_deleted_while_recording_is_a_recorder_fault(log):
     """The file unlinked under a running recorder: noticed at the next flush (unhealthy,
@@ -206,43 +209,35 @@ def test_log_deleted_while_recording_is_a_recorder_fault(log):
 
 def test_flush_fsyncs_the_file(log, monkeypatch):
     synced = []
-    real = recmod.os.fsync
-    monkeypatch.setattr(recmod.os, "fsync", lambda fd: (synced.append(fd), real(fd))[1])
-    rec = Recorder(log, COLS, attrs={}, flush_s=0.05)
-    rec.open()
-    feed(rec, 0, 50)
-    wait_for(lambda: rec.rows_flushed == 50)
-    rec.close()
-    assert synced
+    real = logmod.os.fsync
+    monkeypatch.setattr(logmod.os, "fsync", lambda fd: (synced.append(fd), real(fd))[1])
+    lf = LogFile(log, COLS, {})
+    lf.create()
+    lf.write(np.array([row(i) for i in range(50)]), [], flush=True)
+    lf.close({})
+    assert synced and lf.rows_flushed == 50
 
-
-def test_one_writer_thread_stores_every_batch(log, monkeypatch):
-    """One path: a writer thread does all file I/O (the ``writer="inline"`` option is gone)."""
-    threads = set()
-    real = Recorder._store_column
-
-    def store(d, start, data):
-        threads.add(threading.get_ident())
-        real(d, start, data)
-
-    monkeypatch.setattr(Recorder, "_store_column", staticmethod(store))
+def test_the_loop_process_gains_no_thread(log):
+    """One path: the sidecar process does all file I/O; the recording process keeps its
+    threads (the loop's process runs a single thread)."""
     with pytest.raises(TypeError):
         Recorder(log, COLS, attrs={}, writer="inline")
     n_threads = threading.active_count()
+    tasks = len(os.listdir(f"/proc/{os.getpid()}/task"))
     rec = Recorder(log, COLS, attrs={}, buffer_cycles=64, flush_s=0.05)
     rec.open()
-    assert threading.active_count() == n_threads + 1  # the writer thread
+    assert threading.active_count() == n_threads
+    assert len(os.listdir(f"/proc/{os.getpid()}/task")) == tasks
+    assert rec.process.pid != os.getpid() and rec.process.is_alive()
     for i in range(40):
         assert rec.append(row(i))
     rec.event(0.1, "state", message="x")
     wait_for(lambda: rec.rows_written == 40)
     rec.close()                                       # the rest, events, flush, attributes
-    assert threading.active_count() == n_threads
-    assert len(threads) == 1 and threading.get_ident() not in threads
+    assert not rec.process.is_alive()
     d = read_log(log)
     np.testing.assert_array_equal(d["columns"]["y"], [row(i)[3] for i in range(40)])
     assert list(d["events"]["message"]) == ["x"] and d["attrs"]["rows_written"] == 40
-
 
 def test_open_errors_name_the_recorder(tmp_path, log):
     log.write_bytes(b"precious")
@@ -267,40 +262,38 @@ def test_input_validation(log):
     with pytest.raises(TypeError):                # no writer option any more: one writer thread
         Recorder(log, ["t"], attrs={}, writer="thread")
     rec = Recorder(log, COLS, attrs={})
+    assert rec.append(row(0)) is False and rec.healthy   # refused before open, not a fault
+    rec.open()
     with pytest.raises(ValueError, match="expected 9 numbers"):
         rec.append((1.0, 2.0))
     with pytest.raises(ValueError, match="expected 9 numbers"):
         rec.append((None,) + row(0)[1:])
     assert rec.pending == 0                       # a bad row is not half-published
-    rec.close()                                   # never opened: nothing to do
+    rec.close()
+    rec.close()                                   # idempotent
     assert rec.append(row(0)) is False and rec.healthy   # refused after close, not a fault
+    assert read_log(log)["rows"] == 0
 
 
-def test_flushed_at_least_every_flush_s(log, monkeypatch):
+def test_flushed_at_least_every_flush_s(log):
     assert Recorder(log, COLS, attrs={}, flush_s=5.0).flush_period == 1.0   # "at least once a second"
-    stamps = []
-    real = Recorder._flush
-
-    def counted(self):
-        before = self.flushes
-        real(self)
-        if self.flushes > before:
-            stamps.append(time.monotonic())
-
-    monkeypatch.setattr(Recorder, "_flush", counted)
     rec = Recorder(log, COLS, attrs={}, flush_s=0.1)
     rec.open()
+    stamps = []
+    flushed = 0
     t_end = time.monotonic() + 1.0
     i = 0
-    while time.monotonic() < t_end:                # a 200 Hz loop
+    while time.monotonic() < t_end:                # a 200 Hz loop, watching what is durable
         rec.append(row(i))
         i += 1
         time.sleep(0.005)
+        if rec.rows_flushed > flushed:
+            flushed = rec.rows_flushed
+            stamps.append(time.monotonic())
     rec.close()
     gaps = np.diff(stamps)
     assert len(stamps) >= 6, stamps
-    assert gaps.max() < 0.1 + 2 * recmod._POLL_S + 0.15, gaps   # period + wake-up granularity + load slack
-
+    assert gaps.max() < 0.1 + 2 * sidecar._POLL_S + 0.15, gaps   # period + wake-up granularity + load slack
 
 READER = textwrap.dedent("""
     import sys, h5py
@@ -331,34 +324,51 @@ WRITER = textwrap.dedent("""
     cols = ["t", "y"]
     rec = Recorder(sys.argv[1], cols, attrs={"h": 0.005}, flush_s=0.1)
     rec.open()
+    print("sidecar", rec.process.pid, flush=True)
     i = 0
     while True:
         for _ in range(20):
             rec.append((i * 0.005, i * 2.0)); i += 1
+        print(rec.rows_flushed, i, flush=True)
         time.sleep(0.01)
-        print(rec.rows_flushed, flush=True)
 """)
 
 
-def test_killed_process_leaves_flushed_rows(log):
+def _gone(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(") ")[1][0] == "Z"          # a zombie waiting for its reaper
+    except FileNotFoundError:
+        return True
+
+
+def test_killed_process_leaves_every_published_row(log):
+    """SIGKILL of the recording process: the sidecar notices, records it as an event and
+    closes the log holding every row appended before the kill; then it exits."""
     p = subprocess.Popen([sys.executable, "-c", WRITER, str(log)], stdout=subprocess.PIPE,
                          text=True, cwd=ROOT)
     try:
-        flushed = 0
+        kind, pid = p.stdout.readline().split()
+        assert kind == "sidecar"
+        flushed = appended = 0
         deadline = time.monotonic() + 15
         while flushed < 2000:
             line = p.stdout.readline()
             assert line, "writer process ended"
-            flushed = int(line)
+            flushed, appended = map(int, line.split())
             assert time.monotonic() < deadline
     finally:
         p.send_signal(signal.SIGKILL)
         p.wait(10)
-    d = read_log(log)                              # no close, no atexit: killed
+    wait_for(lambda: _gone(int(pid)), timeout=15)   # the sidecar closed the log and left
+    d = read_log(log)
     n = d["rows"]
-    assert n >= flushed
+    assert n >= appended                           # every row published before the kill
     np.testing.assert_array_equal(d["columns"]["y"], np.arange(n) * 2.0)
-    assert "recorder_closed" not in d["attrs"]    # tells a killed run from a closed one
+    assert "recorder_closed" in d["attrs"]
+    ev = d["events"]
+    assert list(ev["kind"]) == ["recorder"] and "without closing the log" in ev["message"][0]
+    assert ev["t"][0] == d["columns"]["t"][-1]
 
 
 def test_csv_export(log, tmp_path):

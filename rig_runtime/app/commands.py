@@ -47,6 +47,23 @@ def _print_summary(summary: dict, as_json: bool) -> None:
                   f"steady-state error {f(s['steady_state_error_mm'], '+.4f')} mm")
 
 
+def _live_outputs(args: argparse.Namespace, realtime: bool) -> list[tuple[str, dict]]:
+    """The live views asked for: telemetry and Foxglove when given; the panel on a terminal
+    (not with --json); the `rig ctl` socket in real-time runs (a lockstep run is over
+    before an operator could type)."""
+    from ..errors import ConfigError
+    from .live import outputs_for
+    if args.telemetry_every < 1:
+        raise ConfigError(None, "--telemetry-every", "an integer >= 1", args.telemetry_every)
+    ctl = None
+    if realtime and not args.no_ctl:
+        from .ctl_server import default_ctl_path
+        ctl = str(args.ctl_socket or default_ctl_path())
+    panel = realtime and sys.stderr.isatty() and not args.json and not args.no_panel
+    return outputs_for(telemetry=args.telemetry, telemetry_every=args.telemetry_every, foxglove=args.foxglove,
+                       panel=panel, ctl_socket=ctl)
+
+
 @command("dry-run", "run the controller against the simulated plant (lockstep by default)", stops=True)
 @arg("--config", help="config file (default: configs/sim.yaml)")
 @arg("--scenario", default="single-step", help="scenario name in configs/scenarios or a path (default: single-step)")
@@ -56,6 +73,12 @@ def _print_summary(summary: dict, as_json: bool) -> None:
 @arg("--log", help="HDF5 log path (default: logs/dry-run-<time>.h5)")
 @arg("--json", action="store_true", help="print one JSON summary object")
 @arg("--report", metavar="DIR", help="write PNG plots and a Markdown summary into DIR")
+@arg("--telemetry", metavar="udp://HOST:PORT", help="stream every cycle as JSON datagrams (PlotJuggler's UDP server)")
+@arg("--telemetry-every", type=int, default=1, metavar="N", help="send every Nth cycle (default 1: every cycle)")
+@arg("--foxglove", metavar="[HOST:]PORT", help="serve the signals to Foxglove over WebSocket (needs rig-runtime[foxglove])")
+@arg("--no-panel", action="store_true", help="no live panel on the terminal (the panel needs rich)")
+@arg("--ctl-socket", metavar="PATH", help="Unix socket for `rig ctl` (default: rig ctl's default path)")
+@arg("--no-ctl", action="store_true", help="no `rig ctl` socket")
 def cmd_dry_run(args: argparse.Namespace) -> int:
     from .. import config
     from ..scenario import load_scenario
@@ -64,15 +87,18 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     log = Path(args.log) if args.log else default_log_path("dry-run")
     preflight.check_run(cfg, scenario, args.duration, log=log, log_is_default=not args.log, report=args.report)
+    outputs = _live_outputs(args, realtime=args.realtime)
     if args.realtime:
         from ..metrics import steps_from_log
         from .realtime_dryrun import run_realtime_dry_run
         summary, code = run_realtime_dry_run(cfg, scenario, log, seed=args.seed, duration_s=args.duration,
-                                             status=sys.stderr.isatty() and not args.json, stops=args.stops)
+                                             status=sys.stderr.isatty() and not args.json, stops=args.stops,
+                                             outputs=outputs)
         summary["steps"] = steps_from_log(log, scenario, cfg.controller.h)
     else:
         from .dryrun import run_lockstep
-        summary, code = run_lockstep(cfg, scenario, log, seed=args.seed, duration_s=args.duration, stops=args.stops)
+        summary, code = run_lockstep(cfg, scenario, log, seed=args.seed, duration_s=args.duration, stops=args.stops,
+                                     outputs=outputs)
     if args.report:
         from .report import write_report
         try:
@@ -90,6 +116,12 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
 @arg("--duration", type=float, help="seconds of RUNNING (default: the scenario's, else until SIGINT/SIGTERM)")
 @arg("--log", help="HDF5 log path (default: logs/run-<time>.h5)")
 @arg("--json", action="store_true", help="print one JSON summary object at the end")
+@arg("--telemetry", metavar="udp://HOST:PORT", help="stream every cycle as JSON datagrams (PlotJuggler's UDP server)")
+@arg("--telemetry-every", type=int, default=1, metavar="N", help="send every Nth cycle (default 1: every cycle)")
+@arg("--foxglove", metavar="[HOST:]PORT", help="serve the signals to Foxglove over WebSocket (needs rig-runtime[foxglove])")
+@arg("--no-panel", action="store_true", help="no live panel on the terminal (the panel needs rich)")
+@arg("--ctl-socket", metavar="PATH", help="Unix socket for `rig ctl` (default: rig ctl's default path)")
+@arg("--no-ctl", action="store_true", help="no `rig ctl` socket")
 def cmd_run(args: argparse.Namespace) -> int:
     from .. import config
     from ..clock import RealtimeClock, apply_realtime
@@ -100,6 +132,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario) if args.scenario else None
     log = Path(args.log) if args.log else default_log_path("run")
     preflight.check_run(cfg, scenario, args.duration, log=log, log_is_default=not args.log)
+    outputs = _live_outputs(args, realtime=True)
     devices = RigDevices(cfg)
     rt_report = apply_realtime(cfg.realtime)
     if not args.json:
@@ -108,7 +141,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     clock = RealtimeClock(cfg.realtime.spin_us * 1e-6)
     summary, code, _ = execute(cfg, devices, clock, scenario=scenario, duration_s=args.duration, log_path=log,
                                status=sys.stderr.isatty() and not args.json,
-                               extra_attrs={"mode": "run", "realtime": "; ".join(rt_report)}, stops=args.stops)
+                               extra_attrs={"mode": "run", "realtime": "; ".join(rt_report)}, stops=args.stops,
+                               outputs=outputs)
     summary["realtime"] = rt_report
     _print_summary(summary, args.json)
     return code

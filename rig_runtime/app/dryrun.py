@@ -8,7 +8,7 @@ the runtime's devices, loop and recorder are the ones ``rig run`` uses."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable, Optional, Sequence
 
 from sim_backend.rig import SimulatedRig
 
@@ -24,7 +24,7 @@ from .signals import StopSignals
 def run_lockstep(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *, seed: Optional[int] = None,
                  duration_s: Optional[float] = None,
                  prepare: Optional[Callable[[SimulatedRig, RigDevices, LockstepClock], None]] = None,
-                 stops: Optional[StopSignals] = None) -> tuple[dict, int]:
+                 stops: Optional[StopSignals] = None, outputs: Sequence[tuple[str, dict]] = ()) -> tuple[dict, int]:
     """Run ``scenario`` against the simulated plant; returns (summary, exit code).
 
     ``prepare(sim, devices, clock)`` runs before the devices are configured (tests use it
@@ -39,7 +39,7 @@ def run_lockstep(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *
         summary, code, _ = execute(
             cfg, devices, clock, scenario=scenario, duration_s=duration_s, log_path=log_path,
             status=False, extra_attrs={"mode": "dry-run lockstep", "seed": sim.seed},
-            stops=stops)
+            stops=stops, outputs=outputs)
         summary["sim_time_s"] = clock.now()
         summary["seed"] = sim.seed
     finally:

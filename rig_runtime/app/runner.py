@@ -14,7 +14,7 @@ import math
 import os
 import sys
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 from .. import __version__, analysis, schema
 from ..clock import Clock
@@ -23,6 +23,7 @@ from ..errors import DeviceInitError
 from ..loop import ControlLoop
 from ..recorder import Recorder
 from ..scenario import Reference, Scenario, open_loop_input
+from .live import StatusPublisher, takes_mailbox
 from .signals import StopSignals
 
 EXIT_OK, EXIT_CRASH, EXIT_SETUP, EXIT_FAULT = 0, 1, 2, 3
@@ -53,49 +54,64 @@ class StatusLine:
 
 
 def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenario], duration_s: Optional[float],
-            log_path: Path, status: bool, extra_attrs: dict | None = None, arm_timeout_s: float = 2.0,
-            stops: StopSignals | None = None) -> tuple[dict, int, ControlLoop | None]:
+            log_path: Path | None, status: bool, extra_attrs: dict | None = None, arm_timeout_s: float = 2.0,
+            stops: StopSignals | None = None, outputs: Sequence[tuple[str, dict]] = ()) -> tuple[dict, int, ControlLoop | None]:
     """Run one session; returns (summary, exit code, loop). In this order: the loop and the
-    recorder, ``devices.configure()`` (no power), the loop (the supervisor's ARM activates the power stages), then devices and recorder
-    closed on every path. ``stops``: the command's installed :class:`StopSignals` (a stop
-    request before RUNNING raises :class:`Interrupted` after the clean stop)."""
+    recorder (its sidecar process creates the log and starts the live ``outputs``),
+    ``devices.configure()`` (no power), the loop (the supervisor's ARM activates the power
+    stages), then devices and recorder closed on every path. ``stops``: the command's
+    installed :class:`StopSignals` (a stop request before RUNNING raises
+    :class:`Interrupted` after the clean stop). ``log_path=None``: nothing recorded and no
+    sidecar (benchmarks measure the loop without it). ``status``: a live view on the
+    terminal — the status line, unless an output shows the status (the panel), which then
+    gets a snapshot every 0.2 s through the sidecar."""
     analysis.stability_gate(cfg)        # also for callers that bypass the CLI's preflight
     reference = Reference(scenario.reference) if scenario else (lambda t: 0.0)
     open_loop = (scenario.open_loop.carrier, open_loop_input(scenario.open_loop)) if scenario and scenario.open_loop else None
     duration = duration_s if duration_s is not None else (scenario.duration_s if scenario else math.inf)
     stops = stops if stops is not None else StopSignals()
-    log_path = Path(log_path)
-    log_path.parent.mkdir(parents=True, exist_ok=True)
+    if log_path is not None:
+        log_path = Path(log_path)
+        log_path.parent.mkdir(parents=True, exist_ok=True)
     loop = ControlLoop(cfg, devices, clock, reference=reference, open_loop=open_loop)
     stops.on_stop(lambda: setattr(loop, "stop_requested", True))
     rec = None
     result = None
     phase = "before the log was opened"
     try:
-        if not stops.requested:
+        if not stops.requested and log_path is not None:
             attrs = {"config": json.dumps(schema.to_dict(cfg)), "software_version": __version__,
                      "start_time": _dt.datetime.now(_dt.timezone.utc).isoformat(), "h": cfg.controller.h,
                      "config_source": cfg.source, "scenario": scenario.name if scenario else "",
                      "scenario_source": scenario.source if scenario else "",
-                     "experiment": (scenario.experiment or "") if scenario else ""}
+                     "experiment": (scenario.experiment or "") if scenario else "",
+                     "duration_s": float(duration), "controlled": list(cfg.controlled)}
             attrs.update(extra_attrs or {})
             rec = Recorder(log_path, loop.columns, attrs=attrs, buffer_cycles=cfg.recorder.buffer_cycles,
-                           flush_s=cfg.recorder.flush_s)
+                           flush_s=cfg.recorder.flush_s, outputs=outputs)
             rec.open()
             loop.recorder = rec
+            if any(takes_mailbox(name) for name, _ in outputs):
+                loop.mailbox = rec.mailbox
+        if not stops.requested:
             phase = "while configuring the devices"
         if not stops.requested:
             devices.configure()
             phase = "after configuring the devices"
         if not stops.requested:
-            result = loop.run(duration, arm_timeout_s=arm_timeout_s, status=StatusLine() if status else None)
+            live = None
+            if rec is not None and outputs:
+                live = StatusPublisher(rec, duration)
+            elif status:
+                live = StatusLine()
+            result = loop.run(duration, arm_timeout_s=arm_timeout_s, status=live)
     finally:
         devices.close()
         if rec is not None:
             rec.close()
             if result is None and rec.rows_written == 0:
                 log_path.unlink(missing_ok=True)    # the loop never ran: no empty log left behind
-        if status:
+        if status and not outputs:
             sys.stderr.write("\n")
     if result is None or math.isnan(result.t_start):
         if stops.requested:
@@ -103,7 +119,8 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
             if result is not None:
                 phase = "while arming" if loop.supervisor.ever_armed else "during warm-up"
             raise stops.interrupted(f"before RUNNING ({phase}): {what}"
-                                    + (f", log closed: {log_path}" if log_path.exists() else ", no log written"))
+                                    + (f", log closed: {log_path}" if log_path is not None and log_path.exists()
+                                      else ", no log written"))
         raise DeviceInitError("arming", "not every device is ready: " + "; ".join(result.arm_blockers[:4]))
     summary = {
         "final_state": result.final_state,
@@ -112,8 +129,9 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
         "max_abs_current_A": result.max_abs_current_A,
         "max_abs_wire_current_A": 0.5 * result.max_abs_current_A,
         "timing": result.timing,
-        "log": str(log_path),
-        "recorder": {"rows": rec.rows_written, "healthy": rec.healthy, "error": rec.error},
+        "log": str(log_path) if log_path is not None else None,
+        "recorder": ({"rows": rec.rows_written, "healthy": rec.healthy, "error": rec.error} if rec is not None
+                     else {"rows": 0, "healthy": True, "error": "not recording"}),
         "run_started_t": result.t_start,
         "wall_time_s": result.wall_time_s,
     }

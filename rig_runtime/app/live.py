@@ -1,0 +1,93 @@
+"""What a run shows while it runs: the live outputs the recording sidecar feeds (named
+here, constructed in the sidecar), and the status snapshot the loop hands it a few times a
+second (device health and counters, timing, faults — what is not in the cycle row)."""
+
+from __future__ import annotations
+
+import math
+from ..loop import ControlLoop
+
+UDP = "rig_runtime.app.telemetry:UdpTelemetry"
+FOXGLOVE = "rig_runtime.app.foxglove_out:FoxgloveServer"
+PANEL = "rig_runtime.app.panel:LivePanel"
+CTL = "rig_runtime.app.ctl_server:CtlServer"
+
+_TAKES_MAILBOX = {CTL}
+_GAIN_ATTRS = (("K_P_y", "kpy"), ("K_I_y", "kiy"), ("K_P_psi", "kpp"), ("K_D_psi", "kdp"), ("T_f_psi", "tf"),
+               ("K_P", "kp"))
+
+
+def takes_mailbox(name: str) -> bool:
+    """Whether the output talks back to the loop (operator commands through the mailbox)."""
+    return name in _TAKES_MAILBOX
+
+
+def _us(h) -> dict:
+    p50, p99 = h.percentiles((50.0, 99.0)) if h.n else (math.nan, math.nan)
+    return {"last": h.last * 1e6, "p50": p50 * 1e6, "p99": p99 * 1e6, "max": h.max * 1e6}
+
+
+def _num(x: float):
+    return x if x == x and abs(x) != math.inf else None
+
+
+def snapshot(loop: ControlLoop, duration_s: float) -> dict:
+    """The status of a running loop (JSON-able; see docs/live-views.md)."""
+    sup = loop.supervisor
+    st = loop.stats
+    t = loop.cycle.t
+    t0 = loop.t_start
+    started = t0 == t0
+    gains = {}
+    for c in loop.controllers[:1]:      # every controlled carrier runs the same gains
+        for name, attr in _GAIN_ATTRS:
+            if hasattr(c, attr):
+                gains[name] = getattr(c, attr)
+    rec = loop.recorder
+    return {
+        "t": t,
+        "t_run": t - t0 if started else None,
+        "duration_s": _num(duration_s),
+        "state": sup.state.name,
+        "controlled": list(loop.cfg.controlled),
+        "faults": [{"t_run": (f.t - t0) if started else None, "device": f.device, "check": f.check,
+                    "value": _num(f.value), "limit": _num(f.limit), "message": f.message} for f in sup.faults],
+        "devices": [{"name": c.name, "kind": c.kind, "state": c.state.value, "cause": c.cause,
+                     "value": _num(c.value), "age_s": _num(t - c.t), "bad_frames": c.bad} for c in loop.channels],
+        "counters": loop.dev.counters() if hasattr(loop.dev, "counters") else {},
+        "timing": {"cycles": st.cycles, "lateness_us": _us(st.lateness), "work_us": _us(st.work),
+                   "deadline_misses": st.deadline_misses, "skipped_periods": st.skipped_periods},
+        "recorder": ({"rows": rec.rows_written, "healthy": rec.healthy, "error": rec.error}
+                     if rec is not None else None),
+        "gains": gains,
+    }
+
+
+class StatusPublisher:
+    """The loop's status hook (every 0.2 s): a snapshot into the sidecar's status slot."""
+
+    def __init__(self, recorder, duration_s: float):
+        self.recorder = recorder
+        self.duration_s = duration_s
+
+    def __call__(self, loop: ControlLoop) -> None:
+        self.recorder.publish_status(snapshot(loop, self.duration_s))
+
+
+def outputs_for(*, telemetry: str | None = None, telemetry_every: int = 1, foxglove: str | None = None,
+                panel: bool = False, ctl_socket: str | None = None) -> list[tuple[str, dict]]:
+    """The live outputs a command asked for, as the sidecar constructs them."""
+    out: list[tuple[str, dict]] = []
+    if telemetry:
+        from .telemetry import parse_udp_url
+        host, port = parse_udp_url(telemetry)
+        out.append((UDP, {"host": host, "port": port, "every": telemetry_every}))
+    if foxglove:
+        from .foxglove_out import parse_address
+        host, port = parse_address(foxglove)
+        out.append((FOXGLOVE, {"host": host, "port": port}))
+    if panel:
+        out.append((PANEL, {}))
+    if ctl_socket:
+        out.append((CTL, {"path": ctl_socket}))
+    return out

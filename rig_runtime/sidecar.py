@@ -1,0 +1,253 @@
+"""The recording sidecar: a separate process that takes every cycle row and event out of
+the shared-memory ring (:mod:`rig_runtime.ring`), writes the HDF5 log
+(:mod:`rig_runtime.logfile`) and feeds the live outputs (telemetry, panel, operator socket).
+
+Why a process: HDF5 calls and every live output's Python work would hold the loop's
+interpreter lock (100–180 µs per HDF5 call); in their own process they cannot. The loop's
+process keeps a single thread.
+
+Lifetime: started by :class:`rig_runtime.recorder.Recorder` (``multiprocessing`` spawn:
+the runtime may run SCHED_FIFO, so it must not fork), SCHED_OTHER, ignoring SIGINT, SIGTERM
+and SIGHUP (a Ctrl-C reaches the whole process group; the runtime stops the rig on it and
+closes the log itself). It ends when the recorder says ``close`` — after draining the ring,
+flushing and closing the file — or when its pipe to the runtime reports EOF: the runtime
+died (SIGKILL, crash). Then it takes what the ring holds (every row the loop published),
+records an event saying so, and closes the log readable up to that last row.
+
+Outputs are named by the application as ``"package.module:Class"`` strings, imported here
+(lazily: the core names none) and constructed as ``Class(info, **options)``; a class whose
+constructor takes ``mailbox`` also gets the operator mailbox. Each has ``rows(block)``,
+``event(ev)``, ``status(dict)`` and ``close()``. An output that raises is dropped with one
+line on stderr; it never stops recording.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import json
+import math
+import multiprocessing.connection
+import signal
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from . import ring
+from .clock import as_background_thread
+from .errors import DeviceError, RigError
+from .logfile import LogFile
+
+_POLL_S = 0.025            # wake-up period with no live output
+_LIVE_POLL_S = 0.005       # with live outputs: every cycle at 200 Hz
+_MAX_FLUSH_S = 1.0         # documented guarantee: flushed at least once a second
+
+
+@dataclass(frozen=True)
+class LogInfo:
+    """What an output is told about the log being written."""
+
+    path: str
+    columns: tuple[str, ...]
+    attrs: dict
+
+
+@dataclass(frozen=True)
+class SidecarSpec:
+    path: str
+    columns: tuple[str, ...]
+    attrs: dict
+    flush_s: float = 0.5
+    min_free_bytes: int = 32 * 2**20
+    outputs: tuple[tuple[str, dict], ...] = ()
+    parent_pid: int = 0
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def flush_period(self) -> float:
+        return min(self.flush_s, _MAX_FLUSH_S)
+
+
+def load_output(name: str, info: LogInfo, options: dict, mailbox: Callable[[], Any]) -> Any:
+    """Import ``"module:Class"`` and construct it (``mailbox()`` only if it takes one)."""
+    mod, _, attr = name.partition(":")
+    cls = getattr(importlib.import_module(mod), attr)
+    kw = dict(options)
+    try:
+        if "mailbox" in inspect.signature(cls).parameters:
+            kw["mailbox"] = mailbox()
+    except (TypeError, ValueError):
+        pass
+    return cls(info, **kw)
+
+
+def _ignore_stop_signals() -> None:
+    for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        try:
+            signal.signal(s, signal.SIG_IGN)
+        except (OSError, ValueError):
+            pass
+
+
+def main(ring_path: str, spec: SidecarSpec, conn: multiprocessing.connection.Connection) -> None:
+    """Entry point of the sidecar process."""
+    _ignore_stop_signals()
+    as_background_thread()
+    layout, mm = ring.attach(ring_path)
+    cons = ring.Consumer(mm, layout)
+    info = LogInfo(spec.path, tuple(spec.columns), dict(spec.attrs))
+    outputs: list[tuple[str, Any]] = []
+    log = LogFile(spec.path, spec.columns, spec.attrs, spec.min_free_bytes)
+    try:
+        def mailbox():
+            from .mailbox import Mailbox
+            return Mailbox(cons.mailbox_view())
+        for name, opts in spec.outputs:
+            outputs.append((name, load_output(name, info, opts, mailbox)))
+        log.create()
+    except DeviceError as e:
+        _close_outputs(outputs)
+        conn.send(("error", e.device, str(e)[len(e.device) + 2:], _picklable(e.__cause__)))
+        return
+    except RigError as e:           # an output's option the operator got wrong (a port in use, ...)
+        _close_outputs(outputs)
+        conn.send(("error", "recorder", f"live output: {e}", None))
+        return
+    except Exception as e:  # noqa: BLE001 - an output that cannot start: its cause, one line
+        _close_outputs(outputs)
+        conn.send(("error", "recorder", f"live output failed to start ({type(e).__name__}: {e})", None))
+        return
+    conn.send(("ready",))
+    Sidecar(cons, log, outputs, spec, conn).run()
+
+
+def _picklable(e: BaseException | None) -> BaseException | None:
+    if e is None:
+        return None
+    try:
+        import pickle
+        pickle.dumps(e)
+        return e
+    except Exception:  # noqa: BLE001
+        return RuntimeError(str(e))
+
+
+def _close_outputs(outputs) -> None:
+    for _, o in outputs:
+        try:
+            o.close()
+        except Exception:  # noqa: BLE001
+            pass
+
+
+class Sidecar:
+    """The sidecar's loop (one thread): drain, write, feed, until close or the runtime's death."""
+
+    def __init__(self, cons: ring.Consumer, log: LogFile, outputs: list, spec: SidecarSpec, conn):
+        self.cons = cons
+        self.log = log
+        self.outputs = outputs
+        self.spec = spec
+        self.conn = conn
+        self.poll_s = _LIVE_POLL_S if outputs else _POLL_S
+        self._pending_rows: list = []
+        self._pending_n = 0
+        self._events: list[tuple] = []
+        self._last_t = math.nan
+        self._batch = max(1, cons.layout.capacity // 4)
+
+    def run(self) -> None:
+        closing: dict | None = None
+        parent_gone = False
+        next_flush = time.monotonic() + self.spec.flush_period
+        while True:
+            try:
+                if self.conn.poll(self.poll_s):
+                    msg = self.conn.recv()
+                    if msg[0] == "close":
+                        closing = msg[1]
+            except (EOFError, OSError):
+                parent_gone = True
+            now = time.monotonic()
+            flush = now >= next_flush
+            if flush:
+                next_flush = now + self.spec.flush_period
+            self._service(flush=flush)
+            if closing is not None or parent_gone:
+                break
+        self._service(flush=False)            # what arrived meanwhile
+        if parent_gone:
+            t = self._last_t
+            self._event((t, "recorder", "runtime", "died", math.nan, math.nan,
+                         "the runtime process ended without closing the log (killed or crashed); "
+                         "the log holds every cycle it published"))
+        self._finish(closing or {}, parent_gone)
+
+    def _event(self, ev: tuple) -> None:
+        self._events.append(ev)
+        self._feed("event", ev)
+
+    def _service(self, flush: bool) -> None:
+        cons = self.cons
+        for ev in cons.take_events():
+            self._event(ev)
+        block = cons.take_rows()
+        if len(block):
+            self._last_t = float(block[-1, 0])
+            self._pending_rows.append(block)
+            self._pending_n += len(block)
+            self._feed("rows", block)
+        st = cons.status()
+        if st is not None:
+            try:
+                self._feed("status", json.loads(st))
+            except ValueError:
+                pass
+        if flush or self._pending_n >= self._batch or self._events:
+            self._write(flush or bool(self._events))
+
+    def _write(self, flush: bool) -> None:
+        import numpy as np
+        block = np.concatenate(self._pending_rows) if self._pending_rows else None
+        self._pending_rows, self._pending_n = [], 0
+        events, self._events = self._events, []
+        self.log.write(block, events, flush)
+        self.cons.report(self.log.rows_written, self.log.rows_flushed)
+        if self.log.error:
+            self.cons.set_error(self.log.error)
+
+    def _feed(self, what: str, arg: Any) -> None:
+        for item in list(self.outputs):
+            name, out = item
+            try:
+                getattr(out, what)(arg)
+            except Exception as e:  # noqa: BLE001 - a live view must never stop recording
+                self.outputs.remove(item)
+                print(f"rig: live output {name} stopped ({type(e).__name__}: {e}); recording goes on",
+                      file=sys.stderr, flush=True)
+                try:
+                    out.close()
+                except Exception:  # noqa: BLE001
+                    pass
+
+    def _finish(self, closing: dict, parent_gone: bool) -> None:
+        import numpy as np
+        rows_dropped, events_dropped = self.cons.dropped()
+        loop_error = closing.get("error", "")
+        if loop_error:
+            self.log.fail(loop_error)
+        self._write(flush=True)
+        self.log.close({"rows_dropped": np.int64(rows_dropped), "events_dropped": np.int64(events_dropped)})
+        self.cons.report(self.log.rows_written, self.log.rows_flushed)
+        if self.log.error:
+            self.cons.set_error(self.log.error)
+        _close_outputs(self.outputs)
+        if not parent_gone:
+            try:
+                self.conn.send(("closed", {"rows_written": self.log.rows_written, "rows_flushed": self.log.rows_flushed,
+                                           "events_written": self.log.events_written, "error": self.log.error,
+                                           "flushes": self.log.flushes}))
+            except (OSError, ValueError):
+                pass
+        self.cons.release()
