@@ -244,8 +244,8 @@ class ControlLoop:
                     cmd = mb.take()
                     if cmd is not None:
                         self._operator(cmd, t, hold_on_fault, arm_timeout_s)
-                        if sup.state is State.IDLE:
-                            t_fault_end = math.inf
+                        if sup.state is State.IDLE:     # a fault was reset: the next RUNNING starts afresh
+                            t_fault_end = t_end = math.inf
                 # ---- read
                 inp = dev.poll(t)
                 s = inp.samples

@@ -30,6 +30,7 @@ import math
 import os
 import socket
 import stat
+import struct
 import threading
 import time
 from pathlib import Path
@@ -189,9 +190,20 @@ class CtlServer:
                 return                          # closed
             with conn:
                 try:
+                    if self._peer_uid(conn) not in (os.getuid(), 0):
+                        continue                # another user (the 0700 directory should already stop them)
                     self._session(conn)
                 except OSError:
                     pass                        # the client went away
+
+    @staticmethod
+    def _peer_uid(conn: socket.socket) -> int:
+        """The connecting process's user id (SO_PEERCRED); ours where the OS does not tell."""
+        try:
+            _, uid, _ = struct.unpack("3i", conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i")))
+            return uid
+        except (AttributeError, OSError):
+            return os.getuid()
 
     def _session(self, conn: socket.socket) -> None:
         conn.settimeout(self.timeout_s + 5.0)
