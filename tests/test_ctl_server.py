@@ -230,3 +230,15 @@ def test_default_path(monkeypatch):
     assert str(default_ctl_path()) == "/run/user/1000/rig-runtime/ctl.sock"
     monkeypatch.delenv("XDG_RUNTIME_DIR")
     assert str(default_ctl_path()) == f"/tmp/rig-runtime-{os.getuid()}/ctl.sock"
+
+
+def test_status_with_numpy_values_and_nan(cfg, tmp_path):
+    server = CtlServer(info_of(cfg, tmp_path), tmp_path / "c" / "ctl.sock", None)
+    try:
+        server.status({"state": "RUNNING", "timing": {"cycles": np.int64(7)}, "t_run": float("nan")})
+        server.rows(np.array([[1.5], [2.5]]))
+        ans = request(server.path, {"cmd": "status"})
+        assert ans["status"] == {"state": "RUNNING", "timing": {"cycles": 7}, "t_run": None}
+        assert ans["row"] == {"t": 2.5}
+    finally:
+        server.close()

@@ -31,6 +31,7 @@ import os
 import socket
 import stat
 import struct
+import sys
 import threading
 import time
 from pathlib import Path
@@ -63,6 +64,12 @@ def _json_safe(x: Any) -> Any:
     if isinstance(x, (list, tuple)):
         return [_json_safe(v) for v in x]
     return x
+
+
+def _plain(x: Any) -> Any:
+    """A value JSON does not know (a numpy scalar, ...): its Python value, else its text."""
+    item = getattr(x, "item", None)
+    return _json_safe(item()) if callable(item) else str(x)
 
 
 def _private_dir(d: Path) -> None:
@@ -195,6 +202,8 @@ class CtlServer:
                     self._session(conn)
                 except OSError:
                     pass                        # the client went away
+                except Exception as e:  # noqa: BLE001 - a bug in one request must not end the server
+                    print(f"rig ctl server: request failed: {type(e).__name__}: {e}", file=sys.stderr)
 
     @staticmethod
     def _peer_uid(conn: socket.socket) -> int:
@@ -219,7 +228,7 @@ class CtlServer:
 
     @staticmethod
     def _encode(ans: dict) -> bytes:
-        return json.dumps(_json_safe(ans)).encode() + b"\n"
+        return json.dumps(_json_safe(ans), default=_plain).encode() + b"\n"
 
     # ------------------------------------------------------------------ requests
     def handle(self, line: bytes | str) -> dict:
