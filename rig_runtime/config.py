@@ -109,6 +109,9 @@ class PIPDGains:
     T_f_psi: float = check(positive)   # differentiator time constant, s
 
 
+TUNABLE_GAINS = ("K_P_y", "K_I_y", "K_P_psi", "K_D_psi", "T_f_psi", "K_P")   # what `rig ctl set` may change
+
+
 @dataclass(frozen=True, kw_only=True)
 class Controller:
     h: float = check(positive)                      # sample time, s
@@ -116,10 +119,19 @@ class Controller:
     pipd: PIPDGains = field(default=None)  # type: ignore[assignment]
     K_P: float = 500.0                              # P baseline (Sec. 5.1), A/m
     discretization: Literal["tustin", "zoh"] = "tustin"
+    # live tuning (`rig ctl set`): [lo, hi] per gain; a gain without bounds is not tunable. The
+    # configured gain itself need not lie inside (the bounds are what an operator may set live).
+    tuning: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.pipd is None:
             raise ConfigError(None, "pipd", "a mapping (missing key)")
+        for name, (lo, hi) in self.tuning.items():
+            key = f"tuning.{name}"
+            if name not in TUNABLE_GAINS:
+                raise ConfigError(None, key, "a tunable gain (one of " + ", ".join(TUNABLE_GAINS) + ")")
+            if not 0 < lo <= hi:
+                raise ConfigError(None, key, "bounds [lo, hi] with 0 < lo <= hi", [lo, hi])
 
 
 # --------------------------------------------------------------------------- limits / safety

@@ -104,6 +104,50 @@ class PIPDController:
         self._e_psi_prev = e_psi
         return u
 
+    GAINS = {"K_P_y": "kpy", "K_I_y": "kiy", "K_P_psi": "kpp", "K_D_psi": "kdp", "T_f_psi": "tf"}
+
+    def gains(self) -> dict[str, float]:
+        """The gains in force, by their config names."""
+        return {n: getattr(self, a) for n, a in self.GAINS.items()}
+
+    def set_gain(self, name: str, value: float) -> None:
+        """Change one gain between two steps (the loop calls it at a cycle boundary; the
+        change was checked by :func:`rig_runtime.tuning.check`).
+
+        Bumpless where the law allows it:
+
+        * ``K_P_y``, ``K_I_y`` (outer PI): x_I is rescaled/shifted so that ψ_ref =
+          K_P_y e_y + K_I_y x_I computed from the last step's e_y and x_I is the same with
+          the new gains: ψ_ref does not jump; from the next step on it moves as the new
+          gains make it.
+        * ``T_f_psi``: the differentiator's state (its output de_ψ and the last e_ψ) is kept,
+          only its coefficients change: the D term does not jump.
+        * ``K_P_psi``, ``K_D_psi`` (inner PD) are *not* bumpless: u = K_Pψ e_ψ + K_Dψ de_ψ
+          steps by ΔK_Pψ e_ψ + ΔK_Dψ de_ψ (small near equilibrium, where e_ψ ≈ 0); the filter
+          state is kept, and the supervisor's rate limit (limits.du_max) bounds the step on
+          the wire.
+
+        Before the first step (not started) only the gain changes; ``start`` then chooses
+        x_I with it. Raises ValueError for a name that is not a gain of this law or a value
+        that is not a finite positive number (limits are not gains: they cannot be set here).
+        """
+        attr = self.GAINS.get(name)
+        if attr is None:
+            raise ValueError(f"{name!r} is not a gain of the PI-PD law ({', '.join(self.GAINS)})")
+        v = float(value)
+        if not (math.isfinite(v) and v > 0):
+            raise ValueError(f"{name}: {value!r} is not a finite positive number")
+        st = self.st
+        if self._started and name in ("K_P_y", "K_I_y") and self.kiy:
+            psi_ref = self.kpy * st.e_y + self.kiy * st.x_I          # unclipped, as the last step made it
+            kpy, kiy = (v, self.kiy) if name == "K_P_y" else (self.kpy, v)
+            st.x_I = (psi_ref - kpy * st.e_y) / kiy
+        setattr(self, attr, v)
+        if name == "T_f_psi":
+            den = 2.0 * self.tf + self.h
+            self._a = (2.0 * self.tf - self.h) / den
+            self._b = 2.0 / den
+
     def limit_feedback(self, u_applied: float) -> None:
         """The safety layer applied ``u_applied`` instead of the last output: undo this
         cycle's integration if it pushed toward the limit."""
@@ -134,6 +178,20 @@ class PController:
         st = self.st
         st.e_y, st.u_unsat, st.u = e, u, u_sat
         return u_sat
+
+    def gains(self) -> dict[str, float]:
+        return {"K_P": self.kp}
+
+    def set_gain(self, name: str, value: float) -> None:
+        """Change K_P between two steps. Not bumpless: the law has no state to absorb the
+        change, u steps by ΔK_P (y_ref − y); the supervisor's rate limit bounds the step on
+        the wire. ValueError for another name or a value that is not finite and positive."""
+        if name != "K_P":
+            raise ValueError(f"{name!r} is not a gain of the P law (K_P)")
+        v = float(value)
+        if not (math.isfinite(v) and v > 0):
+            raise ValueError(f"{name}: {value!r} is not a finite positive number")
+        self.kp = v
 
     def limit_feedback(self, u_applied: float) -> None:
         pass

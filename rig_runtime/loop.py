@@ -5,6 +5,12 @@ The loop owns time (a ``Clock``), never blocks on I/O (drivers drain OS buffers)
 and disables the garbage collector while running, times every cycle and skips missed
 periods instead of catching up. It asks the supervisor what to do (the supervisor owns
 every state transition and switches the power stages) and does it.
+
+Operator commands (``rig ctl``) arrive through an optional :class:`~rig_runtime.mailbox.Mailbox`
+(``loop.mailbox``), looked at once at the start of every cycle: ``stop`` is the same request
+as a stop signal; ``set`` applies an already checked gain change (``tuning.check``) to every
+controller before this cycle's step and records an operator event; ``reset-fault`` resets a
+latched fault when the run holds on faults (``run(hold_on_fault=True)``) and arms again.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ from .clock import Clock
 from .config import LASER_ROLES, WHEELS, RigConfig
 from .control import make_controller
 from .geometry import Measurement, measure
+from .mailbox import Command
 from .safety import Channel, State, Supervisor
 from .stats import CycleStats
 
@@ -113,6 +120,8 @@ class ControlLoop:
         self.controllers = [make_controller(cfg.controller, cfg.limits.u_max, psi_ref_max) for _ in self.carriers]
         self.stats = CycleStats()
         self.stop_requested = False
+        self.stop_reason = "stop requested (signal)"
+        self.mailbox = None             # a mailbox.Mailbox: operator commands (rig ctl), taken once per cycle
         self.t_start = math.nan
         self.max_abs_current = 0.0
         self.cycle = Cycle()
@@ -136,6 +145,50 @@ class ControlLoop:
         if self._events is not None:
             self._events(t, kind, fault, text)
 
+    def gains(self) -> dict[str, float]:
+        """The controller gains in force (every controlled carrier has the same)."""
+        return self.controllers[0].gains() if self.controllers else {}
+
+    def _operator(self, cmd: Command, t: float, hold_on_fault: bool, arm_timeout_s: float) -> None:
+        """Carry out one operator command at the start of a cycle and answer it."""
+        mb, sup = self.mailbox, self.supervisor
+        kind = cmd.kind
+        if kind == "stop":
+            if not self.stop_requested:
+                self.stop_reason = "stop requested (rig ctl)"
+            self.stop_requested = True
+            mb.answer(cmd.seq, True, f"stop requested in {sup.state.name}")
+        elif kind == "set":
+            name, new = cmd.name, cmd.value
+            ctrls = self.controllers
+            if not ctrls or name not in ctrls[0].gains():
+                mb.answer(cmd.seq, False, f"{name!r} is not a gain of the controller in use")
+                return
+            old = ctrls[0].gains()[name]
+            try:
+                for c in ctrls:
+                    c.set_gain(name, new)
+            except ValueError as e:     # not finite / not positive: nothing was changed
+                mb.answer(cmd.seq, False, str(e))
+                return
+            text = f"{name} {old:g} -> {new:g}"
+            if self.recorder is not None:
+                self.recorder.event(t, "operator", "controller", name, new, old, text)
+            if self._events is not None:
+                self._events(t, "operator", None, text)
+            mb.answer(cmd.seq, True, text)
+        elif kind == "reset-fault":
+            if sup.state is not State.FAULT:
+                mb.answer(cmd.seq, False, f"no latched fault (state {sup.state.name})")
+            elif not hold_on_fault:
+                mb.answer(cmd.seq, False, "no latched fault to reset: this run ends on a fault (it does not hold)")
+            else:
+                sup.reset(t)
+                sup.request_arm(t + arm_timeout_s)
+                mb.answer(cmd.seq, True, "fault reset: arming again, the scenario restarts when RUNNING")
+        else:
+            mb.answer(cmd.seq, False, f"unknown command {kind!r}")
+
     def row(self) -> list[float]:
         """This cycle's log row, in ``columns`` order."""
         row: list[float] = []
@@ -146,10 +199,16 @@ class ControlLoop:
 
     # ------------------------------------------------------------------ the cycle
     def run(self, duration_s: float, arm_timeout_s: float = 2.0, settle_after_fault_s: float = 0.1,
-            status: Callable[["ControlLoop"], None] | None = None, status_period_s: float = 0.2) -> RunResult:
+            status: Callable[["ControlLoop"], None] | None = None, status_period_s: float = 0.2,
+            hold_on_fault: bool = False) -> RunResult:
         """Warm up (IDLE, zero current, power stages off) until every channel is fit, arm
         (power stages on), run for ``duration_s`` of RUNNING, stop (ramp, power stages
-        off). Returns the summary."""
+        off). Returns the summary.
+
+        A FAULT ends the run ``settle_after_fault_s`` later; with ``hold_on_fault`` the loop
+        keeps cycling in FAULT (zero current, power stages off, recording) until a stop
+        request, or an operator ``reset-fault`` (IDLE, arm again; a new RUNNING restarts
+        the reference and the duration)."""
         h, clock, dev, sup = self.h, self.clock, self.dev, self.supervisor
         geo = self.cfg.geometry
         rec = self.recorder
@@ -159,6 +218,7 @@ class ControlLoop:
         ol = self.open_loop
         ol_idx = CARRIER_INDEX[ol[0]] if ol else -1
         cy = self.cycle
+        mb = self.mailbox
         currents = cy.currents
         u_out = cy.u_out
         stats = self.stats
@@ -179,6 +239,13 @@ class ControlLoop:
                 t = clock.wait_until(t_k)
                 cy.t = t
                 cy.lateness = t - t_k
+                # ---- operator commands (rig ctl): at the cycle boundary, before anything uses the gains
+                if mb is not None:
+                    cmd = mb.take()
+                    if cmd is not None:
+                        self._operator(cmd, t, hold_on_fault, arm_timeout_s)
+                        if sup.state is State.IDLE:     # a fault was reset: the next RUNNING starts afresh
+                            t_fault_end = t_end = math.inf
                 # ---- read
                 inp = dev.poll(t)
                 s = inp.samples
@@ -189,7 +256,7 @@ class ControlLoop:
                 psis = (m.psi_af, m.psi_ar)
                 # ---- supervisor: requests, transitions, checks
                 if self.stop_requested:
-                    sup.request_stop(t, "stop requested (signal)")
+                    sup.request_stop(t, self.stop_reason)
                 elif t >= t_end:
                     sup.request_stop(t, "duration reached")
                 # periods lost so far: the misses before this cycle and this release's lateness
@@ -245,9 +312,9 @@ class ControlLoop:
                 stats.update(cy.lateness, work, missed, k_next - k - 1)
                 k = k_next
                 st = sup.state
-                if st is State.FAULT and t >= t_fault_end:
+                if st is State.FAULT and (self.stop_requested if hold_on_fault else t >= t_fault_end):
                     break
-                if st is State.IDLE and (sup.ever_armed or sup.arm_failed or self.stop_requested):
+                if st is State.IDLE and not sup.arming and (sup.ever_armed or sup.arm_failed or self.stop_requested):
                     break
         except BaseException:
             # anything unexpected inside the loop: zero current and power stages off before leaving

@@ -275,6 +275,11 @@ class Supervisor:
             self._to(State.IDLE, t)
 
     @property
+    def arming(self) -> bool:
+        """An arm request is pending (IDLE, waiting for every channel to be fit)."""
+        return self._arm_deadline == self._arm_deadline
+
+    @property
     def active(self) -> bool:
         return self.state in (State.ARMED, State.RUNNING, State.STOPPING)
 
