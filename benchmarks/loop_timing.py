@@ -2,13 +2,18 @@
 runtime cycle against the simulated devices, in one process and one run.
 
 The simulated rig is served by ``rig sim`` in a separate process (lasers on ptys, an SLCAN
-adapter on a pty, Modbus TCP on 127.0.0.1), started first so that both parts see the same
-background load. Then, in this process: the bare loop for ``--duration`` seconds, then the
-runtime (``rig run``'s devices, loop, supervisor and recorder on the real-time clock,
-holding y_ref = 0) for ``--duration`` seconds. Resident memory of this process is sampled
-after one minute of the runtime part and at its end.
+adapter on a pty, Modbus TCP on 127.0.0.1), started first so that every part sees the same
+background load. Then, in this process, each for ``--duration`` seconds: the bare loop; the
+runtime (``rig run``'s devices, loop and supervisor on the real-time clock, holding
+y_ref = 0) with recording and telemetry off (no log, no sidecar); the same with both on
+(the HDF5 log through the recording sidecar, UDP telemetry of every cycle to a receiver in
+another process). Resident memory of this process is sampled after one minute of the last
+part and at its end; its thread count while the loop runs.
 
     python benchmarks/loop_timing.py [--duration S] [--bare-duration S] [--json] [--fifo PRIO] [--cpu N]
+
+Goals (``docs/performance.md``): the runtime's lateness p99.9 within 1.2x the bare loop's;
+cycle-work p50 with recording and telemetry on within 1.1x of it with them off.
 
 With ``--fifo P`` this process runs SCHED_FIFO P and the simulator SCHED_FIFO P − 30 (when
 the OS permits; reported either way).
@@ -22,6 +27,7 @@ import gc
 import json
 import logging
 import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -35,6 +41,19 @@ from rig_runtime.devices import RigDevices  # noqa: E402
 from rig_runtime.app.runner import execute  # noqa: E402
 from rig_runtime.stats import CycleStats  # noqa: E402
 from sim_backend.launcher import start_sim_process  # noqa: E402
+
+
+DRAIN = """
+import signal, socket, sys
+s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+s.bind(("127.0.0.1", 0))
+print(s.getsockname()[1], flush=True)
+n = 0
+signal.signal(signal.SIGTERM, lambda *a: (print(n, flush=True), sys.exit(0)))
+while True:
+    s.recv(4096)
+    n += 1
+"""
 
 
 def rss_mb() -> float:
@@ -86,50 +105,85 @@ def main() -> int:
         h = cfg.controller.h
         clock = RealtimeClock(cfg.realtime.spin_us * 1e-6)
         bare = bare_loop(clock, h, args.bare_duration or args.duration)
-        rss = {}
+        rss: dict = {}
+        threads: set = set()
         t_first = [None]
 
         def sample(loop) -> None:
             now = time.monotonic()
+            threads.add(len(os.listdir("/proc/self/task")))
             if t_first[0] is None:
                 t_first[0] = now
             if "after_1min" not in rss and now - t_first[0] >= 60.0:
                 rss["after_1min"] = rss_mb()
 
         import rig_runtime.app.runner as runner
-        orig = runner.StatusLine
-        runner.StatusLine = lambda: sample  # sample memory from the loop's status hook (every 0.2 s)
+        from rig_runtime.app.live import outputs_for
+
+        class Publisher(runner.StatusPublisher):
+            def __call__(self, loop) -> None:
+                super().__call__(loop)
+                sample(loop)
+
+        def runtime_part(log_path, outputs) -> dict:
+            orig = runner.StatusLine, runner.StatusPublisher
+            runner.StatusLine = lambda: sample  # sample from the loop's status hook (every 0.2 s)
+            runner.StatusPublisher = Publisher
+            try:
+                summary, code, _ = execute(cfg, RigDevices(cfg), clock, scenario=None, duration_s=args.duration,
+                                           log_path=log_path, status=True, outputs=outputs,
+                                           extra_attrs={"mode": "benchmark loop_timing"})
+            finally:
+                runner.StatusLine, runner.StatusPublisher = orig
+            t = summary["timing"]
+            return {"release_lateness_us": t["release_lateness_us"], "cycle_work_us": t["cycle_work_us"],
+                    "deadline_misses": t["deadline_misses"], "final_state": summary["final_state"],
+                    "faults": summary["faults"], "cycles": summary["cycles"], "recorder": summary["recorder"]}
+
+        off = runtime_part(None, [])
+        threads_off = sorted(threads)
+        threads.clear()
+        t_first[0] = None
+        receiver = subprocess.Popen([sys.executable, "-c", DRAIN], stdout=subprocess.PIPE, text=True)
+        port = int(receiver.stdout.readline())
         try:
-            summary, code, _ = execute(cfg, RigDevices(cfg), clock, scenario=None, duration_s=args.duration,
-                                       log_path=Path(d) / "timing.h5", status=True,
-                                       extra_attrs={"mode": "benchmark loop_timing"})
+            on = runtime_part(Path(d) / "timing.h5", outputs_for(telemetry=f"udp://127.0.0.1:{port}"))
         finally:
-            runner.StatusLine = orig
+            receiver.terminate()
+            datagrams = int(receiver.communicate(timeout=10)[0] or 0)
         rss["end"] = rss_mb()
         try:        # the simulator's side of the SYNC -> TPDO path, to tell whose fault a gap was
             sim_stats = sp.status().get("session_stats", {})
         except (OSError, ValueError):
             sim_stats = {}
-        t = summary["timing"]
-        runtime = {"release_lateness_us": t["release_lateness_us"], "cycle_work_us": t["cycle_work_us"],
-                   "deadline_misses": t["deadline_misses"], "final_state": summary["final_state"],
-                   "faults": summary["faults"], "cycles": summary["cycles"]}
-    out = {"bare": bare, "runtime": runtime,
-           "ratio": {"lateness_p99": runtime["release_lateness_us"]["p99"] / max(bare["release_lateness_us"]["p99"], 1e-9),
-                     "lateness_p999": runtime["release_lateness_us"]["p999"] / max(bare["release_lateness_us"]["p999"], 1e-9)},
+
+    def ratio(a, b):
+        return a / max(b, 1e-9)
+    out = {"bare": bare, "runtime_off": off, "runtime_on": on,
+           "ratio": {"lateness_p999_off_vs_bare": ratio(off["release_lateness_us"]["p999"], bare["release_lateness_us"]["p999"]),
+                     "lateness_p999_on_vs_bare": ratio(on["release_lateness_us"]["p999"], bare["release_lateness_us"]["p999"]),
+                     "work_p50_on_vs_off": ratio(on["cycle_work_us"]["p50"], off["cycle_work_us"]["p50"])},
+           "threads_in_loop_process": {"off": threads_off, "on": sorted(threads)},
+           "telemetry_datagrams_received": datagrams,
            "rss_mb": rss, "duration_s": args.duration, "bare_duration_s": args.bare_duration or args.duration,
            "realtime": rt, "sim_session_stats": sim_stats}
     if args.json:
         print(json.dumps(out))
     else:
-        for name in ("bare", "runtime"):
+        for name in ("bare", "runtime_off", "runtime_on"):
             r = out[name]
             la, wk = r["release_lateness_us"], r["cycle_work_us"]
-            print(f"{name:8s} lateness p50/p99/p99.9/max {la['p50']:.1f}/{la['p99']:.1f}/{la['p999']:.1f}/{la['max']:.1f} us   "
+            print(f"{name:12s} lateness p50/p99/p99.9/max {la['p50']:.1f}/{la['p99']:.1f}/{la['p999']:.1f}/{la['max']:.1f} us   "
                   f"work p50/p99/p99.9/max {wk['p50']:.1f}/{wk['p99']:.1f}/{wk['p999']:.1f}/{wk['max']:.1f} us   "
                   f"misses {r['deadline_misses']}")
-        print(f"ratio runtime/bare lateness: p99 {out['ratio']['lateness_p99']:.2f}, p99.9 {out['ratio']['lateness_p999']:.2f}")
-        print(f"runtime final state {runtime['final_state']}, faults {runtime['faults']}")
+        r = out["ratio"]
+        print(f"lateness p99.9 runtime/bare: off {r['lateness_p999_off_vs_bare']:.2f}, on {r['lateness_p999_on_vs_bare']:.2f} "
+              f"(goal <= 1.2)   work p50 on/off: {r['work_p50_on_vs_off']:.2f} (goal <= 1.1)")
+        for name in ("runtime_off", "runtime_on"):
+            print(f"{name}: final state {out[name]['final_state']}, faults {out[name]['faults']}, "
+                  f"recorder {out[name]['recorder']}")
+        print(f"threads in the loop's process: {out['threads_in_loop_process']}; "
+              f"telemetry datagrams received: {datagrams}")
         print(f"resident memory: {rss}")
         print("realtime: " + "; ".join(rt))
     return 0

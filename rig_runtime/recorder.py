@@ -29,10 +29,13 @@ from __future__ import annotations
 import atexit
 import json
 import math
-import multiprocessing
 import multiprocessing.connection
 import os
+import socket
 import struct
+import subprocess
+import sys
+import time
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -40,11 +43,19 @@ from . import ring
 from .errors import DeviceInitError
 from .logfile import (EVENT_FIELDS, EVENT_NUM_FIELDS, EVENT_STR_FIELDS, LOG_FORMAT, LOG_FORMAT_VERSION,  # noqa: F401 - re-exported
                       RESERVED_ATTRS, check_attrs, check_columns)
-from .sidecar import SidecarSpec, main as sidecar_main
+from .sidecar import SidecarSpec
 
 _START_GRACE_S = 30.0       # interpreter start + imports on a loaded machine
 _ALIVE_EVERY = 50           # health reads between two looks at the sidecar process
 _MAX_FLUSH_S = 1.0
+
+
+def _child_env() -> dict:
+    """The sidecar imports this package from where this process did (also a checkout on sys.path)."""
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parent.parent)
+    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    return env
 
 
 def _sched_other(pid: int) -> None:
@@ -85,7 +96,7 @@ class Recorder:
         self._prod: ring.Producer | None = None
         self._mm = None
         self._conn: multiprocessing.connection.Connection | None = None
-        self.process: multiprocessing.process.BaseProcess | None = None
+        self.process: subprocess.Popen | None = None
         self._error = ""
         self._refuse = True                 # nothing accepted before open / after close
         self._dropped = 0
@@ -130,8 +141,8 @@ class Recorder:
 
     def _check_alive(self) -> None:
         proc = self.process
-        if proc is not None and not self._closed and not proc.is_alive():
-            self._fail(f"recorder sidecar process ended unexpectedly (exit code {proc.exitcode}); "
+        if proc is not None and not self._closed and proc.poll() is not None:
+            self._fail(f"recorder sidecar process ended unexpectedly (exit code {proc.returncode}); "
                        f"file valid up to row {self.rows_flushed}")
             self._refuse = True
 
@@ -182,32 +193,39 @@ class Recorder:
         path, self._mm = ring.create(layout)
         spec = SidecarSpec(str(self.path), self.columns, self._attrs, self.flush_s, self.min_free_bytes,
                            self.outputs, os.getpid())
-        ctx = multiprocessing.get_context("spawn")
-        here, there = ctx.Pipe(duplex=True)
-        proc = ctx.Process(target=sidecar_main, args=(path, spec, there), name="rig-recorder", daemon=False)
+        here, there = socket.socketpair()
+        proc = None
+        conn = multiprocessing.connection.Connection(here.detach())
         try:
             try:
-                proc.start()
+                proc = subprocess.Popen(
+                    [sys.executable, "-c", "from rig_runtime.sidecar import cli; cli()", str(there.fileno()), path],
+                    pass_fds=(there.fileno(),), stdin=subprocess.DEVNULL, env=_child_env())
             finally:
                 there.close()               # the child has its own copy: EOF for it once we are gone
             _sched_other(proc.pid)
-            ready = multiprocessing.connection.wait([here, proc.sentinel], _START_GRACE_S)
+            conn.send(spec)
             msg = None
-            if here in ready:
-                try:
-                    msg = here.recv()
-                except (EOFError, OSError):
-                    msg = None
+            deadline = time.monotonic() + _START_GRACE_S
+            while msg is None and proc.poll() is None and time.monotonic() < deadline:
+                if conn.poll(0.05):
+                    try:
+                        msg = conn.recv()
+                    except (EOFError, OSError):
+                        break
             if msg is None:
-                proc.join(0.5)
-                what = (f"exited with code {proc.exitcode}" if proc.exitcode is not None
+                try:
+                    proc.wait(0.5)
+                except subprocess.TimeoutExpired:
+                    pass
+                what = (f"exited with code {proc.returncode}" if proc.returncode is not None
                         else f"did not report within {_START_GRACE_S:g} s")
                 raise DeviceInitError(f"recorder {self.path}", f"sidecar process {what} before creating the log")
             if msg[0] == "error":
                 _, device, message, cause = msg
                 raise DeviceInitError(device, message) from cause
         except BaseException:
-            self._stop_process(proc, here)
+            self._stop_process(proc, conn)
             self._release()
             try:
                 os.unlink(path)             # the sidecar unlinks it once attached; else we do
@@ -216,7 +234,7 @@ class Recorder:
             self._closed = True
             raise
         self.process = proc
-        self._conn = here
+        self._conn = conn
         self._prod = ring.Producer(self._mm, layout)
         self._refuse = False
         atexit.register(self.close)
@@ -272,17 +290,16 @@ class Recorder:
                 conn.send(("close", {"error": self._error}))
             except (OSError, ValueError):
                 pass
-            ready = multiprocessing.connection.wait([conn, proc.sentinel], timeout)
-            if conn in ready:
-                try:
+            try:
+                if conn.poll(timeout):
                     msg = conn.recv()
                     if msg[0] == "closed":
                         self._final = msg[1]
-                except (EOFError, OSError):
-                    pass
+            except (EOFError, OSError):
+                pass
             if self._final is None:
                 rows = self._prod.rows_flushed if self._prod is not None else 0
-                self._fail(f"recorder sidecar did not close the log (exit code {proc.exitcode}); "
+                self._fail(f"recorder sidecar did not close the log (exit code {proc.poll()}); "
                            f"file valid up to row {rows}")
                 self._final = {"rows_written": rows, "rows_flushed": rows}
         if self._final is not None and self._final.get("error"):
@@ -295,17 +312,18 @@ class Recorder:
             pass
 
     @staticmethod
-    def _stop_process(proc, conn) -> None:
-        if proc is not None:
-            proc.join(10.0)
-            if proc.exitcode is None:
-                proc.terminate()
-                proc.join(2.0)
-            if proc.exitcode is None:
-                proc.kill()
-                proc.join(2.0)
+    def _stop_process(proc: subprocess.Popen | None, conn) -> None:
         if conn is not None:
-            conn.close()
+            conn.close()                    # EOF for a sidecar that has not finished yet
+        if proc is not None:
+            for stop in (None, proc.terminate, proc.kill):
+                if stop is not None:
+                    stop()
+                try:
+                    proc.wait(10.0 if stop is None else 2.0)
+                    break
+                except subprocess.TimeoutExpired:
+                    pass
 
     def _release(self) -> None:
         self._mailbox = None

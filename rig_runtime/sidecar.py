@@ -6,8 +6,9 @@ Why a process: HDF5 calls and every live output's Python work would hold the loo
 interpreter lock (100–180 µs per HDF5 call); in their own process they cannot. The loop's
 process keeps a single thread.
 
-Lifetime: started by :class:`rig_runtime.recorder.Recorder` (``multiprocessing`` spawn:
-the runtime may run SCHED_FIFO, so it must not fork), SCHED_OTHER, ignoring SIGINT, SIGTERM
+Lifetime: started by :class:`rig_runtime.recorder.Recorder` as a fresh interpreter
+(``python -c``: the runtime may run SCHED_FIFO and have threads, so it must not fork, and
+unlike ``multiprocessing``'s spawn this does not re-run the caller's main script), SCHED_OTHER, ignoring SIGINT, SIGTERM
 and SIGHUP (a Ctrl-C reaches the whole process group; the runtime stops the rig on it and
 closes the log itself). It ends when the recorder says ``close`` — after draining the ring,
 flushing and closing the file — or when its pipe to the runtime reports EOF: the runtime
@@ -90,8 +91,20 @@ def _ignore_stop_signals() -> None:
             pass
 
 
+def cli() -> None:
+    """``python -c "from rig_runtime.sidecar import cli; cli()" FD RING``: FD is this end of
+    the recorder's socket pair; the recorder sends the :class:`SidecarSpec` first."""
+    _ignore_stop_signals()
+    conn = multiprocessing.connection.Connection(int(sys.argv[1]))
+    try:
+        spec = conn.recv()
+    except (EOFError, OSError):
+        return                              # the recorder is gone already
+    main(sys.argv[2], spec, conn)
+
+
 def main(ring_path: str, spec: SidecarSpec, conn: multiprocessing.connection.Connection) -> None:
-    """Entry point of the sidecar process."""
+    """The sidecar process's work (after :func:`cli`)."""
     _ignore_stop_signals()
     as_background_thread()
     layout, mm = ring.attach(ring_path)

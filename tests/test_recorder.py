@@ -228,13 +228,13 @@ def test_the_loop_process_gains_no_thread(log):
     rec.open()
     assert threading.active_count() == n_threads
     assert len(os.listdir(f"/proc/{os.getpid()}/task")) == tasks
-    assert rec.process.pid != os.getpid() and rec.process.is_alive()
+    assert rec.process.pid != os.getpid() and rec.process.poll() is None
     for i in range(40):
         assert rec.append(row(i))
     rec.event(0.1, "state", message="x")
     wait_for(lambda: rec.rows_written == 40)
     rec.close()                                       # the rest, events, flush, attributes
-    assert not rec.process.is_alive()
+    assert rec.process.poll() == 0
     d = read_log(log)
     np.testing.assert_array_equal(d["columns"]["y"], [row(i)[3] for i in range(40)])
     assert list(d["events"]["message"]) == ["x"] and d["attrs"]["rows_written"] == 40
