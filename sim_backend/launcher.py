@@ -4,13 +4,11 @@ benchmarks and ``rig dry-run --realtime`` use (docs/sim-process.md, "Python API"
 from __future__ import annotations
 
 import json
-import queue
 import shutil
 import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -101,6 +99,7 @@ def start_sim_process(config: str | Path | None = None, scenario: str | Path | N
     wd = Path(workdir) if workdir is not None else Path(tempfile.mkdtemp(prefix="rig-sim-"))
     wd.mkdir(parents=True, exist_ok=True)
     cfg_path, status_path, err_path = wd / "sim-process.yaml", wd / "sim-status.json", wd / "sim.stderr"
+    out_path = wd / "sim.stdout"
     cmd = [python or sys.executable, "-m", "rig_runtime", "sim", "--write-config", str(cfg_path),
            "--status-file", str(status_path)]
     if config is not None:
@@ -111,39 +110,36 @@ def start_sim_process(config: str | Path | None = None, scenario: str | Path | N
         cmd += ["--seed", str(seed)]
     cmd += list(extra_args)
     err = open(err_path, "wb")
+    out = open(out_path, "wb")
     try:
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, stdin=subprocess.DEVNULL,
-                                env=env, text=True, bufsize=1, start_new_session=True,
+        proc = subprocess.Popen(cmd, stdout=out, stderr=err, stdin=subprocess.DEVNULL,
+                                env=env, start_new_session=True,
                                 preexec_fn=child_process.die_with_parent if die_with_parent else None)
     finally:
         err.close()
+        out.close()
     sp = SimProcess(proc, wd, cfg_path, status_path, err_path, owns_workdir=workdir is None)
-    lines: "queue.SimpleQueue[Optional[str]]" = queue.SimpleQueue()
-
-    def reader() -> None:                    # keeps draining stdout after ready
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            line = line.rstrip("\n")
-            sp.lines.append(line)
-            lines.put(line)
-        lines.put(None)
-
-    threading.Thread(target=reader, name="rig sim stdout", daemon=True).start()
+    # stdout goes to a file read here until "ready": no reader thread in the caller's process
+    # (the runtime's process runs a single thread)
     deadline = time.monotonic() + timeout_s
+    seen = 0
     while True:
-        try:
-            line = lines.get(timeout=max(0.01, deadline - time.monotonic()))
-        except queue.Empty:
+        text = out_path.read_text(errors="replace")
+        complete = text[:text.rfind("\n") + 1].splitlines()
+        for line in complete[seen:]:
+            sp.lines.append(line)
+            if line == "ready":
+                return sp
+            parse_port_line(line, sp.ports)
+        seen = len(complete)
+        if proc.poll() is not None:
+            err_text = sp.stderr()[-2000:]
+            sp.__exit__()
+            raise RuntimeError(f"rig sim exited with {proc.returncode} before ready: {err_text}")
+        if time.monotonic() > deadline:
             sp.stop(signal.SIGKILL)
-            err = sp.stderr()[-2000:]
+            err_text = sp.stderr()[-2000:]
             sp.__exit__()
-            raise TimeoutError(f"rig sim not ready within {timeout_s} s: {err}") from None
-        if line is None:
-            proc.wait(5.0)
-            err = sp.stderr()[-2000:]
-            sp.__exit__()
-            raise RuntimeError(f"rig sim exited with {proc.returncode} before ready: {err}")
-        if line == "ready":
-            return sp
-        parse_port_line(line, sp.ports)
+            raise TimeoutError(f"rig sim not ready within {timeout_s} s: {err_text}") from None
+        time.sleep(0.02)
 

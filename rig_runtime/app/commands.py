@@ -79,6 +79,8 @@ def _live_outputs(args: argparse.Namespace, realtime: bool) -> list[tuple[str, d
 @arg("--no-panel", action="store_true", help="no live panel on the terminal (the panel needs rich)")
 @arg("--ctl-socket", metavar="PATH", help="Unix socket for `rig ctl` (default: rig ctl's default path)")
 @arg("--no-ctl", action="store_true", help="no `rig ctl` socket")
+@arg("--hold-on-fault", action="store_true", help="after a FAULT keep the loop (no current, power stages off) "
+                                                   "until `rig ctl reset-fault` arms again or a stop")
 def cmd_dry_run(args: argparse.Namespace) -> int:
     from .. import config
     from ..scenario import load_scenario
@@ -93,12 +95,12 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
         from .realtime_dryrun import run_realtime_dry_run
         summary, code = run_realtime_dry_run(cfg, scenario, log, seed=args.seed, duration_s=args.duration,
                                              status=sys.stderr.isatty() and not args.json, stops=args.stops,
-                                             outputs=outputs)
+                                             outputs=outputs, hold_on_fault=args.hold_on_fault)
         summary["steps"] = steps_from_log(log, scenario, cfg.controller.h)
     else:
         from .dryrun import run_lockstep
         summary, code = run_lockstep(cfg, scenario, log, seed=args.seed, duration_s=args.duration, stops=args.stops,
-                                     outputs=outputs)
+                                     outputs=outputs, hold_on_fault=args.hold_on_fault)
     if args.report:
         from .report import write_report
         try:
@@ -122,6 +124,8 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
 @arg("--no-panel", action="store_true", help="no live panel on the terminal (the panel needs rich)")
 @arg("--ctl-socket", metavar="PATH", help="Unix socket for `rig ctl` (default: rig ctl's default path)")
 @arg("--no-ctl", action="store_true", help="no `rig ctl` socket")
+@arg("--hold-on-fault", action="store_true", help="after a FAULT keep the loop (no current, power stages off) "
+                                                   "until `rig ctl reset-fault` arms again or a stop")
 def cmd_run(args: argparse.Namespace) -> int:
     from .. import config
     from ..clock import RealtimeClock, apply_realtime
@@ -142,7 +146,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     summary, code, _ = execute(cfg, devices, clock, scenario=scenario, duration_s=args.duration, log_path=log,
                                status=sys.stderr.isatty() and not args.json,
                                extra_attrs={"mode": "run", "realtime": "; ".join(rt_report)}, stops=args.stops,
-                               outputs=outputs)
+                               outputs=outputs, hold_on_fault=args.hold_on_fault)
     summary["realtime"] = rt_report
     _print_summary(summary, args.json)
     return code

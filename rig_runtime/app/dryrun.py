@@ -24,7 +24,8 @@ from .signals import StopSignals
 def run_lockstep(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *, seed: Optional[int] = None,
                  duration_s: Optional[float] = None,
                  prepare: Optional[Callable[[SimulatedRig, RigDevices, LockstepClock], None]] = None,
-                 stops: Optional[StopSignals] = None, outputs: Sequence[tuple[str, dict]] = ()) -> tuple[dict, int]:
+                 stops: Optional[StopSignals] = None, outputs: Sequence[tuple[str, dict]] = (),
+                 hold_on_fault: bool = False) -> tuple[dict, int]:
     """Run ``scenario`` against the simulated plant; returns (summary, exit code).
 
     ``prepare(sim, devices, clock)`` runs before the devices are configured (tests use it
@@ -39,7 +40,7 @@ def run_lockstep(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *
         summary, code, _ = execute(
             cfg, devices, clock, scenario=scenario, duration_s=duration_s, log_path=log_path,
             status=False, extra_attrs={"mode": "dry-run lockstep", "seed": sim.seed},
-            stops=stops, outputs=outputs)
+            stops=stops, outputs=outputs, hold_on_fault=hold_on_fault)
         summary["sim_time_s"] = clock.now()
         summary["seed"] = sim.seed
     finally:

@@ -13,8 +13,7 @@ PANEL = "rig_runtime.app.panel:LivePanel"
 CTL = "rig_runtime.app.ctl_server:CtlServer"
 
 _TAKES_MAILBOX = {CTL}
-_GAIN_ATTRS = (("K_P_y", "kpy"), ("K_I_y", "kiy"), ("K_P_psi", "kpp"), ("K_D_psi", "kdp"), ("T_f_psi", "tf"),
-               ("K_P", "kp"))
+
 
 
 def takes_mailbox(name: str) -> bool:
@@ -38,11 +37,6 @@ def snapshot(loop: ControlLoop, duration_s: float) -> dict:
     t = loop.cycle.t
     t0 = loop.t_start
     started = t0 == t0
-    gains = {}
-    for c in loop.controllers[:1]:      # every controlled carrier runs the same gains
-        for name, attr in _GAIN_ATTRS:
-            if hasattr(c, attr):
-                gains[name] = getattr(c, attr)
     rec = loop.recorder
     return {
         "t": t,
@@ -59,7 +53,7 @@ def snapshot(loop: ControlLoop, duration_s: float) -> dict:
                    "deadline_misses": st.deadline_misses, "skipped_periods": st.skipped_periods},
         "recorder": ({"rows": rec.rows_written, "healthy": rec.healthy, "error": rec.error}
                      if rec is not None else None),
-        "gains": gains,
+        "gains": loop.gains(),
     }
 
 

@@ -21,14 +21,15 @@ from .signals import StopSignals
 
 def run_realtime_dry_run(cfg: RigConfig, scenario: Scenario, log: Path, *, seed: Optional[int] = None,
                          duration_s: Optional[float] = None, status: bool = False,
-                         stops: Optional[StopSignals] = None, outputs: Sequence[tuple[str, dict]] = ()) -> tuple[dict, int]:
+                         stops: Optional[StopSignals] = None, outputs: Sequence[tuple[str, dict]] = (),
+                         hold_on_fault: bool = False) -> tuple[dict, int]:
     with start_sim_process(config=cfg.source, scenario=scenario.source or None, seed=seed) as sp:
         rcfg = config.load(sp.config_path)
         devices = RigDevices(rcfg)
         rt_report = apply_realtime(rcfg.realtime)
         clock = RealtimeClock(rcfg.realtime.spin_us * 1e-6)
         summary, code, _ = execute(rcfg, devices, clock, scenario=scenario, duration_s=duration_s, log_path=log,
-                                   status=status, stops=stops, outputs=outputs, extra_attrs={"mode": "dry-run realtime (rig sim process)",
+                                   status=status, stops=stops, outputs=outputs, hold_on_fault=hold_on_fault, extra_attrs={"mode": "dry-run realtime (rig sim process)",
                                                                "realtime": "; ".join(rt_report)})
     summary["sim_time_s"] = summary["cycles"] * rcfg.controller.h
     summary["realtime"] = rt_report

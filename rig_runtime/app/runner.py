@@ -55,7 +55,8 @@ class StatusLine:
 
 def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenario], duration_s: Optional[float],
             log_path: Path | None, status: bool, extra_attrs: dict | None = None, arm_timeout_s: float = 2.0,
-            stops: StopSignals | None = None, outputs: Sequence[tuple[str, dict]] = ()) -> tuple[dict, int, ControlLoop | None]:
+            stops: StopSignals | None = None, outputs: Sequence[tuple[str, dict]] = (),
+            hold_on_fault: bool = False) -> tuple[dict, int, ControlLoop | None]:
     """Run one session; returns (summary, exit code, loop). In this order: the loop and the
     recorder (its sidecar process creates the log and starts the live ``outputs``),
     ``devices.configure()`` (no power), the loop (the supervisor's ARM activates the power
@@ -64,7 +65,9 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     :class:`Interrupted` after the clean stop). ``log_path=None``: nothing recorded and no
     sidecar (benchmarks measure the loop without it). ``status``: a live view on the
     terminal — the status line, unless an output shows the status (the panel), which then
-    gets a snapshot every 0.2 s through the sidecar."""
+    gets a snapshot every 0.2 s through the sidecar. ``hold_on_fault``: after a FAULT the
+    loop keeps cycling (zero current, power stages off) until ``rig ctl reset-fault`` arms
+    again or a stop ends it."""
     analysis.stability_gate(cfg)        # also for callers that bypass the CLI's preflight
     reference = Reference(scenario.reference) if scenario else (lambda t: 0.0)
     open_loop = (scenario.open_loop.carrier, open_loop_input(scenario.open_loop)) if scenario and scenario.open_loop else None
@@ -104,7 +107,7 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
                 live = StatusPublisher(rec, duration)
             elif status:
                 live = StatusLine()
-            result = loop.run(duration, arm_timeout_s=arm_timeout_s, status=live)
+            result = loop.run(duration, arm_timeout_s=arm_timeout_s, status=live, hold_on_fault=hold_on_fault)
     finally:
         devices.close()
         if rec is not None:
@@ -113,7 +116,7 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
                 log_path.unlink(missing_ok=True)    # the loop never ran: no empty log left behind
         if status and not outputs:
             sys.stderr.write("\n")
-    if result is None or math.isnan(result.t_start):
+    if result is None or (math.isnan(result.t_start) and not result.faults):
         if stops.requested:
             what = "power stages disabled" if loop.supervisor.ever_armed else "power stages never enabled"
             if result is not None:
