@@ -7,7 +7,9 @@ the row's floats with :func:`struct.Struct.pack_into` straight into a preallocat
 shared memory (:mod:`rig_runtime.ring`) and publishes a counter. A full ring (the sidecar
 could not keep up, e.g. a stalled disk) is never waited on: the row is dropped, counted in
 ``rows_dropped``, and the recorder turns unhealthy with a cause naming the overflow (a
-recorder fault for the supervisor). Later rows are recorded again as soon as the sidecar
+recorder fault for the supervisor) — unless the recorder was made with ``when_full="wait"``
+for a lockstep run, where time does not matter and a lost row would break determinism.
+Later rows are recorded again as soon as the sidecar
 frees space (the ``t`` column then shows the gap). Events (state changes, faults, operator
 actions) go through a second ring the same way.
 
@@ -76,7 +78,8 @@ class Recorder:
 
     def __init__(self, path: str | Path, columns: Sequence[str], *, attrs: Mapping[str, object],
                  buffer_cycles: int = 4096, flush_s: float = 0.5, event_capacity: int = 1024,
-                 min_free_bytes: int = 32 * 2**20, outputs: Sequence[tuple[str, dict]] = ()):
+                 min_free_bytes: int = 32 * 2**20, outputs: Sequence[tuple[str, dict]] = (),
+                 when_full: str = "drop"):
         self.path = Path(path)
         self.columns: tuple[str, ...] = check_columns(columns)
         self._attrs = check_attrs(attrs)
@@ -92,6 +95,9 @@ class Recorder:
         self.event_capacity = int(event_capacity)
         self.min_free_bytes = int(min_free_bytes)
         self.outputs = tuple((str(n), dict(o)) for n, o in outputs)
+        if when_full not in ("drop", "wait"):
+            raise ValueError(f"recorder: when_full is 'drop' or 'wait', got {when_full!r}")
+        self.when_full = when_full
         self._ncols = len(self.columns)
         self._prod: ring.Producer | None = None
         self._mm = None
@@ -252,6 +258,8 @@ class Recorder:
         try:
             if self._prod.append(row):      # type: ignore[union-attr]
                 return True
+            if self.when_full == "wait" and self._wait_for_room() and self._prod.append(row):  # type: ignore[union-attr]
+                return True
         except struct.error as e:
             raise ValueError(f"recorder row: expected {self._ncols} numbers in column order {self.columns} ({e})") from None
         self._dropped += 1
@@ -259,6 +267,17 @@ class Recorder:
         self._fail(f"recorder buffer overflow: the sidecar fell behind, ring of {self.buffer_cycles} "
                    f"cycles full; {self._dropped} rows dropped")
         return False
+
+    def _wait_for_room(self, limit_s: float = 30.0) -> bool:
+        """``when_full="wait"`` (a lockstep run, where time does not matter): wait until the
+        sidecar has taken a quarter of the ring; False if it died or took longer than ``limit_s``."""
+        deadline = time.monotonic() + limit_s
+        prod = self._prod
+        while prod.pending > 3 * self.buffer_cycles // 4:      # type: ignore[union-attr]
+            if self.process is None or self.process.poll() is not None or time.monotonic() > deadline:
+                return False
+            time.sleep(0.001)
+        return True
 
     def event(self, t: float, kind: str, device: str = "", check: str = "", value: float = math.nan,
               limit: float = math.nan, message: str = "") -> None:

@@ -403,3 +403,18 @@ def test_append_cost(log):
     print(f"\nRecorder.append, 24 columns: {per_call * 1e6:.2f} µs/call")
     assert rec.healthy and rec.rows_written == 5 * n
     assert per_call < 10e-6                       # a few µs at most (≈0.5 µs measured)
+
+
+def test_when_full_wait_loses_nothing(log):
+    """``when_full="wait"`` (lockstep runs): a stalled sidecar makes ``append`` wait for
+    room instead of dropping; every row arrives and the recorder stays healthy."""
+    with pytest.raises(ValueError, match="when_full"):
+        Recorder(log, COLS, attrs={}, when_full="block")
+    rec = Recorder(log, COLS, attrs={}, buffer_cycles=64, when_full="wait")
+    rec.open()
+    os.kill(rec.process.pid, signal.SIGSTOP)
+    threading.Timer(0.3, os.kill, (rec.process.pid, signal.SIGCONT)).start()
+    assert all(rec.append(row(i)) for i in range(200))
+    rec.close()
+    assert rec.healthy and rec.rows_dropped == 0
+    np.testing.assert_array_equal(read_log(log)["columns"]["t"], [row(i)[0] for i in range(200)])

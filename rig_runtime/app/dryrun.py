@@ -40,7 +40,8 @@ def run_lockstep(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *
         summary, code, _ = execute(
             cfg, devices, clock, scenario=scenario, duration_s=duration_s, log_path=log_path,
             status=False, extra_attrs={"mode": "dry-run lockstep", "seed": sim.seed},
-            stops=stops, outputs=outputs, hold_on_fault=hold_on_fault)
+            stops=stops, outputs=outputs, hold_on_fault=hold_on_fault,
+            recorder_when_full="wait")
         summary["sim_time_s"] = clock.now()
         summary["seed"] = sim.seed
     finally:

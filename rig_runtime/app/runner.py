@@ -56,7 +56,7 @@ class StatusLine:
 def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenario], duration_s: Optional[float],
             log_path: Path | None, status: bool, extra_attrs: dict | None = None, arm_timeout_s: float = 2.0,
             stops: StopSignals | None = None, outputs: Sequence[tuple[str, dict]] = (),
-            hold_on_fault: bool = False) -> tuple[dict, int, ControlLoop | None]:
+            hold_on_fault: bool = False, recorder_when_full: str = "drop") -> tuple[dict, int, ControlLoop | None]:
     """Run one session; returns (summary, exit code, loop). In this order: the loop and the
     recorder (its sidecar process creates the log and starts the live ``outputs``),
     ``devices.configure()`` (no power), the loop (the supervisor's ARM activates the power
@@ -67,7 +67,8 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     terminal — the status line, unless an output shows the status (the panel), which then
     gets a snapshot every 0.2 s through the sidecar. ``hold_on_fault``: after a FAULT the
     loop keeps cycling (zero current, power stages off) until ``rig ctl reset-fault`` arms
-    again or a stop ends it."""
+    again or a stop ends it. ``recorder_when_full="wait"``: a full recording ring makes the
+    loop wait for the sidecar instead of dropping the row (lockstep runs only)."""
     analysis.stability_gate(cfg)        # also for callers that bypass the CLI's preflight
     reference = Reference(scenario.reference) if scenario else (lambda t: 0.0)
     open_loop = (scenario.open_loop.carrier, open_loop_input(scenario.open_loop)) if scenario and scenario.open_loop else None
@@ -91,7 +92,7 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
                      "duration_s": float(duration), "controlled": list(cfg.controlled)}
             attrs.update(extra_attrs or {})
             rec = Recorder(log_path, loop.columns, attrs=attrs, buffer_cycles=cfg.recorder.buffer_cycles,
-                           flush_s=cfg.recorder.flush_s, outputs=outputs)
+                           flush_s=cfg.recorder.flush_s, outputs=outputs, when_full=recorder_when_full)
             rec.open()
             loop.recorder = rec
             if any(takes_mailbox(name) for name, _ in outputs):
