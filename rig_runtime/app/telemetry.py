@@ -111,7 +111,7 @@ class RowSignals:
         group("timing", [("lateness", "lateness"), ("work", "work")])
         group("currents", [(w, f"i_{w}") for w in WHEELS])
         self.groups: tuple[Group, ...] = tuple(groups)
-        self._t = pos["t"]
+        self._t = self.t_index = pos["t"]
         self._t_run = pos.get("t_run", -1)
         self._state = pos.get("state", -1)
         # one flat index array: t, t_run, state, then every group's fields in order
