@@ -16,7 +16,7 @@ import pytest
 from rig_runtime.errors import ConfigError
 from tests.test_telemetry import STATUS, LogInfo, columns, make_rows
 
-from rig_runtime.app.foxglove_out import FoxgloveServer, export_mcap, parse_host_port
+from rig_runtime.app.foxglove_out import FoxgloveServer, export_mcap, parse_address
 
 needs_sdk = pytest.mark.skipif(importlib.util.find_spec("foxglove") is None,
                                reason="foxglove-sdk not installed (the foxglove extra)")
@@ -144,14 +144,14 @@ def test_export_mcap_reads_back(tmp_path):
 
 @pytest.mark.parametrize("text, expected", [("8765", ("127.0.0.1", 8765)), ("0.0.0.0:9000", ("0.0.0.0", 9000)),
                                             ("[::1]:8765", ("::1", 8765))])
-def test_parse_host_port(text, expected):
-    assert parse_host_port(text) == expected
+def test_parse_address(text, expected):
+    assert parse_address(text) == expected
 
 
 @pytest.mark.parametrize("text", ["", "x", "127.0.0.1:", ":8765", "127.0.0.1:70000"])
-def test_parse_host_port_errors(text):
+def test_parse_address_errors(text):
     with pytest.raises(ConfigError, match=r"^--foxglove: expected \[HOST:\]PORT"):
-        parse_host_port(text)
+        parse_address(text)
 
 
 @needs_sdk

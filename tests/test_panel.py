@@ -44,7 +44,9 @@ def test_render_shows_state_times_carrier_devices_timing():
     assert work.split()[-4:] == ["50.0", "45.0", "90.0", "300.0"]
     late = next(ln for ln in out.splitlines() if "lateness" in ln)
     assert late.split()[-4:] == ["5.0", "4.0", "30.0", "80.0"]
-    assert "deadline misses 2" in out and "overrun periods 1" in out
+    assert "deadline misses 2" in out and "skipped periods 1" in out and "overrun" not in out
+    bf = next(ln for ln in out.splitlines() if ln.strip().startswith("b_f"))
+    assert bf.split()[:5] == ["b_f", "laser", "fresh", "2.1", "3"] and bf.split()[5:7] == ["-", "-"]
     assert "recorder rows 200 ok" in out
     assert "lasers: frames 1000 bad 3" in out
 

@@ -61,14 +61,14 @@ def make_rows(cols, n, t0=100.0, h=0.005, state=State.RUNNING) -> np.ndarray:
 STATUS = {
     "t": 101.0, "t_run": 1.0, "duration_s": 10.0, "state": "RUNNING", "controlled": ["rear"],
     "faults": [],
-    "devices": [{"name": "b_f", "kind": "laser", "state": "fresh", "cause": "", "bad_frames": 3,
-                 "timeouts": 1, "errors": 0},
+    "devices": [{"name": "b_f", "kind": "laser", "state": "fresh", "cause": "", "value": 0.1, "age_s": 0.0021,
+                 "bad_frames": 3},                       # as rig_runtime.app.live.snapshot gives it
                 {"name": "rl", "kind": "wheel", "state": "stale", "cause": "no sample", "bad_frames": 0,
                  "timeouts": 7, "errors": 2}],
     "counters": {"lasers": {"frames": 1000, "bad": 3}},
     "timing": {"cycles": 200, "lateness_us": {"last": 5.0, "p50": 4.0, "p99": 30.0, "max": 80.0},
                "work_us": {"last": 50.0, "p50": 45.0, "p99": 90.0, "max": 300.0},
-               "deadline_misses": 2, "overrun_periods": 1},
+               "deadline_misses": 2, "skipped_periods": 1},
     "recorder": {"rows": 200, "healthy": True, "error": ""},
 }
 
@@ -120,9 +120,9 @@ def test_datagrams_carry_timestamp_and_nested_fields(receiver):
         assert msg["front"]["delta_omega"] == row[ix["dw_f"]]
         assert msg["currents"] == {w: row[ix[f"i_{w}"]] for w in WHEELS}
         assert msg["timing"] == {"lateness": row[ix["lateness"]], "work": row[ix["work"]]}
-        assert msg["devices"]["b_f"] == {"state": 0, "bad_frames": 3, "timeouts": 1, "errors": 0}
+        assert msg["devices"]["b_f"] == {"state": 0, "bad_frames": 3}
         assert msg["devices"]["rl"]["state"] == 1 and msg["devices"]["rl"]["timeouts"] == 7
-        assert msg["health"] == {"deadline_misses": 2, "overrun_periods": 1, "recorder_healthy": 1}
+        assert msg["health"] == {"deadline_misses": 2, "skipped_periods": 1, "recorder_healthy": 1}
         assert msg["counters"]["lasers"]["frames"] == 1000
     assert "y" not in json.loads(raw[2])["front"]
     assert "y" in json.loads(raw[1])["front"]

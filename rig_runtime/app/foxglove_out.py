@@ -50,7 +50,7 @@ def _sdk(option: str = "--foxglove"):
     return foxglove
 
 
-def parse_host_port(text: str, *, option: str = "--foxglove", default_host: str = "127.0.0.1") -> tuple[str, int]:
+def parse_address(text: str, *, option: str = "--foxglove", default_host: str = "127.0.0.1") -> tuple[str, int]:
     """``[HOST:]PORT`` -> ``(host, port)`` (host 127.0.0.1 when omitted); ConfigError otherwise."""
     expected = "[HOST:]PORT (e.g. 8765 or 127.0.0.1:8765)"
     host, sep, port = str(text).rpartition(":")
@@ -74,8 +74,8 @@ def schemas(signals: RowSignals) -> dict[str, dict[str, Any]]:
     device = {"type": "object", "properties": {"state": _COUNT, "bad_frames": _COUNT, "timeouts": _COUNT,
                                                "errors": _COUNT}}
     out["health"] = _schema("rig.Health", {
-        "health": {"type": "object", "properties": {"deadline_misses": _COUNT, "overrun_periods": _COUNT,
-                                                    "recorder_healthy": _COUNT}},
+        "health": {"type": "object", "properties": {"deadline_misses": _COUNT, "skipped_periods": _COUNT,
+                                                    "overrun_periods": _COUNT, "recorder_healthy": _COUNT}},
         "devices": {"type": "object", "additionalProperties": device},
         "counters": {"type": "object", "additionalProperties": {"type": "object", "additionalProperties": _NUMBER}},
     })

@@ -4,7 +4,7 @@ A sidecar output (``rig_runtime.app.panel:LivePanel``, constructed in the record
 as ``LivePanel(info, stream=None, force=False, refresh_per_second=4)``). It shows the state
 with elapsed and remaining time, the reference and y/ψ/u of each controlled carrier, each
 device's health and counters, the faults with their cause, and the timing monitor (cycle
-work and wake-up lateness last/p50/p99/max, deadline misses, overrun periods).
+work and wake-up lateness last/p50/p99/max, deadline misses, skipped/overrun periods).
 
 What is shown is ``render(row, status, events, ...)``: a pure function of the latest row
 (column name -> value), the latest status snapshot and the recent events, so it is tested
@@ -124,20 +124,20 @@ def _carriers(row, status, controlled) -> Table:
 
 def _devices(status) -> Table:
     t = Table(title="devices", title_justify="left", box=None, pad_edge=False)
-    for name, just in (("device", "left"), ("kind", "left"), ("health", "left"), ("bad frames", "right"),
-                       ("timeouts", "right"), ("errors", "right"), ("cause", "left")):
+    for name, just in (("device", "left"), ("kind", "left"), ("health", "left"), ("age ms", "right"),
+                       ("bad frames", "right"), ("timeouts", "right"), ("errors", "right"), ("cause", "left")):
         t.add_column(name, justify=just)
     devices = status.get("devices")
     if not isinstance(devices, (list, tuple)) or not devices:
-        t.add_row(MISSING, MISSING, MISSING, MISSING, MISSING, MISSING, MISSING)
+        t.add_row(*[MISSING] * 8)
         return t
     for d in devices:
         if not isinstance(d, Mapping):
             continue
         st = d.get("state") if isinstance(d.get("state"), str) else MISSING
         t.add_row(str(d.get("name", MISSING)), str(d.get("kind", MISSING)), Text(st, DEVICE_STYLE.get(st, "")),
-                  _int(d.get("bad_frames")), _int(d.get("timeouts")), _int(d.get("errors")),
-                  str(d.get("cause") or ""))
+                  _fmt(d.get("age_s"), 1e3, 1), _int(d.get("bad_frames")), _int(d.get("timeouts")),
+                  _int(d.get("errors")), str(d.get("cause") or ""))
     return t
 
 
@@ -184,11 +184,14 @@ def _timing(row, status) -> Table:
 
 def _counts(status) -> Text:
     tm = status.get("timing") if isinstance(status.get("timing"), Mapping) else {}
-    misses, overruns = _num(tm.get("deadline_misses")), _num(tm.get("overrun_periods"))
-    text = Text(f"cycles {_int(tm.get('cycles'))}   deadline misses ")
-    text.append(_int(misses), "bold red" if misses else "")
-    text.append("   overrun periods ")
-    text.append(_int(overruns), "bold red" if overruns else "")
+    text = Text(f"cycles {_int(tm.get('cycles'))}")
+    for key, label, always in (("deadline_misses", "deadline misses", True),
+                               ("skipped_periods", "skipped periods", False),
+                               ("overrun_periods", "overrun periods", False)):
+        if always or key in tm:
+            n = _num(tm.get(key))
+            text.append(f"   {label} ")
+            text.append(_int(n), "bold red" if n else "")
     rec = status.get("recorder") if isinstance(status.get("recorder"), Mapping) else {}
     healthy = rec.get("healthy")
     text.append(f"   recorder rows {_int(rec.get('rows'))} ")

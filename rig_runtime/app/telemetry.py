@@ -10,7 +10,7 @@ datagram of at most ``MAX_DATAGRAM`` bytes::
      "rear":  {"y": ..., "psi": ..., "dpsi": ..., "delta_omega": ..., "y_ref": ..., "psi_ref": ..., "u": ...},
      "timing": {"lateness": ..., "work": ...},
      "currents": {"fl": ..., "fr": ..., "rl": ..., "rr": ...},
-     "health": {"deadline_misses": 0, "overrun_periods": 0, "recorder_healthy": 1},
+     "health": {"deadline_misses": 0, "skipped_periods": 0, "recorder_healthy": 1},
      "devices": {"b_f": {"state": 0, "bad_frames": 0, "timeouts": 0, "errors": 0}, ...}}
 
 SI units throughout (m, rad, rad/s, A, s). Values that are NaN in the row are left out of
@@ -158,7 +158,8 @@ def status_parts(st: dict) -> dict[str, Any]:
     drivers' counters. Missing keys are left out (tolerant of a partial snapshot)."""
     out: dict[str, Any] = {}
     timing = st.get("timing") or {}
-    health = {k: timing[k] for k in ("deadline_misses", "overrun_periods") if isinstance(timing.get(k), (int, float))}
+    health = {k: timing[k] for k in ("deadline_misses", "skipped_periods", "overrun_periods")
+              if isinstance(timing.get(k), (int, float)) and not isinstance(timing.get(k), bool)}
     rec = st.get("recorder") or {}
     if isinstance(rec.get("healthy"), bool):
         health["recorder_healthy"] = int(rec["healthy"])
