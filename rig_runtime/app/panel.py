@@ -10,7 +10,9 @@ What is shown is ``render(row, status, events, ...)``: a pure function of the la
 (column name -> value), the latest status snapshot and the recent events, so it is tested
 by rendering into a recording console. ``LivePanel`` only keeps those three and lets
 ``rich.live.Live`` redraw them from its own refresh thread (in the sidecar process, never
-the loop's). It does nothing when the stream is not a terminal, unless ``force``.
+the loop's). It draws on ``stream`` (default: standard error, where the status line goes,
+so standard output stays for results such as ``--json``) and does nothing when that is not
+a terminal, unless ``force``.
 Display units: mm, mrad, A, µs (the values inside stay SI).
 """
 
@@ -238,7 +240,7 @@ class LivePanel:
         self.columns = tuple(info.columns)
         attrs = info.attrs if isinstance(info.attrs, Mapping) else {}
         self.duration_s = _num(attrs.get("duration_s"))
-        self.stream = sys.stdout if stream is None else stream
+        self.stream = sys.stderr if stream is None else stream   # stdout stays for results (--json)
         isatty = getattr(self.stream, "isatty", None)
         self.enabled = bool(force) or bool(isatty and isatty())
         self._row: Any = None
