@@ -102,21 +102,24 @@ class Topics:
         self._last_t = float("nan")
 
     def rows(self, block, every: int = 1, first: int = 0) -> int:
-        """Log rows ``first, first+every, ...`` of ``block``; returns how many were logged."""
+        """Log rows ``first, first+every, ...`` of ``block`` on the channels that have a
+        subscriber (a client, an MCAP file); returns how many rows were logged."""
         n = 0
+        state_ch = self._state if self._state.has_sinks() else None
+        active = [(key, ch) for key, ch in self._row_channels if ch.has_sinks()]
+        if state_ch is None and not active:        # nobody listens: encode nothing
+            return 0
         for v in self.signals.values(block[first::every]):
             msg = self.signals.message(v)
             ts = msg["timestamp"]
             ns = _ns(ts)
             if ns is None:
                 continue
-            state = msg.get("state", {})
-            if self._state.has_sinks():
-                self._state.log({"timestamp": ts, **({"t_run": msg["t_run"]} if "t_run" in msg else {}), **state},
-                                log_time=ns)
-            for key, ch in self._row_channels:
-                if ch.has_sinks():
-                    ch.log({"timestamp": ts, **msg[key]}, log_time=ns)
+            if state_ch is not None:
+                state_ch.log({"timestamp": ts, **({"t_run": msg["t_run"]} if "t_run" in msg else {}),
+                              **msg.get("state", {})}, log_time=ns)
+            for key, ch in active:
+                ch.log({"timestamp": ts, **msg[key]}, log_time=ns)
             self._last_t = ts
             n += 1
         return n
