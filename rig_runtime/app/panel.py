@@ -1,7 +1,7 @@
 """A live terminal panel for a run (rich), modelled on Simulink Real-Time's TET monitor.
 
 A sidecar output (``rig_runtime.app.panel:LivePanel``, constructed in the recording sidecar
-as ``LivePanel(info, stream=None, force=False, refresh_per_second=4)``). It shows the state
+as ``LivePanel(info, stream=None, force=False, refresh_per_second=2)``). It shows the state
 with elapsed and remaining time, the reference and y/ψ/u of each controlled carrier, each
 device's health and counters, the faults with their cause, and the timing monitor (cycle
 work and wake-up lateness last/p50/p99/max, deadline misses, skipped/overrun periods).
@@ -206,28 +206,32 @@ def _counts(status) -> Text:
     return text
 
 
-def _counters(status) -> Text | None:
+def _counters(status) -> Table | None:
+    """The drivers' counters, one line per driver (cut at the panel's width)."""
     c = status.get("counters")
     if not isinstance(c, Mapping) or not c:
         return None
-    parts = []
+    t = Table(title="driver counters", title_justify="left", box=None, pad_edge=False, show_header=False)
+    t.add_column("driver", no_wrap=True, min_width=min(40, max(len(str(d)) for d in c)))
+    t.add_column("counters", no_wrap=True, overflow="ellipsis", style="dim")
     for driver, counts in c.items():
         if isinstance(counts, Mapping):
-            parts.append(f"{driver}: " + " ".join(f"{k} {_int(v)}" for k, v in counts.items()))
-    return Text("counters  " + "   ".join(parts), style="dim") if parts else None
+            t.add_row(str(driver), " ".join(f"{k} {_int(v)}" for k, v in counts.items()))
+    return t if t.row_count else None
 
 
 def render(row: Mapping[str, float] | None, status: Mapping | None, events: Sequence[tuple] = (), *,
            controlled: Sequence[str] | None = None, duration_s: float | None = None) -> Group:
     """The panel for the latest ``row`` (column -> value), ``status`` snapshot and recent
-    ``events`` (the log's event tuples). Anything missing shows as ``-``."""
+    ``events`` (the log's event tuples). Anything missing shows as ``-``. (One frame costs
+    a few ms of the sidecar's CPU, hence the modest default refresh rate of LivePanel.)"""
     row = row or {}
     status = status if isinstance(status, Mapping) else {}
     parts: list[Any] = [_header(row, status, duration_s), Text(""), _carriers(row, status, controlled), Text(""),
                         _devices(status)]
     counters = _counters(status)
     if counters is not None:
-        parts.append(counters)
+        parts += [Text(""), counters]
     parts += [Text(""), _faults(status, events), Text(""), _timing(row, status), _counts(status)]
     return Group(*parts)
 
@@ -236,7 +240,7 @@ class LivePanel:
     """Keeps the latest row, status and events and redraws ``render`` of them with
     ``rich.live.Live`` (its own refresh thread) while attached to a terminal."""
 
-    def __init__(self, info, stream=None, force: bool = False, refresh_per_second: float = 4.0):
+    def __init__(self, info, stream=None, force: bool = False, refresh_per_second: float = 2.0):
         self.columns = tuple(info.columns)
         attrs = info.attrs if isinstance(info.attrs, Mapping) else {}
         self.duration_s = _num(attrs.get("duration_s"))
