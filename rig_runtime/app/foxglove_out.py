@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from ..errors import ConfigError
-from .telemetry import RowSignals, status_parts
+from .telemetry import EveryNth, RowSignals, status_parts
 
 INSTALL_HINT = "the foxglove extra: pip install 'rig-runtime[foxglove]'"
 TOPIC = "/rig/"
@@ -101,15 +101,15 @@ class Topics:
         self._health = self.channels["health"]
         self._last_t = float("nan")
 
-    def rows(self, block, every: int = 1, first: int = 0) -> int:
-        """Log rows ``first, first+every, ...`` of ``block`` on the channels that have a
-        subscriber (a client, an MCAP file); returns how many rows were logged."""
+    def rows(self, block) -> int:
+        """Log the rows of ``block`` on the channels that have a subscriber (a client, an
+        MCAP file); returns how many rows were logged."""
         n = 0
         state_ch = self._state if self._state.has_sinks() else None
         active = [(key, ch) for key, ch in self._row_channels if ch.has_sinks()]
         if state_ch is None and not active:        # nobody listens: encode nothing
             return 0
-        for v in self.signals.values(block[first::every]):
+        for v in self.signals.values(block):
             msg = self.signals.message(v)
             ts = msg["timestamp"]
             ns = _ns(ts)
@@ -152,12 +152,9 @@ class FoxgloveServer:
 
     def __init__(self, info, host: str = "127.0.0.1", port: int = 8765, every: int = 1):
         fg = _sdk()
-        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
-            raise ConfigError(None, "foxglove every", "an integer >= 1 (send every Nth cycle)", every)
+        self._every = EveryNth(every, "foxglove every")
         if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port < 65536:
             raise ConfigError(None, "--foxglove", "a port 1-65535", port)
-        self.every = every
-        self._rows_seen = 0
         self.context = fg.Context()
         self.topics = Topics(fg, self.context, info.columns)
         try:
@@ -169,11 +166,9 @@ class FoxgloveServer:
         self.port = self.server.port
 
     def rows(self, block) -> None:
-        n = len(block)
-        first = (-self._rows_seen) % self.every
-        self._rows_seen += n
-        if first < n:
-            self.topics.rows(block, self.every, first)
+        block = self._every(block)
+        if len(block):
+            self.topics.rows(block)
 
     def event(self, ev: tuple) -> None:
         self.topics.event(ev)

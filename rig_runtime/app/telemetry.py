@@ -73,6 +73,21 @@ def parse_udp_url(url: str, *, option: str = "--telemetry") -> tuple[str, int]:
     return parts.hostname, port
 
 
+class EveryNth:
+    """Rows 0, N, 2N, ... of a stream that arrives in blocks of any size."""
+
+    def __init__(self, every: int, option: str = "--telemetry-every"):
+        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+            raise ConfigError(None, option, "an integer >= 1 (send every Nth cycle)", every)
+        self.every = every
+        self.seen = 0
+
+    def __call__(self, block: np.ndarray) -> np.ndarray:
+        first = (-self.seen) % self.every
+        self.seen += len(block)
+        return block[first::self.every]
+
+
 @dataclass(frozen=True)
 class Group:
     """One nested object of a message: its key, its field names and their column indices."""
@@ -208,8 +223,7 @@ class UdpTelemetry:
     """
 
     def __init__(self, info, host: str = "127.0.0.1", port: int = DEFAULT_PORT, every: int = 1):
-        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
-            raise ConfigError(None, "telemetry every", "an integer >= 1 (send every Nth cycle)", every)
+        self._every = EveryNth(every)
         if isinstance(port, bool) or not isinstance(port, int) or not 0 < port < 65536:
             raise ConfigError(None, "telemetry port", "an integer port 1-65535", port)
         try:
@@ -217,7 +231,6 @@ class UdpTelemetry:
         except (OSError, UnicodeError) as e:
             raise ConfigError(None, "telemetry host", f"a resolvable host name or address ({e})", host) from None
         self.addr = addr
-        self.every = every
         self.signals = RowSignals(info.columns)
         self.dropped_fields: list[str] = []
         while len(self._encode(self.signals.worst_case())) > MAX_DATAGRAM:
@@ -230,7 +243,6 @@ class UdpTelemetry:
         self.sent = 0
         self.send_errors = 0
         self.last_error = ""
-        self._rows_seen = 0
         self._sock = socket.socket(family, socket.SOCK_DGRAM)
         self._sock.setblocking(False)
         if self.dropped_fields:
@@ -253,13 +265,11 @@ class UdpTelemetry:
         return body
 
     def rows(self, block: np.ndarray) -> None:
-        n = len(block)
-        first = (-self._rows_seen) % self.every
-        self._rows_seen += n
-        if first >= n:
+        block = self._every(block)
+        if not len(block):
             return
         sock, addr = self._sock, self.addr
-        for v in self.signals.values(block[first::self.every]):
+        for v in self.signals.values(block):
             data = self.datagram(v)
             if data is None:
                 continue
