@@ -207,6 +207,14 @@ def test_send_errors_are_counted_not_raised(receiver, monkeypatch):
     assert out.sent == 1
 
 
+def test_localhost_reaches_an_ipv4_listener(receiver):
+    cols = columns()
+    out = UdpTelemetry(LogInfo("run.h5", cols), host="localhost", port=receiver.getsockname()[1])
+    out.rows(make_rows(cols, 1))
+    receive(receiver, 1)
+    out.close()
+
+
 def test_nobody_listening_is_not_an_error():
     probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     probe.bind(("127.0.0.1", 0))

@@ -227,9 +227,11 @@ class UdpTelemetry:
         if isinstance(port, bool) or not isinstance(port, int) or not 0 < port < 65536:
             raise ConfigError(None, "telemetry port", "an integer port 1-65535", port)
         try:
-            family, _, _, _, addr = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0]
+            found = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)
         except (OSError, UnicodeError) as e:
             raise ConfigError(None, "telemetry host", f"a resolvable host name or address ({e})", host) from None
+        # IPv4 first: "localhost" often resolves to ::1 first while viewers listen on 0.0.0.0
+        family, _, _, _, addr = min(found, key=lambda a: a[0] != socket.AF_INET)
         self.addr = addr
         self.signals = RowSignals(info.columns)
         self.dropped_fields: list[str] = []
