@@ -100,8 +100,8 @@ class Group:
 class RowSignals:
     """Which log columns feed which nested field, built once from the column list.
 
-    Groups are listed in priority order (the most important first): state, carriers,
-    timing, currents. ``values(block)`` selects the needed columns of many rows with one
+    ``t``, ``t_run`` and ``state`` come first, then the groups in priority order (the most
+    important first): carriers, timing, currents. ``values(block)`` selects the needed columns of many rows with one
     numpy take; ``message(v)`` builds the nested dict of one row from that selection by
     position, never by looking a column up by name.
     """
@@ -290,7 +290,7 @@ class UdpTelemetry:
         for i, candidate in enumerate(_shrink(parts)):
             try:
                 text = json.dumps(candidate, separators=_SEP, allow_nan=False)[1:-1].encode() if candidate else b""
-            except ValueError:                   # a NaN counter: leave this version out
+            except (TypeError, ValueError):      # a NaN or non-number counter: leave this version out
                 continue
             if len(text) + 1 <= self._status_budget:
                 self._status_text = (b"," + text) if text else b""
