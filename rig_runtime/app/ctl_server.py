@@ -174,15 +174,12 @@ class CtlServer:
             else:
                 raise CtlError(f"another run is listening at {path}")
         s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        old = os.umask(0o177)                   # the socket is created 0600, no window open to others
         try:
             s.bind(str(path))
-        except OSError as e:
+            os.chmod(path, 0o600)               # (no umask games: the umask is the whole process's; the
+        except OSError as e:                    # 0700 directory keeps others out until this chmod)
             s.close()
             raise CtlError(f"cannot listen at {path}: {e.strerror}") from None
-        finally:
-            os.umask(old)
-        os.chmod(path, 0o600)
         s.listen(4)
         s.settimeout(0.2)                       # the accept loop looks at close() this often
         return s
