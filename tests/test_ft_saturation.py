@@ -2,13 +2,16 @@
 at rest, so the rear wheels' static load (480 N, more than the register format holds) is
 tared out and every reading stays inside the int16 range; a reading pinned at a limit is a
 saturated sensor, INVALID — and, the F/T sensors being supervisor channels, that stops the
-run like any INVALID channel (docs/protocols.md, "Saturation")."""
+run, or keeps the rig from arming, like any INVALID channel (docs/protocols.md §3, "A
+saturated sensor and the run")."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from drivers.ft_codec import AXES, FORCE_COUNTS_PER_N, INT16_MAX, INT16_MIN, TORQUE_COUNTS_PER_NM
+from rig_runtime.errors import DeviceInitError
 from rig_runtime.scenario import load_scenario
 
 from .e2e import run
@@ -68,3 +71,11 @@ def test_a_saturated_sensor_is_invalid_and_stops_the_run_with_axis_and_value(tmp
     k = r.fault_row()
     assert r.col("ft_rr_fy")[k] == 327.67                     # the value recorded, flagged by the fault
     assert np.all(r.col("ft_rr_fy")[: k - 30] < 100.0)
+
+
+def test_a_sensor_saturated_before_the_run_keeps_the_rig_from_arming_naming_it(tmp_path, cfg):
+    def untared(sim, devices, clock):      # as an un-zeroed sensor under 480 N would read
+        sim.ft.inject("ft_rr", "offset", fz=480.0)
+
+    with pytest.raises(DeviceInitError, match=r"arming: .*ft_rr: Fz saturated at \+327\.67 N \(int16 limit\)"):
+        run(tmp_path, _scenario(tmp_path, SCENARIO), cfg, prepare=untared)
