@@ -7,9 +7,10 @@ thread, inline; :mod:`drivers.ft_process`: a separate process).
   :class:`RtuLink` (pymodbus's synchronous serial client, imported only for RTU sensors);
 * :class:`PollCore` — connects, sends, reads, and classifies each transaction's outcome
   (sample, saturated sample, Modbus exception, timeout, bad frame, lost connection, failed
-  connect) into an immutable :class:`Published` per sensor. Its blocking parts (``open``, ``round``) serve
-  the open-time reads and the thread/process pollers; the non-blocking parts (``send``,
-  ``on_readable``, ``give_up``, the outcomes) are what the inline poller uses too;
+  connect) into an immutable :class:`Published` per sensor. Its blocking parts (``open``,
+  ``round``) serve the open-time reads and the thread/process pollers; the non-blocking
+  parts (``send``, ``on_readable``, ``give_up``, the outcomes) are what the inline poller
+  uses too;
 * :class:`Poller` — the interface of the three pollers: ``start()`` (blocking: connect and
   read every sensor once), ``latest(now)`` (never blocks), ``failure()``, ``close()``.
 
