@@ -681,7 +681,7 @@ def test_a_register_pinned_at_the_int16_limit_of_a_pymodbus_server_is_invalid(po
         d.configure()                       # a saturated sensor answers: the open succeeds
         try:
             r = wait_for(lambda: (x := d.poll(time.monotonic())["left"]).age < STALE_S
-                         and d.counters().get("left.connects", 0) >= 1 and x.health.errors >= 2 and x)
+                         and x.health.errors >= 2 and x)
             assert r.health.state is Freshness.INVALID
             assert r.health.cause == "Fz saturated at +327.67 N, Mx saturated at -32.768 N·m (int16 limit)"
             assert r.health.timeouts == r.health.bad_frames == 0
