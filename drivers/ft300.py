@@ -40,7 +40,8 @@ class FTReading(NamedTuple):
     """What :meth:`FTSensorSet.poll` reports for one sensor (a new object per call; its
     ``health`` is the same object between calls while nothing changed)."""
 
-    wrench: Optional[Wrench]    # latest valid sample (kept while STALE/INVALID); None before the first
+    wrench: Optional[Wrench]    # latest sample (kept while STALE/INVALID; a saturated one is
+                                # passed on with health INVALID); None before the first
     t: float                    # time the sample was received (nan if none; -inf: read at open by
                                 # the inline poller, before any time was given)
     age: float                  # now - t (inf if none)
@@ -48,13 +49,15 @@ class FTReading(NamedTuple):
 
 
 class _View:
-    """A sensor's latest publication and the health built from it, kept until either changes."""
+    """A sensor's latest publication, its sample's saturation (:attr:`Wrench.saturation`,
+    worked out once per publication) and the health built from them, kept until they change."""
 
-    __slots__ = ("name", "pub", "health")
+    __slots__ = ("name", "pub", "saturation", "health")
 
     def __init__(self, name: str) -> None:
         self.name = name
         self.pub: Optional[Published] = None
+        self.saturation = ""
         self.health: Optional[Health] = None
 
 
@@ -106,20 +109,24 @@ class FTSensorSet(Driver):
         poller does its non-blocking I/O here)."""
         out = {}
         for v, p in zip(self._views, self._poller.latest(now)):
+            if p is not v.pub:
+                v.saturation = p.wrench.saturation if p.wrench is not None else ""
+                v.pub = p
             age = now - p.t if p.wrench is not None else math.inf
-            state, cause = self._classify(p, age)
+            state, cause = self._classify(p, age, v.saturation)
             h = v.health = health(v.health, state, cause, p.bad_frames, p.timeouts, p.errors)
-            v.pub = p
             out[v.name] = FTReading(p.wrench, p.t, age, h)
         return out
 
-    def _classify(self, p: Published, age: float) -> tuple[Freshness, str]:
+    def _classify(self, p: Published, age: float, saturation: str) -> tuple[Freshness, str]:
         """State and cause of one sensor: INVALID while the latest reply is a Modbus exception;
-        FRESH while the latest sample is at most ``stale_s`` old; else STALE, with why."""
+        while the latest sample is at most ``stale_s`` old, FRESH — or INVALID if an axis of
+        it sits at an INT16 limit (``saturation``: the sensor is saturated, the value is not
+        a measurement); else STALE, with why."""
         if p.exc_code is not None:
             return _INVALID, p.cause
         if age <= self._stale_s:
-            return _FRESH, ""
+            return (_INVALID, saturation) if saturation else (_FRESH, "")
         why = self._poller.failure() or p.cause
         if p.wrench is None:
             return _STALE, f"no sample yet ({why})"

@@ -1,7 +1,9 @@
 """FT 300 register codec: holding registers 180–185 <-> :class:`Wrench`.
 
 Fx, Fy, Fz are INT16 in 0.01 N per count, Mx, My, Mz INT16 in 0.001 N·m per count;
-Modbus delivers them as unsigned 0..65535. Written once for both ends of the wire: the
+Modbus delivers them as unsigned 0..65535. A register at an INT16 limit (+32767, −32768) is
+a saturated sensor, not a measurement: :attr:`Wrench.saturation` says which axes (the one
+rule; the driver's health turns INVALID on it). Written once for both ends of the wire: the
 driver decodes (:func:`wrench_from_registers`), the simulated sensors
 (``sim_backend.virtual_ft``) encode (:func:`registers_from_wrench`). No I/O here, and no
 import of the driver: the simulator imports this module, not the driver.
@@ -16,7 +18,7 @@ from dataclasses import dataclass
 
 __all__ = [
     "REG_START", "REG_COUNT", "DEFAULT_UNIT_ID", "FORCE_COUNTS_PER_N", "TORQUE_COUNTS_PER_NM",
-    "INT16_MIN", "INT16_MAX", "Wrench", "wrench_from_registers", "registers_from_wrench",
+    "INT16_MIN", "INT16_MAX", "AXES", "Wrench", "wrench_from_registers", "registers_from_wrench",
 ]
 
 REG_START = 180                 # holding register of Fx (0-based protocol address)
@@ -26,6 +28,10 @@ FORCE_COUNTS_PER_N = 100.0      # 1 count = 0.01 N
 TORQUE_COUNTS_PER_NM = 1000.0   # 1 count = 0.001 N·m
 INT16_MIN, INT16_MAX = -32768, 32767
 _SCALES = (FORCE_COUNTS_PER_N,) * 3 + (TORQUE_COUNTS_PER_NM,) * 3
+AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
+# per axis: the values an INT16 limit decodes to (lowest, highest), and how a value is shown
+_LIMITS = tuple((INT16_MIN / s, INT16_MAX / s) for s in _SCALES)
+_SHOW = ("{:+.2f} N",) * 3 + ("{:+.3f} N·m",) * 3
 _U16x6, _I16x6 = struct.Struct("=6H"), struct.Struct("=6h")   # two's complement by reinterpretation
 
 
@@ -43,10 +49,22 @@ class Wrench:
     def as_tuple(self) -> tuple[float, float, float, float, float, float]:
         return (self.fx, self.fy, self.fz, self.mx, self.my, self.mz)
 
+    @property
+    def saturation(self) -> str:
+        """'' while every axis is inside the register format's range; else which axes sit
+        at an INT16 limit (what a register of +32767 or −32768 decodes to, or beyond), e.g.
+        ``"Fz saturated at +327.67 N (int16 limit)"``. Computed from the values, so it
+        survives any hand-off that carries the six floats (the poll process's shared memory)."""
+        out = [f"{a} saturated at {fmt.format(v)}"
+               for a, v, (lo, hi), fmt in zip(AXES, self.as_tuple(), _LIMITS, _SHOW)
+               if v >= hi or v <= lo]
+        return ", ".join(out) + " (int16 limit)" if out else ""
+
 
 def wrench_from_registers(regs: Sequence[int]) -> Wrench:
     """Decode holding registers 180..185 (unsigned integers 0..65535) into a :class:`Wrench`;
-    ValueError for another count or a value that is not such an integer."""
+    ValueError for another count or a value that is not such an integer. A register at an
+    INT16 limit decodes to the limit value, flagged by the result's :attr:`Wrench.saturation`."""
     if len(regs) != REG_COUNT:
         raise ValueError(f"expected {REG_COUNT} registers, got {len(regs)}")
     try:

@@ -6,10 +6,11 @@ thread, inline; :mod:`drivers.ft_process`: a separate process).
   :mod:`drivers.ft_modbus` on a non-blocking socket, one request in flight) or
   :class:`RtuLink` (pymodbus's synchronous serial client, imported only for RTU sensors);
 * :class:`PollCore` — connects, sends, reads, and classifies each transaction's outcome
-  (sample, Modbus exception, timeout, bad frame, lost connection, failed connect) into an
-  immutable :class:`Published` per sensor. Its blocking parts (``open``, ``round``) serve
-  the open-time reads and the thread/process pollers; the non-blocking parts (``send``,
-  ``on_readable``, ``give_up``, the outcomes) are what the inline poller uses too;
+  (sample, saturated sample, Modbus exception, timeout, bad frame, lost connection, failed
+  connect) into an immutable :class:`Published` per sensor. Its blocking parts (``open``,
+  ``round``) serve the open-time reads and the thread/process pollers; the non-blocking
+  parts (``send``, ``on_readable``, ``give_up``, the outcomes) are what the inline poller
+  uses too;
 * :class:`Poller` — the interface of the three pollers: ``start()`` (blocking: connect and
   read every sensor once), ``latest(now)`` (never blocks), ``failure()``, ``close()``.
 
@@ -52,12 +53,13 @@ class Published:
     """Immutable outcome of a sensor's latest transaction: all the driver's ``poll()`` reads.
     Every publication increments one count (a sample, timeout, error, …)."""
 
-    wrench: Optional[Wrench]    # latest valid sample (kept after failures); None before the first
+    wrench: Optional[Wrench]    # latest sample (kept after failures; a saturated one too, see
+                                # Wrench.saturation); None before the first
     t: float                    # clock time the sample was received (nan if none)
     cause: str                  # outcome of the latest transaction ("" if it was a valid sample)
     exc_code: Optional[int]     # set iff the latest transaction was a Modbus exception response
     timeouts: int
-    errors: int
+    errors: int                 # exception responses and saturated samples
     bad_frames: int
     counters: tuple[tuple[str, int], ...]
 
@@ -481,9 +483,17 @@ class PollCore:
 
     # ------------------------------------------------------------------ outcomes
     def sample(self, s: Sensor, regs: Sequence[int], t: float) -> None:
-        s.wrench, s.t = wrench_from_registers(regs), t
-        s.counters["samples"] += 1
-        s.publish("")
+        """A register block arrived: a sample, or — an axis at an INT16 limit — a saturated
+        reading, published like a sample (the driver's health marks it INVALID, see
+        :attr:`Wrench.saturation`) but counted in ``errors``, not ``samples``."""
+        w = wrench_from_registers(regs)
+        s.wrench, s.t = w, t
+        cause = w.saturation
+        if cause:
+            s.errors += 1
+        else:
+            s.counters["samples"] += 1
+        s.publish(cause)
 
     def timeout(self, link: Link, s: Sensor) -> None:
         s.timeouts += 1

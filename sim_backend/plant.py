@@ -54,7 +54,9 @@ from rig_runtime.config import Plant as PlantParams
 __all__ = ["PlantState", "Plant", "LiftedCarrier", "WHEEL_LOAD_N", "STATE_NAMES"]
 
 #: ESTIMATE: static vertical load per wheel, N. A full-scale low-floor IRW wheel carries about
-#: 60 kN; scaled 1:5 with mass ~ 1/5^3 that is 480 N. Only used for the simulated Fz readings.
+#: 60 kN; scaled 1:5 with mass ~ 1/5^3 that is 480 N. Only in the F/T loads (``ft_loads``):
+#: more than an FT 300 measures (±300 N rated, ±327.67 N in its registers), which is why the
+#: sensors are zeroed at rest (``ft_readings``).
 WHEEL_LOAD_N = 480.0
 
 #: Layout of the state vector used by ``Plant.rhs`` / ``Plant.state_vector`` (the last two only
@@ -547,6 +549,7 @@ class Plant:
                                       psi_off=rear_lifted.psi_off), substeps)
         self._h = None
         self.reset()
+        self._ft_rest = self.ft_rest_loads()     # the contact set-up is fixed for the plant's life
 
     # ---------------------------------------------------------------- state handling
     def reset(self, *, t: float = 0.0, y_f: Optional[float] = None, y_r: Optional[float] = None,
@@ -662,8 +665,8 @@ class Plant:
         dwf = (self._gvb * self._y_f + self._b2r * f.p + self._vk * f.du) if self.front_contact else 0.0
         return dwf, dwr
 
-    def ft_readings(self) -> dict[str, tuple[float, float, float, float, float, float]]:
-        """Simulated force-torque sensor values (Fx, Fy, Fz, Mx, My, Mz) per wheel side.
+    def ft_loads(self) -> dict[str, tuple[float, float, float, float, float, float]]:
+        """Loads (Fx, Fy, Fz, Mx, My, Mz) through each wheel side's force-torque sensor.
 
         Model (estimates, docs/plant-model.md): the held disturbance of a carrier passes half
         through each side (Fy = F_y/2, Mz = M_z/2); a carrier in contact adds the static
@@ -679,6 +682,19 @@ class Plant:
             out[name + "l"] = (fx, 0.5 * F, fz, 0.0, 0.0, 0.5 * car.M)
             out[name + "r"] = (-fx, 0.5 * F, fz, 0.0, 0.0, 0.5 * car.M)
         return out
+
+    def ft_rest_loads(self) -> dict[str, tuple[float, float, float, float, float, float]]:
+        """:meth:`ft_loads` of the rig at rest (no current, no disturbance) with its carriers'
+        contact as configured: what the sensors are zeroed on (the static wheel load)."""
+        return {k: (0.0, 0.0, fz, 0.0, 0.0, 0.0) for k, (_, _, fz, _, _, _) in self.ft_loads().items()}
+
+    def ft_readings(self) -> dict[str, tuple[float, float, float, float, float, float]]:
+        """Simulated force-torque sensor values (Fx, Fy, Fz, Mx, My, Mz) per wheel side: the
+        sensors are zeroed (tared) at rest before the run, as on the rig, so each reads
+        :meth:`ft_loads` minus :meth:`ft_rest_loads` — the static wheel load is tared out and
+        Fz is its change (0 in this model, which has no vertical dynamics)."""
+        rest = self._ft_rest
+        return {k: tuple(a - b for a, b in zip(v, rest[k])) for k, v in self.ft_loads().items()}
 
     # ---------------------------------------------------------------- integration
     def _prepare(self, h: float) -> None:

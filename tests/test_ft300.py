@@ -25,7 +25,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from rig_runtime.hardware import Freshness
 from drivers.ft300 import FTSensorSet
-from drivers.ft_codec import REG_COUNT, REG_START, Wrench, registers_from_wrench, wrench_from_registers
+from drivers.ft_codec import AXES, REG_COUNT, REG_START, Wrench, registers_from_wrench, wrench_from_registers
 from drivers.ft_modbus import decode_read_response, encode_read_request, frame_length
 from drivers.ft_poll import Published
 from drivers.ft_process import SLOT_SIZE, SlotReader, SlotWriter
@@ -151,6 +151,42 @@ def test_codec_registers_survive_decode_encode(regs):
     assert registers_from_wrench(wrench_from_registers(regs)) == regs
 
 
+def test_codec_flags_registers_at_the_int16_limits_as_saturated():
+    # worked by hand: 32767 counts = +327.67 N / +32.767 N·m, 0x8000 = -32768 counts =
+    # -327.68 N / -32.768 N·m; one count inside (32766, 0x8001 = -32767) is a measurement
+    assert wrench_from_registers([0, 0, 32767, 0, 0, 0]).saturation == "Fz saturated at +327.67 N (int16 limit)"
+    assert wrench_from_registers([0x8000, 0, 0, 0, 0, 0]).saturation == "Fx saturated at -327.68 N (int16 limit)"
+    assert wrench_from_registers([0, 0, 0, 0, 0x7FFF, 0]).saturation == "My saturated at +32.767 N·m (int16 limit)"
+    w = wrench_from_registers([0, 0x8000, 32767, 0x8000, 0, 0])
+    assert (w.fy, w.fz, w.mx) == (-327.68, 327.67, -32.768)     # the value is still decoded …
+    assert w.saturation == ("Fy saturated at -327.68 N, Fz saturated at +327.67 N, "
+                            "Mx saturated at -32.768 N·m (int16 limit)")   # … and flagged
+    assert wrench_from_registers([32766, 0x8001, 32766, 0x8001, 32766, 0x8001]).saturation == ""
+    assert wrench_from_registers(REGS_LEFT).saturation == ""
+    # what the simulated sensor encodes at or beyond the range is flagged once decoded
+    assert wrench_from_registers(registers_from_wrench(Wrench(fz=480.0))).saturation.startswith("Fz saturated at +327.67 N")
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.integers(0, 0xFFFF), min_size=6, max_size=6))
+def test_codec_saturation_names_exactly_the_axes_at_a_limit(regs):
+    text = wrench_from_registers(regs).saturation
+    at_limit = [a for a, r in zip(AXES, regs) if r in (0x7FFF, 0x8000)]
+    assert bool(text) == bool(at_limit)
+    assert [a for a in AXES if f"{a} saturated" in text] == at_limit
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.tuples(forces, forces, forces, moments, moments, moments))
+def test_codec_values_inside_the_range_are_not_saturated(values):
+    w = Wrench(*values)
+    regs = registers_from_wrench(w)
+    assert (wrench_from_registers(regs).saturation == "") == all(r not in (0x7FFF, 0x8000) for r in regs)
+    inner = Wrench(*(max(-327.66, min(327.66, v)) for v in values[:3]),
+                   *(max(-32.766, min(32.766, v)) for v in values[3:]))
+    assert inner.saturation == "" and wrench_from_registers(registers_from_wrench(inner)).saturation == ""
+
+
 # --------------------------------------------------------------------------- driver <-> virtual sensors
 def test_values_arrive_fresh(server, driver):
     r = wait_for(lambda: (p := driver.poll(time.monotonic()))["right"].health.fresh and p)
@@ -218,6 +254,21 @@ def test_exception_response_is_invalid_with_code(server, driver):
     wait_for(lambda: "exception 2 (illegal data address)" in driver.poll(time.monotonic())["right"].health.cause)
     server.clear("right")
     wait_for(lambda: driver.poll(time.monotonic())["right"].health.fresh)
+
+
+def test_saturated_sample_is_invalid_with_axis_and_value_and_recovers(server, driver):
+    server.set_wrench("right", Wrench(fz=480.0, fy=3.0))       # beyond the range: pinned at +32767
+    r = wait_for(lambda: (x := driver.poll(time.monotonic())["right"]).health.state is Freshness.INVALID and x)
+    assert r.health.cause == "Fz saturated at +327.67 N (int16 limit)"
+    assert r.wrench == Wrench(fz=327.67, fy=3.0) and r.age < STALE_S     # passed on, flagged
+    assert r.health.errors >= 1 and r.health.timeouts == r.health.bad_frames == 0
+    n = driver.counters()["right.samples"]
+    wait_for(lambda: driver.poll(time.monotonic())["right"].health.errors >= r.health.errors + 2)
+    assert driver.counters()["right.samples"] == n            # counted in errors, not in samples
+    assert driver.poll(time.monotonic())["left"].health.fresh
+    server.set_wrench("right", Wrench(fz=-2.0))
+    h = wait_for(lambda: (x := driver.poll(time.monotonic())["right"].health).fresh and x)
+    assert h.cause == "" and driver.poll(time.monotonic())["right"].wrench == Wrench(fz=-2.0)
 
 
 @pytest.mark.parametrize("mode", ["garble", "truncate"])
@@ -614,6 +665,28 @@ def test_driver_reads_a_plain_pymodbus_server(poller):
             assert d.poll(time.monotonic())["left"].wrench == W_LEFT
             h = wait_for(lambda: (x := d.poll(time.monotonic())["left"].health) and d.counters().get("left.samples", 0) >= 3 and x)
             assert h.fresh and h.bad_frames == h.timeouts == h.errors == 0
+        finally:
+            d.close()
+    finally:
+        peer.close()
+
+
+@pytest.mark.parametrize("poller", POLLERS)
+def test_a_register_pinned_at_the_int16_limit_of_a_pymodbus_server_is_invalid(poller):
+    """pymodbus's own server and datastore, INT16 values encoded by pymodbus: Fz pinned at
+    +32767 and Mx at -32768, as a real sensor at its limit answers."""
+    peer = _PlainPymodbusServer([-1234, 50, 32767, -32768, -500, 1500])
+    try:
+        d = FTSensorSet(bus("left", poller=poller), {"left": ("127.0.0.1", peer.port)})
+        d.configure()                       # a saturated sensor answers: the open succeeds
+        try:
+            r = wait_for(lambda: (x := d.poll(time.monotonic())["left"]).age < STALE_S
+                         and x.health.errors >= 2 and x)
+            assert r.health.state is Freshness.INVALID
+            assert r.health.cause == "Fz saturated at +327.67 N, Mx saturated at -32.768 N·m (int16 limit)"
+            assert r.health.timeouts == r.health.bad_frames == 0
+            assert r.wrench == Wrench(fx=-12.34, fy=0.5, fz=327.67, mx=-32.768, my=-0.5, mz=1.5)
+            assert d.counters()["left.samples"] == 0
         finally:
             d.close()
     finally:

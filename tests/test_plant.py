@@ -136,11 +136,15 @@ def test_disturbance_steady_states(P):
 def test_ft_sensor_readings(P):
     pl = Plant(P)
     pl.step(H, 0.0, 1.0, F_y_r=100.0, M_z_r=2.0)
-    ft = pl.ft_readings()
+    ft = pl.ft_loads()
     fx = 0.5 * 1.0 / (2 * 0.075)
     assert ft["rl"] == pytest.approx((fx, 50.0, WHEEL_LOAD_N, 0.0, 0.0, 1.0))
     assert ft["rr"] == pytest.approx((-fx, 50.0, WHEEL_LOAD_N, 0.0, 0.0, 1.0))
     assert ft["fl"] == ft["fr"] == (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)   # lifted front, undisturbed
+    read = pl.ft_readings()         # the sensors are zeroed at rest: the wheel load is tared out
+    assert read["rl"] == pytest.approx((fx, 50.0, 0.0, 0.0, 0.0, 1.0))
+    assert read["rr"] == pytest.approx((-fx, 50.0, 0.0, 0.0, 0.0, 1.0))
+    assert read["fl"] == read["fr"] == (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 # --------------------------------------------------------------------------- poles
