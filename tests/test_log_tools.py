@@ -106,12 +106,16 @@ def test_response_figure_markers_limits_labels(fault_log):
         lim = {l.get_gid(): l.get_ydata()[0] for l in _by_gid(fig, "limit:")}
         assert lim["limit:+u_max"] == u_max and lim["limit:-u_max"] == -u_max
         assert lim["limit:+y_max"] == pytest.approx(y_max * 1e3) and lim["limit:-y_max"] == pytest.approx(-y_max * 1e3)
+        # |u| stays below u_max / 2: the axes keep the data's scale and a note names the limit
+        assert ax[3].get_ylim()[1] < u_max and _gid(fig, "limit-note:u_max")
+        assert "4 A" in _gid(fig, "limit-note:u_max")[0].get_text()
         fault = run.faults()[0]
         marks = _gid(fig, "fault:s_rl:stale")
         assert len(marks) == 4 and all(m.get_xdata()[0] == pytest.approx(fault.t_run) for m in marks)
         running = [m for m in _gid(fig, "state:RUNNING") if m in ax[0].get_children()]
         assert len(running) == 1 and running[0].get_xdata()[0] == 0.0
-        assert {t.get_text() for t in _by_gid(fig, "state-label:")} == {"ARMED", "RUNNING", "FAULT"}
+        labels = [t.get_text() for t in _by_gid(fig, "state-label:")]
+        assert [n for lab in labels for n in lab.split("→")] == ["ARMED", "RUNNING", "FAULT"]
         y = next(l for l in ax[0].get_lines() if l.get_gid() == "y:rear")
         np.testing.assert_allclose(y.get_ydata(), run.columns["y_r"] * 1e3)
         u = next(l for l in ax[3].get_lines() if l.get_gid() == "u:rear")
@@ -119,6 +123,21 @@ def test_response_figure_markers_limits_labels(fault_log):
         assert not _gid(fig, "y:front")                                         # front neither controlled nor driven
     finally:
         figures.pyplot().close(fig)
+
+
+def test_limit_lines_in_view_near_the_limit():
+    plt = figures.pyplot()
+    fig, (a, b) = plt.subplots(2)
+    try:
+        a.plot([0, 1, 2], [0.0, 3.5, -1.0])
+        figures._limit(a, 4.0, 1.0, "u_max", "A")
+        lo, hi = a.get_ylim()
+        assert lo <= -4.0 and hi >= 4.0 and not _gid(fig, "limit-note:u_max")
+        b.plot([0, 1, 2], [0.0, 0.5, -0.2])
+        figures._limit(b, 0.008, 1e3, "y_max", "mm")
+        assert b.get_ylim()[1] < 8.0 and _gid(fig, "limit-note:y_max") and len(_gid(fig, "limit:+y_max")) == 1
+    finally:
+        plt.close(fig)
 
 
 def test_both_carriers_and_forces_on_their_own_axes(both_log):

@@ -5,7 +5,8 @@ compare``, ``rig dry-run --report`` and ``rig tune --plot`` all draw with these.
 Run figures (Figs. 15–18 style) are over run time (s since RUNNING began) and carry:
 a dotted vertical line at every state change (labelled with the new state on the top axes),
 a red vertical line at every fault (labelled ``device check``), dashed ±u_max, ±y_max, ±ψ_max
-lines from the config stored in the log, and every carrier in use (front blue, rear green).
+lines from the config stored in the log (in view when the signal comes within half of the
+limit, else noted in the corner), and every carrier in use (front blue, rear green).
 Artists that tests look for carry a ``gid``: ``state:<NAME>``, ``fault:<device>:<check>``,
 ``limit:+u_max`` … , ``y:<carrier>``, ``u:<carrier>``.
 """
@@ -39,14 +40,25 @@ def save(fig, path: Path) -> Path:
 
 # ------------------------------------------------------------------ markers shared by run figures
 def _markers(ax, run: RunLog, label: bool) -> None:
-    """State changes and faults as vertical lines; with ``label`` their names along the top."""
+    """State changes and faults as vertical lines; with ``label`` their names along the top
+    (changes closer than 2 % of the run's span share one label, ``ARMED→RUNNING``)."""
     import matplotlib.transforms as mtransforms
     tr = mtransforms.blended_transform_factory(ax.transData, ax.transAxes)
-    for t, _, new in run.state_changes():
+    changes = run.state_changes()
+    for t, _, new in changes:
         ax.axvline(t, color=STATE_COLOR.get(new, "0.4"), ls=":", lw=0.9, gid=f"state:{new}")
-        if label:
-            ax.text(t, 1.01, new, transform=tr, rotation=90, va="bottom", ha="center", fontsize=6,
-                    color=STATE_COLOR.get(new, "0.4"), gid=f"state-label:{new}")
+    if label and changes:
+        t_rel = run.t_rel
+        near = 0.02 * (float(t_rel[-1] - t_rel[0]) if len(t_rel) > 1 else 1.0)
+        groups: list[list] = []
+        for t, _, new in changes:
+            if groups and t - groups[-1][0] <= near:
+                groups[-1][1].append(new)
+            else:
+                groups.append([t, [new]])
+        for t, names in groups:
+            ax.text(t, 1.01, "→".join(names), transform=tr, rotation=90, va="bottom", ha="center", fontsize=6,
+                    color=STATE_COLOR.get(names[-1], "0.4"), gid="state-label:" + "→".join(names))
     for e in run.faults():
         ax.axvline(e.t_run, color="red", lw=1.3, gid=f"fault:{e.device}:{e.check}")
         if label:
@@ -55,14 +67,27 @@ def _markers(ax, run: RunLog, label: bool) -> None:
                     bbox={"facecolor": "white", "edgecolor": "none", "alpha": 0.8, "pad": 1})
 
 
-def _limit(ax, value: Optional[float], scale: float, name: str) -> None:
-    """Dashed ±limit lines (``value`` in SI, drawn times ``scale``)."""
+def _limit(ax, value: Optional[float], scale: float, name: str, unit: str = "") -> None:
+    """Dashed ±limit lines (``value`` in SI, drawn times ``scale``). Call after the data is
+    plotted: while the data stays below half the limit the axes keep the data's scale (the
+    lines lie outside the view) and a note in the corner gives the limit, so that a small
+    response stays readable; closer to the limit both are in view."""
     if value is None:
         return
+    data = [np.asarray(l.get_ydata(), float) for l in ax.get_lines()
+            if not (l.get_gid() or "").startswith(("state:", "fault:", "limit:"))]
+    data = np.concatenate([d[np.isfinite(d)] for d in data]) if data else np.array([])
+    lo, hi = (float(data.min()), float(data.max())) if len(data) else (0.0, 0.0)
+    v = value * scale
     for sign in (1, -1):
-        ax.axhline(sign * value * scale, color="0.25", ls="--", lw=0.8,
+        ax.axhline(sign * v, color="0.25", ls="--", lw=0.8,
                    gid=f"limit:{'+' if sign > 0 else '-'}{name}",
                    label=f"±{name}" if sign > 0 else None)
+    if max(abs(lo), abs(hi)) < 0.5 * v:
+        pad = max(0.1 * (hi - lo), 0.02 * v)
+        ax.set_ylim(lo - pad, hi + pad)
+        ax.text(0.995, 0.98, f"±{name} = {v:g} {unit} (beyond this scale)", transform=ax.transAxes, ha="right",
+                va="top", fontsize=7, color="0.25", gid=f"limit-note:{name}")
 
 
 def _finish(fig, axes, xlabel: str = "run time t (s) [0 = RUNNING began]") -> None:
@@ -103,9 +128,9 @@ def response(run: RunLog, title: str = ""):
         if f"{k}_u_cmd" in c:
             ax[3].plot(t, c[f"{k}_u_cmd"], color=col, lw=0.7, ls="--", alpha=0.7, label=f"u {k} (controller)",
                        gid=f"u_cmd:{k}")
-    _limit(ax[0], lim.get("y_max"), 1e3, "y_max")
-    _limit(ax[1], lim.get("psi_max"), 1e3, "psi_max")
-    _limit(ax[3], lim.get("u_max"), 1.0, "u_max")
+    _limit(ax[0], lim.get("y_max"), 1e3, "y_max", "mm")
+    _limit(ax[1], lim.get("psi_max"), 1e3, "psi_max", "mrad")
+    _limit(ax[3], lim.get("u_max"), 1.0, "u_max", "A")
     ax[0].set_ylabel("lateral displacement y (mm)")
     ax[1].set_ylabel("yaw angle ψ (mrad)")
     ax[2].set_ylabel("Δω = ω_left − ω_right (rad/s)")
@@ -120,7 +145,7 @@ def response(run: RunLog, title: str = ""):
 
 def forces(run: RunLog, title: str = ""):
     """Figs. 17/18 style: lateral force F_y and yaw moment M_z of the F/T sensors of the
-    carriers in use (each on its own axes), and the lateral displacement."""
+    carriers in use (each on its own axes), and the lateral displacement (scaled to the data)."""
     plt = pyplot()
     c, t = run.columns, run.t_rel
     carriers = run.carriers_in_use
@@ -132,7 +157,7 @@ def forces(run: RunLog, title: str = ""):
         ax[1].plot(t, c[f"{s}_mz"], lw=1, ls=styles[i % 4], label=f"{s} M_z", gid=f"mz:{s}")
     for k in carriers:
         ax[2].plot(t, c[CARRIER_COLUMNS[k]["y"]] * 1e3, color=CARRIER_COLOR[k], lw=1, label=f"y {k}", gid=f"y:{k}")
-    _limit(ax[2], run.limits.get("y_max"), 1e3, "y_max")
+    # no ±y_max here: the response figure has it, this panel is scaled to the disturbance response
     ax[0].set_ylabel("lateral force F_y (N)")
     ax[1].set_ylabel("yaw moment M_z (N m)")
     ax[2].set_ylabel("lateral displacement y (mm)")
@@ -185,8 +210,8 @@ def compare(runs: list[RunLog], labels: list[str]):
             for a in ax:
                 a.axvline(e.t_run, color=col, lw=1.3, alpha=0.8, gid=f"fault:{e.device}:{e.check}:{i}")
     lim = runs[0].limits
-    _limit(ax[0], lim.get("y_max"), 1e3, "y_max")
-    _limit(ax[2], lim.get("u_max"), 1.0, "u_max")
+    _limit(ax[0], lim.get("y_max"), 1e3, "y_max", "mm")
+    _limit(ax[2], lim.get("u_max"), 1.0, "u_max", "A")
     ax[0].set_ylabel("lateral displacement y (mm)")
     ax[1].set_ylabel("yaw angle ψ (mrad)")
     ax[2].set_ylabel("differential current u (A)")
