@@ -326,3 +326,26 @@ def test_log_tools_on_a_rig_run_log(tmp_path, capsys):
         assert fig.axes[0].get_lines()[0].get_gid() == "y_ref"
     finally:
         figures.pyplot().close(fig)
+
+
+def test_a_minimal_or_empty_log_still_summarises(tmp_path, capsys):
+    """A log with only a few columns (another tool's) or no rows at all (killed before its
+    first flush): info and plot say what there is instead of failing."""
+    from rig_runtime.recorder import Recorder
+    small, empty = tmp_path / "small.h5", tmp_path / "empty.h5"
+    rec = Recorder(small, ["t", "y", "state"], attrs={})
+    rec.open()
+    for i in range(100):
+        rec.append((i * 0.005, 0.001, 2.0 if i > 10 else 1.0))
+    rec.event(0.055, "state", message="ARMED -> RUNNING")
+    rec.close()
+    rec = Recorder(empty, ["t", "t_run", "state", "y_r", "i_rl", "i_rr"], attrs={"config": "{}"})
+    rec.open()
+    rec.close()
+    d = runlog.info(runlog.load(small))
+    assert d["final_state"] == "RUNNING" and d["running_s"] == pytest.approx(0.445) and d["max_abs_u_A"] == {}
+    d = runlog.info(runlog.load(empty))
+    assert d["rows"] == 0 and not d["reached_running"] and d["final_state"] == "-"
+    for log in (small, empty):
+        c, out, _ = rig(capsys, "log", "plot", log, "--out", tmp_path / log.stem)
+        assert c == 0 and (tmp_path / log.stem / "response.png").exists()

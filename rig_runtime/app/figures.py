@@ -121,10 +121,12 @@ def response(run: RunLog, title: str = ""):
         ax[0].plot(t, c["y_ref"] * 1e3, "k--", lw=1, label="y_ref", gid="y_ref")
     for k in carriers:
         cc, col = CARRIER_COLUMNS[k], CARRIER_COLOR[k]
-        ax[0].plot(t, c[cc["y"]] * 1e3, color=col, lw=1, label=f"y {k}", gid=f"y:{k}")
-        ax[1].plot(t, c[cc["psi"]] * 1e3, color=col, lw=1, label=f"ψ {k} (carrier to frame)", gid=f"psi:{k}")
-        ax[2].plot(t, c[cc["dw"]], color=col, lw=0.6, label=f"Δω {k}", gid=f"dw:{k}")
-        ax[3].plot(t, run.u(k), color=col, lw=1, label=f"u {k} (applied)", gid=f"u:{k}")
+        for a, key, scale, name in ((ax[0], "y", 1e3, "y"), (ax[1], "psi", 1e3, "ψ"), (ax[2], "dw", 1.0, "Δω")):
+            if cc[key] in c:
+                a.plot(t, c[cc[key]] * scale, color=col, lw=0.6 if key == "dw" else 1,
+                       label=f"{name} {k}" + (" (carrier to frame)" if key == "psi" else ""), gid=f"{key}:{k}")
+        if run.has_u(k):
+            ax[3].plot(t, run.u(k), color=col, lw=1, label=f"u {k} (applied)", gid=f"u:{k}")
         if f"{k}_u_cmd" in c:
             ax[3].plot(t, c[f"{k}_u_cmd"], color=col, lw=0.7, ls="--", alpha=0.7, label=f"u {k} (controller)",
                        gid=f"u_cmd:{k}")
@@ -137,7 +139,8 @@ def response(run: RunLog, title: str = ""):
     ax[3].set_ylabel("differential current u (A)")
     for i, a in enumerate(ax):
         _markers(a, run, label=i == 0)
-        a.legend(loc="upper left", fontsize=7, ncol=3)
+        if a.get_legend_handles_labels()[0]:
+            a.legend(loc="upper left", fontsize=7, ncol=3)
     fig.suptitle(title or f"{run.path.name}: y, ψ, Δω, u (Figs. 15/16 style)", fontsize=10)
     _finish(fig, ax)
     return fig
@@ -155,7 +158,7 @@ def forces(run: RunLog, title: str = ""):
     for i, s in enumerate(sensors):
         ax[0].plot(t, c[f"{s}_fy"], lw=1, ls=styles[i % 4], label=f"{s} F_y", gid=f"fy:{s}")
         ax[1].plot(t, c[f"{s}_mz"], lw=1, ls=styles[i % 4], label=f"{s} M_z", gid=f"mz:{s}")
-    for k in carriers:
+    for k in (k for k in carriers if CARRIER_COLUMNS[k]["y"] in c):
         ax[2].plot(t, c[CARRIER_COLUMNS[k]["y"]] * 1e3, color=CARRIER_COLOR[k], lw=1, label=f"y {k}", gid=f"y:{k}")
     # no ±y_max here: the response figure has it, this panel is scaled to the disturbance response
     ax[0].set_ylabel("lateral force F_y (N)")
@@ -203,9 +206,12 @@ def compare(runs: list[RunLog], labels: list[str]):
             ax[0].plot(t, c["y_ref"] * 1e3, color=col, lw=0.8, ls=":", label=f"{name}: y_ref", gid=f"y_ref:{i}")
         for k in carriers:
             cc = CARRIER_COLUMNS[k]
-            ax[0].plot(t, c[cc["y"]] * 1e3, color=col, ls=ls[k], lw=1, label=f"{name}: y {k}", gid=f"y:{k}:{i}")
-            ax[1].plot(t, c[cc["psi"]] * 1e3, color=col, ls=ls[k], lw=1, label=f"{name}: ψ {k}", gid=f"psi:{k}:{i}")
-            ax[2].plot(t, r.u(k), color=col, ls=ls[k], lw=1, label=f"{name}: u {k}", gid=f"u:{k}:{i}")
+            if cc["y"] in c:
+                ax[0].plot(t, c[cc["y"]] * 1e3, color=col, ls=ls[k], lw=1, label=f"{name}: y {k}", gid=f"y:{k}:{i}")
+            if cc["psi"] in c:
+                ax[1].plot(t, c[cc["psi"]] * 1e3, color=col, ls=ls[k], lw=1, label=f"{name}: ψ {k}", gid=f"psi:{k}:{i}")
+            if r.has_u(k):
+                ax[2].plot(t, r.u(k), color=col, ls=ls[k], lw=1, label=f"{name}: u {k}", gid=f"u:{k}:{i}")
         for e in r.faults():
             for a in ax:
                 a.axvline(e.t_run, color=col, lw=1.3, alpha=0.8, gid=f"fault:{e.device}:{e.check}:{i}")
@@ -216,7 +222,8 @@ def compare(runs: list[RunLog], labels: list[str]):
     ax[1].set_ylabel("yaw angle ψ (mrad)")
     ax[2].set_ylabel("differential current u (A)")
     for a in ax:
-        a.legend(loc="upper left", fontsize=7, ncol=2)
+        if a.get_legend_handles_labels()[0]:
+            a.legend(loc="upper left", fontsize=7, ncol=2)
     fig.suptitle("comparison: " + " vs ".join(labels), fontsize=10)
     _finish(fig, ax)
     return fig

@@ -74,16 +74,18 @@ class RunLog:
         a, b = CARRIER_COLUMNS[carrier]["wheels"]
         return self.columns[f"i_{a}"] - self.columns[f"i_{b}"]
 
+    def has_u(self, carrier: str) -> bool:
+        return all(f"i_{w}" in self.columns for w in CARRIER_COLUMNS[carrier]["wheels"])
+
     @property
     def carriers_in_use(self) -> list[str]:
         """Controlled carriers and any carrier that had current (an open-loop input)."""
         out = []
         for c in CARRIERS:
-            a, _ = CARRIER_COLUMNS[c]["wheels"]
-            driven = f"i_{a}" in self.columns and bool(np.nanmax(np.abs(self.u(c)), initial=0.0) > 0)
+            driven = self.has_u(c) and bool(np.nanmax(np.abs(self.u(c)), initial=0.0) > 0)
             if c in self.controlled or driven:
                 out.append(c)
-        return out or ["rear"]
+        return out
 
     def faults(self) -> list[Event]:
         return [e for e in self.events if e.kind == "fault"]
@@ -224,7 +226,8 @@ def info(run: RunLog) -> dict:
         "software_version": _str(run.attrs.get("software_version")) or "-",
         "controlled": run.controlled,
         "carriers_in_use": run.carriers_in_use,
-        "max_abs_u_A": {k: float(np.nanmax(np.abs(run.u(k)), initial=0.0)) for k in run.carriers_in_use},
+        "max_abs_u_A": {k: float(np.nanmax(np.abs(run.u(k)), initial=0.0)) for k in run.carriers_in_use
+                        if run.has_u(k)},
         "max_abs_wire_current_A": float(max((np.nanmax(np.abs(c[f"i_{w}"]), initial=0.0)
                                              for w in ("fl", "fr", "rl", "rr") if f"i_{w}" in c), default=0.0)),
         "limits": {k: run.limits.get(k) for k in ("u_max", "y_max", "psi_max")},
@@ -253,7 +256,7 @@ def format_info(d: dict) -> list[str]:
              + ("" if d["reached_running"] else " (never reached RUNNING; times from the first row)"),
              f"final state: {d['final_state']}   controlled: {', '.join(d['controlled']) or '-'}   "
              f"limits: u_max {num(d['limits']['u_max'], 'g')} A, y_max {num(d['limits']['y_max'], 'g')} m"]
-    u = ", ".join(f"{k} {v:.3f} A" for k, v in d["max_abs_u_A"].items())
+    u = ", ".join(f"{k} {v:.3f} A" for k, v in d["max_abs_u_A"].items()) or "-"
     lines.append(f"max |u| (differential current per carrier): {u}; "
                  f"max |i| per wheel (wire current): {d['max_abs_wire_current_A']:.3f} A")
     if d["timing_us"]:
