@@ -1,8 +1,9 @@
 """Read recorder logs (``rig_runtime.recorder``) and export them as CSV.
 
 ``read_log(path)`` returns everything in plain numpy/Python objects; ``to_csv`` writes the
-cycles table (header = column names, in recording order) and, by default, the events
-beside it as ``<out>.events.csv``. Layout: ``docs/log-format.md``.
+cycles table (header = column names with their units, ``y_r [m]``, in recording order; the
+``state`` column as state names) and, by default, the events beside it as
+``<out>.events.csv`` (``run.csv`` -> ``run.csv.events.csv``). Layout: ``docs/log-format.md``.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import math
+import re
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -18,6 +20,7 @@ import numpy as np
 
 from .errors import ConfigError, LogError
 from .recorder import EVENT_FIELDS, EVENT_STR_FIELDS, LOG_FORMAT
+from .safety import State
 
 _BLOCK = 65536          # rows read per block when exporting
 
@@ -146,28 +149,74 @@ def _fmt(v: float) -> str:
 
 
 def events_path_for(out_path: str | Path) -> Path:
-    """``run.csv`` -> ``run.events.csv`` (``run`` -> ``run.events.csv``)."""
+    """``OUT`` -> ``OUT.events.csv`` (``run.csv`` -> ``run.csv.events.csv``), as README and
+    ``--help`` say. (It used to replace a ``.csv`` suffix, so ``--csv default.csv`` wrote
+    ``default.events.csv``, not the documented name.)"""
     p = Path(out_path)
-    return p.with_suffix(".events.csv") if p.suffix.lower() == ".csv" else p.with_name(p.name + ".events.csv")
+    return p.with_name(p.name + ".events.csv")
+
+
+# (pattern, unit) in order; the first full match names a column's unit (docs/log-format.md)
+_UNITS: tuple[tuple[re.Pattern, str], ...] = tuple((re.compile(p), u) for p, u in (
+    (r"t|t_run|lateness|work|.+_age", "s"),
+    (r"state", ""),
+    (r"(front|rear)_x_I", "m s"),
+    (r"(front|rear)_de_psi|omega_\w+|dw_[fr]", "rad/s"),
+    (r"psi(_\w+)?|(front|rear)_(psi_ref|e_psi)", "rad"),
+    (r"y|y_ref|y_[mfr]|(front|rear)_e_y|[bs]_[fr]|s_[fr][lr]", "m"),
+    (r"(front|rear)_u_(unsat|cmd|lim)|u_(cmd|lim)|i_[fr][lr]", "A"),
+    (r"ft_\w+_f[xyz]", "N"),
+    (r"ft_\w+_m[xyz]", "N m"),
+))
+
+
+def column_unit(name: str) -> str:
+    """The SI unit of a log column by the naming rules of docs/log-format.md (``"m"`` for
+    ``y_r``); ``""`` for ``state`` and for a name the rules do not cover (a column that is not SI
+    carries its unit in its name)."""
+    for pat, unit in _UNITS:
+        if pat.fullmatch(name):
+            return unit
+    return ""
+
+
+def column_header(name: str) -> str:
+    """``y_r`` -> ``y_r [m]``; a column without a unit keeps its bare name."""
+    u = column_unit(name)
+    return f"{name} [{u}]" if u else name
+
+
+def state_name(code: float) -> str:
+    """The supervisor state of a ``state`` column value (``2.0`` -> ``RUNNING``); ``NaN`` for a
+    missing value, the number itself for a code this version does not know."""
+    if code != code:
+        return "NaN"
+    try:
+        return State(int(code)).name if float(code).is_integer() else _fmt(code)
+    except ValueError:
+        return _fmt(code)
 
 
 def to_csv(log_path: str | Path, out_path: str | Path, *, events: bool = True) -> int:
-    """Write the cycles table of ``log_path`` as CSV (header: the column names); return the row count.
+    """Write the cycles table of ``log_path`` as CSV; return the row count.
 
-    With ``events`` (default) the events go to ``events_path_for(out_path)`` as well.
-    Values are written with full (round-trip) precision, missing values as ``NaN``.
+    Header: the column names with their units (``y_r [m]``, :func:`column_header`); the
+    ``state`` column holds state names (``RUNNING``). With ``events`` (default) the events go to
+    ``events_path_for(out_path)`` as well. Values are written with full (round-trip)
+    precision, missing values as ``NaN``.
     """
     out = Path(out_path)
     with _open(log_path) as f:
         names = _column_names(f)
         dsets = [f["cycles"][n] for n in names]
         rows = min((d.shape[0] for d in dsets), default=0)
+        fmts = [state_name if n == "state" else _fmt for n in names]
         with _Out(out) as fh:
-            fh.write(",".join(names) + "\n")
+            fh.write(",".join(map(column_header, names)) + "\n")
             for a in range(0, rows, _BLOCK):
                 b = min(a + _BLOCK, rows)
                 block = np.column_stack([d[a:b] for d in dsets]).tolist()
-                fh.write("".join(",".join(map(_fmt, r)) + "\n" for r in block))
+                fh.write("".join(",".join([fm(v) for fm, v in zip(fmts, r)]) + "\n" for r in block))
     if events:
         events_to_csv(log_path, events_path_for(out))
     return rows

@@ -33,7 +33,7 @@ def test_dry_run_json_summary_and_export(tmp_path):
     e = rig("export", str(log), "--csv", str(out))
     assert e.returncode == 0, e.stderr
     rows = list(csv.reader(out.open()))
-    assert rows[0][:3] == ["t", "t_run", "lateness"] and len(rows) == d["cycles"] + 1
+    assert rows[0][:3] == ["t [s]", "t_run [s]", "lateness [s]"] and len(rows) == d["cycles"] + 1
 
 
 def test_run_with_unreachable_device_stops_before_arming(tmp_path):

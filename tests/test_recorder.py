@@ -381,15 +381,15 @@ def test_csv_export(log, tmp_path):
     rec.close()
     out = tmp_path / "run.csv"
     assert to_csv(log, out) == 3
-    assert out.read_text().splitlines() == ["t,y,state", "0.0,0.001,1.0", "0.005,NaN,2.0", "0.01,-Inf,2.0"]
+    assert out.read_text().splitlines() == ["t [s],y [m],state", "0.0,0.001,ARMED", "0.005,NaN,RUNNING", "0.01,-Inf,RUNNING"]
     ev = events_path_for(out)
-    assert ev.name == "run.events.csv"
+    assert ev.name == "run.csv.events.csv"
     assert ev.read_text().splitlines() == [
         "t,kind,device,check,value,limit,message",
         '0.005,fault,laser b_f,nan,NaN,NaN,"value ""NaN"", sensor off"',
     ]
-    back = np.genfromtxt(out, delimiter=",", names=True)
-    assert back["y"][0] == 0.001 and math.isnan(back["y"][1])
+    back = np.genfromtxt(out, delimiter=",", names=True)      # numpy names "y [m]" y_m
+    assert back["y_m"][0] == 0.001 and math.isnan(back["y_m"][1])
 
 
 def test_append_cost(log):

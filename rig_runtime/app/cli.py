@@ -11,8 +11,7 @@ import sys
 
 from ..errors import RigError
 from .signals import Interrupted, StopSignals
-from . import commands, ident_commands, sim_command, tune_command  # noqa: F401 - each registers its subcommands
-from . import ctl_command  # noqa: F401 - rig ctl
+from . import commands, ctl_command, ident_commands, log_commands, sim_command, tune_command  # noqa: F401 - each registers its subcommands
 from .command import COMMANDS
 
 

@@ -22,23 +22,48 @@ def _quiet_libraries() -> None:
         logging.getLogger(name).setLevel(logging.CRITICAL)
 
 
+def _run_time(summary: dict, t: float) -> str:
+    """A loop-clock time as run time (s since RUNNING began), or as it is if the start is unknown."""
+    t0 = summary.get("run_started_t")
+    if t0 is None or t0 != t0:
+        return f"t={t:.3f} s (loop clock)"
+    return f"t={t - t0:+.3f} s"
+
+
 def _print_summary(summary: dict, as_json: bool) -> None:
+    """The end-of-run summary. Fault times are run time (s since RUNNING began) in every mode;
+    a lockstep run has no deadlines (its lateness and work are zero by construction), so it
+    reports what a cycle cost in wall-clock time instead."""
+    t0 = summary.get("run_started_t")
+    if t0 is not None and t0 == t0:
+        for f in summary["faults"]:
+            f.setdefault("t_run", f["t"] - t0)
     if as_json:
         print(json.dumps(clean(summary)))
         return
     t = summary["timing"]
     if summary.get("stopped_by"):
         print(f"stopped by {summary['stopped_by']} (operator stop: current ramped to zero, power stages off)")
-    print(f"final state: {summary['final_state']}   cycles: {summary['cycles']}   "
-          f"max |u|: {summary['max_abs_current_A']:.3f} A   log: {summary['log']}")
+    print(f"final state: {summary['final_state']}   cycles: {summary['cycles']}   log: {summary['log']}")
+    wire = summary.get("max_abs_wire_current_A", 0.5 * summary["max_abs_current_A"])
+    print(f"currents: max |u| (differential current per carrier) {summary['max_abs_current_A']:.3f} A, "
+          f"max |i| per wheel (wire current, ±u/2) {wire:.3f} A")
     for f in summary["faults"]:
-        print(f"  fault at t={f['t']:.3f}s: {f['device']} {f['check']} value={f['value']} limit={f['limit']} {f['message']}")
-    lat, work = t["release_lateness_us"], t["cycle_work_us"]
-    print(f"timing: lateness p50/p99/max {lat['p50']:.1f}/{lat['p99']:.1f}/{lat['max']:.1f} us, "
-          f"work p50/p99/max {work['p50']:.1f}/{work['p99']:.1f}/{work['max']:.1f} us, "
-          f"deadline misses {t['deadline_misses']}")
+        print(f"  fault at {_run_time(summary, f['t'])}: {f['device']} {f['check']} value={f['value']} "
+              f"limit={f['limit']} {f['message']}")
+    if summary.get("clock") == "lockstep":
+        cycles = max(summary["cycles"], 1)
+        print(f"timing: lockstep (simulated clock, no deadlines): {summary['wall_time_s'] * 1e3 / cycles:.3f} ms "
+              f"wall-clock per cycle (runtime and simulated plant); simulated {summary.get('sim_time_s', 0.0):.1f} s "
+              f"in {summary['wall_time_s']:.2f} s wall")
+    else:
+        lat, work = t["release_lateness_us"], t["cycle_work_us"]
+        print(f"timing: lateness p50/p99/max {lat['p50']:.1f}/{lat['p99']:.1f}/{lat['max']:.1f} us, "
+              f"work p50/p99/max {work['p50']:.1f}/{work['p99']:.1f}/{work['max']:.1f} us, "
+              f"deadline misses {t['deadline_misses']}")
     if "steps" in summary:
-        print(f"simulated {summary['sim_time_s']:.1f} s in {summary['wall_time_s']:.1f} s wall")
+        if summary.get("clock") != "lockstep":
+            print(f"simulated {summary['sim_time_s']:.1f} s in {summary['wall_time_s']:.1f} s wall")
         for s in summary["steps"]:
             def f(v, fmt):
                 return format(v, fmt) if v is not None else "-"
@@ -152,21 +177,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     return code
 
 
-@command("export", "export a log to CSV")
+@command("export", "export a log to CSV (the same as `rig log export`)")
 @arg("log", help="HDF5 log written by rig run / rig dry-run")
 @arg("--csv", required=True, metavar="OUT", help="CSV file to write (events go to OUT.events.csv)")
 def cmd_export(args: argparse.Namespace) -> int:
-    from ..errors import ConfigError
-    from ..export import events_path_for, to_csv
-    if not Path(args.log).exists():
-        raise ConfigError(args.log, "", "an existing log file")
-    for out, what in ((Path(args.csv), "--csv"), (events_path_for(args.csv), "--csv (its events file)")):
-        if out.resolve() == Path(args.log).resolve():
-            raise ConfigError(None, what, "a file other than the log itself", str(out))
-        preflight.check_output_file(out, what)
-    n = to_csv(args.log, args.csv)
-    print(f"{n} rows -> {args.csv}")
-    return EXIT_OK
+    from .log_commands import export_csv
+    return export_csv(args.log, args.csv)
 
 
 @command("check", "validate a config and scenario exactly as `rig run`/`rig dry-run` do before they start, "

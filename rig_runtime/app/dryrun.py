@@ -44,6 +44,8 @@ def run_lockstep(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *
             recorder_when_full="wait")
         summary["sim_time_s"] = clock.now()
         summary["seed"] = sim.seed
+        summary["clock"] = "lockstep"       # no deadlines: the summary reports wall-clock cost per cycle
+        summary["wall_us_per_cycle"] = summary["wall_time_s"] * 1e6 / max(summary["cycles"], 1)
     finally:
         sim.close()
     summary["steps"] = steps_from_log(log_path, scenario, cfg.controller.h)

@@ -22,7 +22,8 @@ def _fmt_ev(ev) -> str:
 @command("tune", "eigenvalues and design checks of Sec. 5.1/5.2.3 for the configured gains")
 @arg("--config", help="config file (default: the shipped simulated rig, configs/sim.yaml)")
 @arg("--json", action="store_true", help="print one JSON object instead of a table")
-@arg("--plot", metavar="DIR", help="write root-locus and eigenvalue PNGs into DIR (needs matplotlib)")
+@arg("--plot", metavar="DIR", help="write PNGs into DIR (needs matplotlib): the P-law root locus with gains and "
+                                   "the stability boundary, slowest pole vs D, the eigenvalues with the paper's")
 @arg("--design", action="store_true", help="design the PI-PD gains for the configured plant (Sec. 5.2.3)")
 @arg("--write", metavar="CONTROLLER.yaml", help="with --design: write a controller: fragment with the proposal")
 def cmd_tune(args: argparse.Namespace) -> int:
@@ -40,7 +41,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
         raise ConfigError(cfg.source, "plant", "parameters the tuning analysis can compute with "
                           f"({type(e).__name__}: {str(e)[:80]})") from None
     failures = analysis.tune_failures(cfg, r)
-    files = analysis.plot(cfg, r, args.plot) if args.plot else []
+    files = _plot(cfg, r, args.plot) if args.plot else []
     if args.json:
         out = analysis.to_json(r)
         out["ok"], out["failures"] = not failures, failures
@@ -75,6 +76,14 @@ def cmd_tune(args: argparse.Namespace) -> int:
         print("\nplots: " + ", ".join(str(f) for f in files))
     print("\n" + ("FAIL: " + "; ".join(failures) if failures else "ok: every loop stable, every design check holds"))
     return _verdict(failures)
+
+
+def _plot(cfg, r, out_dir) -> list:
+    """Root locus with gain labels and the stability boundary, slowest pole vs D, and the
+    eigenvalue map with the paper's values overlaid (rig_runtime/app/figures.py)."""
+    from .. import analysis
+    from . import figures
+    return figures.write_all(figures.tune_figures(cfg, r, analysis.PAPER), out_dir)
 
 
 def _verdict(failures: list[str]) -> int:
