@@ -349,3 +349,17 @@ def test_a_minimal_or_empty_log_still_summarises(tmp_path, capsys):
     for log in (small, empty):
         c, out, _ = rig(capsys, "log", "plot", log, "--out", tmp_path / log.stem)
         assert c == 0 and (tmp_path / log.stem / "response.png").exists()
+
+
+def test_export_mcap_for_foxglove(step_log, tmp_path, capsys):
+    step_log = step_log[0]
+    pytest.importorskip("foxglove")
+    mcap_reader = pytest.importorskip("mcap.reader")
+    out = tmp_path / "run.mcap"
+    code, o, e = rig(capsys, "log", "export", step_log, "--mcap", out)
+    assert code == 0 and o.startswith(f"{runlog.load(step_log).rows} rows -> "), e
+    with open(out, "rb") as f:
+        topics = {ch.topic for _, ch, _ in mcap_reader.make_reader(f).iter_messages()}
+    assert {"/rig/state", "/rig/rear", "/rig/currents"} <= topics
+    code, o, e = rig(capsys, "log", "export", step_log)
+    assert code == 2 and "--csv OUT and/or --mcap OUT" in e and e.count("\n") == 1

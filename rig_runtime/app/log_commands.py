@@ -188,8 +188,30 @@ def export_csv(log: str, out: str) -> int:
     return EXIT_OK
 
 
-@_action("export", "the log as CSV (units in the header, state names); events to OUT.events.csv",
+def export_mcap(log: str, out: str) -> int:
+    """``rig log export --mcap``: the log for Foxglove, with the live server's topics."""
+    from ..errors import LogError
+    from .foxglove_out import export_mcap as write_mcap
+    if not Path(log).exists():
+        raise LogError(log, "no such file")
+    if Path(out).resolve() == Path(log).resolve():
+        raise ConfigError(None, "--mcap", "a file other than the log itself", out)
+    preflight.check_output_file(Path(out), "--mcap")
+    n = write_mcap(log, out)
+    print(f"{n} rows -> {out}")
+    return EXIT_OK
+
+
+@_action("export", "the log as CSV (units in the header, state names; events to OUT.events.csv) "
+                   "and/or as MCAP for Foxglove",
          _a("log", help="HDF5 log"),
-         _a("--csv", required=True, metavar="OUT", help="CSV file to write (events go to OUT.events.csv)"))
+         _a("--csv", metavar="OUT", help="CSV file to write (events go to OUT.events.csv)"),
+         _a("--mcap", metavar="OUT", help="MCAP file to write (needs rig-runtime[foxglove])"))
 def log_export(args: argparse.Namespace) -> int:
-    return export_csv(args.log, args.csv)
+    if not args.csv and not args.mcap:
+        raise ConfigError(None, "rig log export", "--csv OUT and/or --mcap OUT")
+    if args.csv:
+        export_csv(args.log, args.csv)
+    if args.mcap:
+        export_mcap(args.log, args.mcap)
+    return EXIT_OK
