@@ -117,7 +117,8 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
                 log_path.unlink(missing_ok=True)    # the loop never ran: no empty log left behind
         if status and not outputs:
             sys.stderr.write("\n")
-    if result is None or (math.isnan(result.t_start) and not result.faults):
+    operator_stop = not stops.requested and loop.stop_requested      # rig ctl stop
+    if result is None or (math.isnan(result.t_start) and not result.faults and not operator_stop):
         if stops.requested:
             what = "power stages disabled" if loop.supervisor.ever_armed else "power stages never enabled"
             if result is not None:
@@ -141,5 +142,7 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     }
     if stops.requested:
         summary["stopped_by"] = stops.name
+    elif operator_stop:
+        summary["stopped_by"] = "rig ctl"
     code = EXIT_FAULT if result.final_state == "FAULT" else EXIT_OK
     return summary, code, loop
