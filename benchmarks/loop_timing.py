@@ -34,6 +34,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):    # as the `rig` command does:
+    os.environ.setdefault(_var, "1")                                        # one thread in the loop's process
 
 from rig_runtime import config  # noqa: E402
 from rig_runtime.clock import RealtimeClock, apply_realtime  # noqa: E402
