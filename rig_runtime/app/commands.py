@@ -72,6 +72,25 @@ def _print_summary(summary: dict, as_json: bool) -> None:
                   f"steady-state error {f(s['steady_state_error_mm'], '+.4f')} mm")
 
 
+_LIVE_OPTIONS = (
+    (("--telemetry",), dict(metavar="udp://HOST:PORT", help="stream every cycle as JSON datagrams (PlotJuggler's UDP server)")),
+    (("--telemetry-every",), dict(type=int, default=1, metavar="N", help="send every Nth cycle (default 1: every cycle)")),
+    (("--foxglove",), dict(metavar="[HOST:]PORT", help="serve the signals to Foxglove over WebSocket (needs rig-runtime[foxglove])")),
+    (("--no-panel",), dict(action="store_true", help="no live panel on the terminal (the panel needs rich)")),
+    (("--ctl-socket",), dict(metavar="PATH", help="Unix socket for `rig ctl` (default: rig ctl's default path)")),
+    (("--no-ctl",), dict(action="store_true", help="no `rig ctl` socket")),
+    (("--hold-on-fault",), dict(action="store_true", help="after a FAULT keep the loop (no current, power stages off) "
+                                                          "until `rig ctl reset-fault` arms again or a stop")),
+)
+
+
+def live_options(fn):
+    """The live-view and operator options ``rig run`` and ``rig dry-run`` share."""
+    for a, kw in reversed(_LIVE_OPTIONS):
+        fn = arg(*a, **kw)(fn)
+    return fn
+
+
 def _live_outputs(args: argparse.Namespace, realtime: bool) -> list[tuple[str, dict]]:
     """The live views asked for: telemetry and Foxglove when given; the panel on a terminal
     (not with --json); the `rig ctl` socket in real-time runs (a lockstep run is over
@@ -98,14 +117,7 @@ def _live_outputs(args: argparse.Namespace, realtime: bool) -> list[tuple[str, d
 @arg("--log", help="HDF5 log path (default: logs/dry-run-<time>.h5)")
 @arg("--json", action="store_true", help="print one JSON summary object")
 @arg("--report", metavar="DIR", help="write PNG plots and a Markdown summary into DIR")
-@arg("--telemetry", metavar="udp://HOST:PORT", help="stream every cycle as JSON datagrams (PlotJuggler's UDP server)")
-@arg("--telemetry-every", type=int, default=1, metavar="N", help="send every Nth cycle (default 1: every cycle)")
-@arg("--foxglove", metavar="[HOST:]PORT", help="serve the signals to Foxglove over WebSocket (needs rig-runtime[foxglove])")
-@arg("--no-panel", action="store_true", help="no live panel on the terminal (the panel needs rich)")
-@arg("--ctl-socket", metavar="PATH", help="Unix socket for `rig ctl` (default: rig ctl's default path)")
-@arg("--no-ctl", action="store_true", help="no `rig ctl` socket")
-@arg("--hold-on-fault", action="store_true", help="after a FAULT keep the loop (no current, power stages off) "
-                                                   "until `rig ctl reset-fault` arms again or a stop")
+@live_options
 def cmd_dry_run(args: argparse.Namespace) -> int:
     from .. import config
     from ..scenario import load_scenario
@@ -143,14 +155,7 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
 @arg("--duration", type=float, help="seconds of RUNNING (default: the scenario's, else until SIGINT/SIGTERM)")
 @arg("--log", help="HDF5 log path (default: logs/run-<time>.h5)")
 @arg("--json", action="store_true", help="print one JSON summary object at the end")
-@arg("--telemetry", metavar="udp://HOST:PORT", help="stream every cycle as JSON datagrams (PlotJuggler's UDP server)")
-@arg("--telemetry-every", type=int, default=1, metavar="N", help="send every Nth cycle (default 1: every cycle)")
-@arg("--foxglove", metavar="[HOST:]PORT", help="serve the signals to Foxglove over WebSocket (needs rig-runtime[foxglove])")
-@arg("--no-panel", action="store_true", help="no live panel on the terminal (the panel needs rich)")
-@arg("--ctl-socket", metavar="PATH", help="Unix socket for `rig ctl` (default: rig ctl's default path)")
-@arg("--no-ctl", action="store_true", help="no `rig ctl` socket")
-@arg("--hold-on-fault", action="store_true", help="after a FAULT keep the loop (no current, power stages off) "
-                                                   "until `rig ctl reset-fault` arms again or a stop")
+@live_options
 def cmd_run(args: argparse.Namespace) -> int:
     from .. import config
     from ..clock import RealtimeClock, apply_realtime

@@ -137,13 +137,18 @@ def response(run: RunLog, title: str = ""):
     ax[1].set_ylabel("yaw angle ψ (mrad)")
     ax[2].set_ylabel("Δω = ω_left − ω_right (rad/s)")
     ax[3].set_ylabel("differential current u (A)")
+    _time_panels(fig, ax, run, title or f"{run.path.name}: y, ψ, Δω, u (Figs. 15/16 style)", ncol=3)
+    return fig
+
+
+def _time_panels(fig, ax, run: RunLog, title: str, ncol: int) -> None:
+    """State and fault markers on every panel (labelled on the first), legends, the title."""
     for i, a in enumerate(ax):
         _markers(a, run, label=i == 0)
         if a.get_legend_handles_labels()[0]:
-            a.legend(loc="upper left", fontsize=7, ncol=3)
-    fig.suptitle(title or f"{run.path.name}: y, ψ, Δω, u (Figs. 15/16 style)", fontsize=10)
+            a.legend(loc="upper left", fontsize=7, ncol=ncol)
+    fig.suptitle(title, fontsize=10)
     _finish(fig, ax)
-    return fig
 
 
 def forces(run: RunLog, title: str = ""):
@@ -164,12 +169,7 @@ def forces(run: RunLog, title: str = ""):
     ax[0].set_ylabel("lateral force F_y (N)")
     ax[1].set_ylabel("yaw moment M_z (N m)")
     ax[2].set_ylabel("lateral displacement y (mm)")
-    for i, a in enumerate(ax):
-        _markers(a, run, label=i == 0)
-        if a.get_legend_handles_labels()[0]:
-            a.legend(loc="upper left", fontsize=7, ncol=4)
-    fig.suptitle(title or f"{run.path.name}: force–torque sensors (Fig. 17 style) and y (Fig. 18 style)", fontsize=10)
-    _finish(fig, ax)
+    _time_panels(fig, ax, run, title or f"{run.path.name}: force–torque sensors (Fig. 17 style) and y (Fig. 18 style)", ncol=4)
     return fig
 
 
