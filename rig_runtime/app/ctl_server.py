@@ -172,7 +172,7 @@ class CtlServer:
             except OSError:
                 path.unlink()                   # stale: nobody answers there
             else:
-                raise CtlError(f"another run is listening at {path}")
+                raise CtlError(f"another run is listening at {path} (give this one --ctl-socket PATH, or --no-ctl)")
         s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
             s.bind(str(path))
