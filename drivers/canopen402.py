@@ -531,6 +531,20 @@ class DriveBus(Driver):
     def _deactivate(self, now: float) -> None:
         self._safe_stop(now)
 
+    def _resume(self, now: float) -> None:
+        """After a safe stop (NMT pre-operational): NMT start again, so that TPDOs and the
+        drives' states come back while every RPDO carries "disable voltage" and zero torque
+        — the state ``configure()`` leaves. ARM's ``activate`` then walks them to OPERATION
+        ENABLED as at the first arming."""
+        if self._bus is None:
+            return
+        for d in self._nodes:
+            cob, data = nmt_frame(NMT_START, d.node_id)
+            self._send(can.Message(arbitration_id=cob, data=data, is_extended_id=False), now)
+            d.stepping = False
+            d.state = UNKNOWN       # re-learn it from the TPDOs that come back
+        self._want_enabled = False
+
     def _safe_stop(self, now: float) -> None:
         """Zero torque, quick stop, disable voltage, NMT pre-operational, each step to every
         drive before the next. Up to 16 frames in a burst, so each send may wait up to

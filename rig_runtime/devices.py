@@ -131,6 +131,11 @@ class RigDevices:
         """Zero, quick stop, disable (non-blocking); FAULT and the end of a stop."""
         self.drives.deactivate(now)
 
+    def resume(self, now: float) -> None:
+        """Communication on, power stages off, as after ``configure()`` (an operator's fault
+        reset; the supervisor calls it)."""
+        self.drives.resume(now)
+
     def close(self) -> None:
         """Deactivate and close everything; never raises."""
         for d in reversed(self._configured):

@@ -10,6 +10,8 @@ Lifecycle (public methods do the bookkeeping, ``_hooks`` do the device work)::
     poll(t)          drain what arrived without blocking; one immutable reading.
     write(cmd, t)    send commands without blocking (devices that take none need not).
     deactivate(t)    zero, quick stop, disable. Non-blocking; idempotent.
+    resume(t)        after deactivate: communication on, power stages off (as configured),
+                     so that an operator's fault reset can arm again. Non-blocking.
     close()          deactivate if active, release the transport. Idempotent, never
                      raises for a device that is already gone.
 
@@ -105,6 +107,13 @@ class Driver(abc.ABC):
             self._lifecycle = Lifecycle.CONFIGURED
             self._deactivate(now)
 
+    def resume(self, now: float) -> None:
+        """After a deactivate: communication back on with the power stages off — the state
+        ``configure()`` left — so that the device can be armed again (an operator's fault
+        reset). Non-blocking; nothing to do while active or unconfigured."""
+        if self._lifecycle is Lifecycle.CONFIGURED:
+            self._resume(now)
+
     def close(self) -> None:
         """Deactivate if active, leave the device safe and release the transport.
         Idempotent; never raises for a device that is already gone."""
@@ -124,6 +133,9 @@ class Driver(abc.ABC):
 
     def _deactivate(self, now: float) -> None:
         """Sensors have no power stage: nothing to do."""
+
+    def _resume(self, now: float) -> None:
+        """Sensors keep communicating when deactivated: nothing to do."""
 
     @abc.abstractmethod
     def _close(self) -> None: ...

@@ -70,6 +70,7 @@ class Hardware(Protocol):
     """What the supervisor switches: the power stages of the device set."""
     def activate(self, now: float) -> None: ...
     def deactivate(self, now: float) -> None: ...
+    def resume(self, now: float) -> None: ...
 
 
 class Channel:
@@ -273,6 +274,7 @@ class Supervisor:
             self._stop_reason = None
             self._u_prev = [0.0, 0.0]
             self._to(State.IDLE, t)
+            self.hw.resume(t)                   # communication on, power off: ready to arm again
 
     @property
     def arming(self) -> bool:

@@ -30,6 +30,9 @@ class FakeHardware:
     def deactivate(self, now: float) -> None:
         self.calls.append(("deactivate", now))
 
+    def resume(self, now: float) -> None:
+        self.calls.append(("resume", now))
+
 
 def chans():
     return [Channel("b_f", "laser", 0.045, 0.095, 0.02), Channel("rl", "wheel", -100, 100, 0.02)]
@@ -139,7 +142,8 @@ def test_channel_checks_latch(cfg, over, check, value, limit):
     assert [e for e in events if e[1] == "fault"] == [(0.1, "fault", f, f.message)]
     s.reset(0.3)
     assert s.state is State.IDLE and s.fault is None and s.faults == [f]
-    assert hw.calls.count(("activate", 0.0)) == 1 and len(hw.calls) == 2     # reset switches nothing
+    # reset enables no power stage: it only brings communication back (resume)
+    assert hw.calls.count(("activate", 0.0)) == 1 and hw.calls[-1] == ("resume", 0.3) and len(hw.calls) == 3
 
 
 @pytest.mark.parametrize("kw, device, check, value, limit, text", [
@@ -387,12 +391,12 @@ def test_hardware_is_switched_only_at_arm_fault_and_end_of_stop(cfg):
     step(s, 1.015)
     s.reset(1.020)
     step(s, 1.025)
-    assert s.state is State.IDLE and len(hw.calls) == 2
+    assert s.state is State.IDLE and hw.calls[2:] == [("resume", 1.020)]    # communication on, no power
     s.request_arm(2.0)
     step(s, 1.030)
     assert s.state is State.ARMED and hw.calls[-1] == ("activate", 1.030)
     step(s, 1.035)
-    assert s.state is State.RUNNING and len(hw.calls) == 3
+    assert s.state is State.RUNNING and len(hw.calls) == 4
 
 
 def test_arm_again_after_a_completed_stop(cfg):
