@@ -39,6 +39,7 @@ from . import ring
 from .clock import as_background_thread
 from .errors import DeviceError, RigError
 from .logfile import LogFile
+from .stats import Histogram
 
 _POLL_S = 0.025            # wake-up period with no live output
 _LIVE_POLL_S = 0.005       # with live outputs: every cycle at 200 Hz
@@ -135,6 +136,11 @@ def main(ring_path: str, spec: SidecarSpec, conn: multiprocessing.connection.Con
     Sidecar(cons, log, outputs, spec, conn).run()
 
 
+def _us(h: Histogram) -> dict:
+    p50, p99 = h.percentiles((50.0, 99.0)) if h.n else (math.nan, math.nan)
+    return {"last": h.last * 1e6, "p50": p50 * 1e6, "p99": p99 * 1e6, "max": h.max * 1e6}
+
+
 def _picklable(e: BaseException | None) -> BaseException | None:
     if e is None:
         return None
@@ -169,6 +175,10 @@ class Sidecar:
         self._events: list[tuple] = []
         self._last_t = math.nan
         self._batch = max(1, cons.layout.capacity // 4)
+        cols = list(spec.columns)
+        # the timing monitor's distributions, from every row (the loop sends only counts)
+        self._timing = (cols.index("lateness"), cols.index("work"), Histogram(), Histogram()) \
+            if outputs and "lateness" in cols and "work" in cols else None
 
     def run(self) -> None:
         closing: dict | None = None
@@ -210,13 +220,23 @@ class Sidecar:
             self._last_t = float(block[-1, 0])
             self._pending_rows.append(block)
             self._pending_n += len(block)
+            if self._timing is not None:
+                il, iw, hl, hw = self._timing
+                for lat, work in block[:, (il, iw)].tolist():
+                    hl.add(lat)
+                    hw.add(work)
             self._feed("rows", block)
         st = cons.status()
         if st is not None:
             try:
-                self._feed("status", json.loads(st))
+                status = json.loads(st)
             except ValueError:
-                pass
+                status = None
+            if status is not None:
+                if self._timing is not None and isinstance(status.get("timing"), dict):
+                    _, _, hl, hw = self._timing
+                    status["timing"].update(lateness_us=_us(hl), work_us=_us(hw))
+                self._feed("status", status)
         if flush or self._pending_n >= self._batch or self._events:
             self._write(flush or bool(self._events))
 

@@ -1,6 +1,8 @@
 """What a run shows while it runs: the live outputs the recording sidecar feeds (named
 here, constructed in the sidecar), and the status snapshot the loop hands it a few times a
-second (device health and counters, timing, faults — what is not in the cycle row)."""
+second (device health and counters, timing counts, faults, gains — what is not in the cycle
+row). The snapshot is built in the loop's cycle (≈ 50 µs every 0.2 s): statistics that can be
+computed from the rows — the lateness and work distributions — are the sidecar's."""
 
 from __future__ import annotations
 
@@ -19,11 +21,6 @@ _TAKES_MAILBOX = {CTL}
 def takes_mailbox(name: str) -> bool:
     """Whether the output talks back to the loop (operator commands through the mailbox)."""
     return name in _TAKES_MAILBOX
-
-
-def _us(h) -> dict:
-    p50, p99 = h.percentiles((50.0, 99.0)) if h.n else (math.nan, math.nan)
-    return {"last": h.last * 1e6, "p50": p50 * 1e6, "p99": p99 * 1e6, "max": h.max * 1e6}
 
 
 def _num(x: float):
@@ -49,8 +46,8 @@ def snapshot(loop: ControlLoop, duration_s: float) -> dict:
         "devices": [{"name": c.name, "kind": c.kind, "state": c.state.value, "cause": c.cause,
                      "value": _num(c.value), "age_s": _num(t - c.t), "bad_frames": c.bad} for c in loop.channels],
         "counters": loop.dev.counters() if hasattr(loop.dev, "counters") else {},
-        "timing": {"cycles": st.cycles, "lateness_us": _us(st.lateness), "work_us": _us(st.work),
-                   "deadline_misses": st.deadline_misses, "skipped_periods": st.skipped_periods},
+        # the lateness and work distributions are the sidecar's (from every row's columns)
+        "timing": {"cycles": st.cycles, "deadline_misses": st.deadline_misses, "skipped_periods": st.skipped_periods},
         "recorder": ({"rows": rec.rows_written, "healthy": rec.healthy, "error": rec.error}
                      if rec is not None else None),
         "gains": loop.gains(),
