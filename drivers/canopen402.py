@@ -519,14 +519,7 @@ class DriveBus(Driver):
         """Non-blocking: NMT start, then the following writes walk each drive to OPERATION
         ENABLED (fault reset included), with zero torque until it gets there. Watch
         :attr:`enabled`; torque flows from the write after it turns True."""
-        if self._bus is None:
-            return
-        for d in self._nodes:
-            cob, data = nmt_frame(NMT_START, d.node_id)
-            self._send(can.Message(arbitration_id=cob, data=data, is_extended_id=False), now)
-            d.stepping = True
-            d.state = UNKNOWN       # re-learn it from a TPDO sent after this (none in pre-op)
-        self._want_enabled = True
+        self._nmt_start(now, enable=True)
 
     def _deactivate(self, now: float) -> None:
         self._safe_stop(now)
@@ -536,14 +529,19 @@ class DriveBus(Driver):
         drives' states come back while every RPDO carries "disable voltage" and zero torque
         — the state ``configure()`` leaves. ARM's ``activate`` then walks them to OPERATION
         ENABLED as at the first arming."""
+        self._nmt_start(now, enable=False)
+
+    def _nmt_start(self, now: float, enable: bool) -> None:
+        """NMT start to every drive; ``enable``: the following writes walk them to OPERATION
+        ENABLED, else they say "disable voltage" with zero torque."""
         if self._bus is None:
             return
         for d in self._nodes:
             cob, data = nmt_frame(NMT_START, d.node_id)
             self._send(can.Message(arbitration_id=cob, data=data, is_extended_id=False), now)
-            d.stepping = False
-            d.state = UNKNOWN       # re-learn it from the TPDOs that come back
-        self._want_enabled = False
+            d.stepping = enable
+            d.state = UNKNOWN       # re-learn it from a TPDO sent after this (none in pre-op)
+        self._want_enabled = enable
 
     def _safe_stop(self, now: float) -> None:
         """Zero torque, quick stop, disable voltage, NMT pre-operational, each step to every
