@@ -41,7 +41,7 @@ import zlib
 from multiprocessing import shared_memory
 from typing import Any, Callable, Optional
 
-from rig_runtime.clock import as_background_thread
+from rig_runtime.clock import as_background_thread, sched_other
 from rig_runtime.config import FTBus
 
 from rig_runtime.errors import DeviceInitError
@@ -173,7 +173,7 @@ class ProcessPoller(Poller):
         finally:
             there.close()                   # the child has its own copy: EOF here once it is gone
         self.process = proc
-        _sched_other(proc.pid)              # as early as possible; the child repeats it
+        sched_other(proc.pid)              # as early as possible; the child repeats it
         budget = _START_GRACE_S + sum(
             self._cfg.timeout_s * (1 + 2 * len(link.sensors) * 3) for link in self.core.links)
         ready = multiprocessing.connection.wait([here, proc.sentinel], budget)
@@ -245,13 +245,6 @@ class ProcessPoller(Poller):
             except ValueError:              # still running after kill: leave it to the OS
                 pass
             self.process = None
-
-
-def _sched_other(pid: int) -> None:
-    try:
-        os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))
-    except (OSError, AttributeError):
-        pass
 
 
 # --------------------------------------------------------------------------- child

@@ -114,6 +114,15 @@ def set_sched_fifo(priority: int) -> str | None:
         return str(e)
 
 
+def sched_other(pid: int) -> None:
+    """Move process ``pid`` (a helper process this one started) to SCHED_OTHER: a child
+    inherits the runtime's SCHED_FIFO and must not compete with the loop. Best effort."""
+    try:
+        os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))
+    except (OSError, AttributeError):
+        pass
+
+
 def as_background_thread() -> bool:
     """Called first in a helper thread (recorder writer, pollers): run it SCHED_OTHER.
 

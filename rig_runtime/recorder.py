@@ -45,11 +45,11 @@ from . import ring
 from .errors import DeviceInitError
 from .logfile import (EVENT_FIELDS, EVENT_NUM_FIELDS, EVENT_STR_FIELDS, LOG_FORMAT, LOG_FORMAT_VERSION,  # noqa: F401 - re-exported
                       RESERVED_ATTRS, check_attrs, check_columns)
-from .sidecar import SidecarSpec
+from .clock import sched_other
+from .sidecar import MAX_FLUSH_S, SidecarSpec
 
 _START_GRACE_S = 30.0       # interpreter start + imports on a loaded machine
 _ALIVE_EVERY = 50           # health reads between two looks at the sidecar process
-_MAX_FLUSH_S = 1.0
 
 
 def _child_env() -> dict:
@@ -58,13 +58,6 @@ def _child_env() -> dict:
     root = str(Path(__file__).resolve().parent.parent)
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     return env
-
-
-def _sched_other(pid: int) -> None:
-    try:
-        os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))
-    except (OSError, AttributeError):
-        pass
 
 
 class Recorder:
@@ -91,7 +84,7 @@ class Recorder:
             raise ValueError(f"recorder: event_capacity >= 1, got {event_capacity!r}")
         self.buffer_cycles = int(buffer_cycles)
         self.flush_s = float(flush_s)
-        self.flush_period = min(self.flush_s, _MAX_FLUSH_S)
+        self.flush_period = min(self.flush_s, MAX_FLUSH_S)
         self.event_capacity = int(event_capacity)
         self.min_free_bytes = int(min_free_bytes)
         self.outputs = tuple((str(n), dict(o)) for n, o in outputs)
@@ -198,7 +191,7 @@ class Recorder:
         layout = ring.Layout(self._ncols, self.buffer_cycles, self.event_capacity)
         path, self._mm = ring.create(layout)
         spec = SidecarSpec(str(self.path), self.columns, self._attrs, self.flush_s, self.min_free_bytes,
-                           self.outputs, os.getpid())
+                           self.outputs)
         here, there = socket.socketpair()
         proc = None
         conn = multiprocessing.connection.Connection(here.detach())
@@ -209,7 +202,7 @@ class Recorder:
                     pass_fds=(there.fileno(),), stdin=subprocess.DEVNULL, env=_child_env())
             finally:
                 there.close()               # the child has its own copy: EOF for it once we are gone
-            _sched_other(proc.pid)
+            sched_other(proc.pid)
             conn.send(spec)
             msg = None
             deadline = time.monotonic() + _START_GRACE_S

@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from . import mailbox
+
 MAGIC = 0x52494752494E4731          # "RIGRING1"
 # header slots (int64 each)
 _MAGIC, _NCOLS, _CAP, _EVCAP, _W, _R, _EW, _ER, _ST_SEQ, _ST_LEN, _ST_CRC, _ERR_LEN, \
@@ -56,7 +58,7 @@ class Layout:
     capacity: int                  # rows
     event_capacity: int
     status_bytes: int = 16384
-    mailbox_bytes: int = 4096
+    mailbox_bytes: int = mailbox.SIZE
 
     @property
     def error_at(self) -> int:

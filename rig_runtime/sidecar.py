@@ -32,7 +32,7 @@ import multiprocessing.connection
 import signal
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable
 
 from . import ring
@@ -43,7 +43,7 @@ from .stats import Histogram
 
 _POLL_S = 0.025            # wake-up period with no live output
 _LIVE_POLL_S = 0.005       # with live outputs: every cycle at 200 Hz
-_MAX_FLUSH_S = 1.0         # documented guarantee: flushed at least once a second
+MAX_FLUSH_S = 1.0          # documented guarantee: flushed at least once a second
 
 
 @dataclass(frozen=True)
@@ -63,12 +63,10 @@ class SidecarSpec:
     flush_s: float = 0.5
     min_free_bytes: int = 32 * 2**20
     outputs: tuple[tuple[str, dict], ...] = ()
-    parent_pid: int = 0
-    extra: dict = field(default_factory=dict)
 
     @property
     def flush_period(self) -> float:
-        return min(self.flush_s, _MAX_FLUSH_S)
+        return min(self.flush_s, MAX_FLUSH_S)
 
 
 def load_output(name: str, info: LogInfo, options: dict, mailbox: Callable[[], Any]) -> Any:
@@ -105,8 +103,7 @@ def cli() -> None:
 
 
 def main(ring_path: str, spec: SidecarSpec, conn: multiprocessing.connection.Connection) -> None:
-    """The sidecar process's work (after :func:`cli`)."""
-    _ignore_stop_signals()
+    """The sidecar process's work (after :func:`cli`, which ignores the stop signals first)."""
     as_background_thread()
     layout, mm = ring.attach(ring_path)
     cons = ring.Consumer(mm, layout)

@@ -23,7 +23,7 @@ from ..errors import DeviceInitError
 from ..loop import ControlLoop
 from ..recorder import Recorder
 from ..scenario import Reference, Scenario, open_loop_input
-from .live import StatusPublisher, takes_mailbox
+from .live import StatusPublisher
 from .signals import StopSignals
 
 EXIT_OK, EXIT_CRASH, EXIT_SETUP, EXIT_FAULT = 0, 1, 2, 3
@@ -95,8 +95,7 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
                            flush_s=cfg.recorder.flush_s, outputs=outputs, when_full=recorder_when_full)
             rec.open()
             loop.recorder = rec
-            if any(takes_mailbox(name) for name, _ in outputs):
-                loop.mailbox = rec.mailbox
+            loop.mailbox = rec.mailbox      # operator commands, if an output (rig ctl's server) sends any
         if not stops.requested:
             phase = "while configuring the devices"
         if not stops.requested:
