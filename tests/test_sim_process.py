@@ -220,6 +220,9 @@ def test_slcan_direct_mode_answers_in_the_reading_thread():
         client.send(can.Message(arbitration_id=0x080, is_extended_id=False, data=b""), timeout=0)
         got = [_recv(client), _recv(client)]
         assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(0x181, b"\x01" * 8), (0x182, b"\x02" * 8)]
+        deadline = time.monotonic() + 2.0                       # the callback runs after the write:
+        while not written and time.monotonic() < deadline:     # the client may read first
+            time.sleep(0.005)
         assert written == [2]                                   # both TPDOs in one write
         assert [cid for cid, _ in seen] == [0x080]
         assert seen[0][1] == adapter._threads[0].ident          # served by the adapter's own thread
