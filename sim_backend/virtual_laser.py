@@ -60,6 +60,10 @@ _SMALL = 48         # up to this many frames per call: scalar Python (numpy's pe
 _LDISC_CAP = 4095   # bytes the Linux n_tty line discipline holds; more waits in the flip buffer
 _NOISE_BLOCK = 4096  # standard normals drawn from the generator at a time
 _SPIN_S = 20e-6      # waiting for pty delivery: spin this long, then sleep in poll()
+# Lockstep gives up waiting for the kernel only after this long (counted in delivery_timeouts):
+# a frame the driver does not see that cycle breaks determinism, and on a loaded machine the
+# kernel's worker may not run for tens of milliseconds. Delivery itself takes microseconds.
+_DELIVERY_TIMEOUT_S = 2.0
 _FIONREAD = termios.FIONREAD
 _ioctl = fcntl.ioctl
 
@@ -326,7 +330,7 @@ class VirtualLaser:
             return 0
         return int.from_bytes(b, "little", signed=True)
 
-    def _wait_delivered(self, target: int, timeout_s: float = 0.05) -> None:
+    def _wait_delivered(self, target: int, timeout_s: float = _DELIVERY_TIMEOUT_S) -> None:
         """Spin (then nap) until ``target`` bytes are readable at the slave, or time out."""
         _await_delivery([(self, target)], timeout_s)
 
@@ -390,7 +394,7 @@ def _emit_noting(vl: VirtualLaser, t: float, pending: list) -> int:
     return n
 
 
-def _await_delivery(pending: list[tuple[VirtualLaser, int]], timeout_s: float = 0.05) -> None:
+def _await_delivery(pending: list[tuple[VirtualLaser, int]], timeout_s: float = _DELIVERY_TIMEOUT_S) -> None:
     """Wait until each laser's slave end holds its target byte count, or time out (counted
     in ``delivery_timeouts``). Lockstep only: nobody reads the slaves meanwhile.
 
