@@ -114,13 +114,29 @@ def set_sched_fifo(priority: int) -> str | None:
         return str(e)
 
 
-def sched_other(pid: int) -> None:
+def helper_cpus(rt: Realtime) -> tuple[int, ...] | None:
+    """The CPUs for the runtime's helper processes (recording sidecar, F/T poller): those the
+    loop is not pinned to by ``realtime.cpu_affinity``; None when it is not pinned or no
+    CPU is left (the helpers then share the loop's)."""
+    if not rt.cpu_affinity:
+        return None
+    others = sorted(set(range(os.cpu_count() or 1)) - set(rt.cpu_affinity))
+    return tuple(others) or None
+
+
+def sched_other(pid: int, cpus=None) -> None:
     """Move process ``pid`` (a helper process this one started) to SCHED_OTHER: a child
-    inherits the runtime's SCHED_FIFO and must not compete with the loop. Best effort."""
+    inherits the runtime's SCHED_FIFO and must not compete with the loop; given ``cpus``
+    (:func:`helper_cpus`), also off the loop's CPU. Best effort."""
     try:
         os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))
     except (OSError, AttributeError):
         pass
+    if cpus:
+        try:
+            os.sched_setaffinity(pid, set(cpus))
+        except (OSError, AttributeError, ValueError):
+            pass
 
 
 def as_background_thread() -> bool:

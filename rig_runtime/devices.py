@@ -10,9 +10,9 @@ the laser ports, a python-can bus object and the F/T endpoints in place of the c
 from __future__ import annotations
 
 import math
-import os
 from typing import Mapping, NamedTuple, Optional, Sequence
 
+from .clock import helper_cpus
 from .config import LASER_ROLES, WHEELS, RigConfig
 from .errors import ConfigError, DeviceInitError
 from .hardware import Freshness
@@ -75,8 +75,7 @@ class RigDevices:
         if dcfg.ft.sensors:
             cls = driver_class("ft", dcfg.ft.driver, "devices.ft.driver")
             kw = {}
-            loop_cpus = set(cfg.realtime.cpu_affinity or ())
-            others = sorted(set(range(os.cpu_count() or 1)) - loop_cpus) if loop_cpus else []
+            others = helper_cpus(cfg.realtime)
             if others:
                 kw["poller_cpus"] = others      # keep an F/T poll process off the loop's CPU
             self.ft = cls(dcfg.ft, endpoints=dict(ft_endpoints) if ft_endpoints else None, **kw)

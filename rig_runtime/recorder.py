@@ -66,13 +66,14 @@ class Recorder:
     ``columns`` names the row's values in order (SI units; see ``docs/log-format.md``);
     ``attrs`` become root attributes (strings as UTF-8). The file must not exist yet: a log
     is never overwritten. ``outputs``: live outputs the sidecar feeds, as
-    ``("package.module:Class", {options})`` (see :mod:`rig_runtime.sidecar`).
+    ``("package.module:Class", {options})`` (see :mod:`rig_runtime.sidecar`). ``cpus``: where
+    the sidecar runs (:func:`rig_runtime.clock.helper_cpus`; None: wherever this process may).
     """
 
     def __init__(self, path: str | Path, columns: Sequence[str], *, attrs: Mapping[str, object],
                  buffer_cycles: int = 4096, flush_s: float = 0.5, event_capacity: int = 1024,
                  min_free_bytes: int = 32 * 2**20, outputs: Sequence[tuple[str, dict]] = (),
-                 when_full: str = "drop"):
+                 when_full: str = "drop", cpus: Sequence[int] | None = None):
         self.path = Path(path)
         self.columns: tuple[str, ...] = check_columns(columns)
         self._attrs = check_attrs(attrs)
@@ -91,6 +92,7 @@ class Recorder:
         if when_full not in ("drop", "wait"):
             raise ValueError(f"recorder: when_full is 'drop' or 'wait', got {when_full!r}")
         self.when_full = when_full
+        self.cpus = tuple(cpus) if cpus else None
         self._ncols = len(self.columns)
         self._prod: ring.Producer | None = None
         self._mm = None
@@ -202,7 +204,7 @@ class Recorder:
                     pass_fds=(there.fileno(),), stdin=subprocess.DEVNULL, env=_child_env())
             finally:
                 there.close()               # the child has its own copy: EOF for it once we are gone
-            sched_other(proc.pid)
+            sched_other(proc.pid, self.cpus)    # before the spec: the child has no thread yet
             conn.send(spec)
             msg = None
             deadline = time.monotonic() + _START_GRACE_S

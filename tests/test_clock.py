@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from rig_runtime.clock import LockstepClock, RealtimeClock, as_background_thread
+from rig_runtime.clock import LockstepClock, RealtimeClock, as_background_thread, helper_cpus
 
 
 def test_realtime_clock_never_releases_early():
@@ -76,3 +76,26 @@ def test_helper_threads_leave_sched_fifo():
     assert result["inherited"] == os.SCHED_FIFO
     assert result["ok"] and result["after"] == os.SCHED_OTHER
     assert os.sched_getscheduler(0) == os.SCHED_OTHER      # the test's own thread untouched
+
+
+def test_helper_cpus_are_the_ones_the_loop_is_not_pinned_to():
+    from rig_runtime.config import Realtime
+    n = os.cpu_count() or 1
+    assert helper_cpus(Realtime()) is None                           # not pinned: share
+    assert helper_cpus(Realtime(cpu_affinity=tuple(range(n)))) is None   # nothing left
+    if n >= 2:
+        assert helper_cpus(Realtime(cpu_affinity=(0,))) == tuple(range(1, n))
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs")
+def test_the_recording_sidecar_runs_where_it_is_told(tmp_path):
+    from rig_runtime.recorder import Recorder
+    mine = os.sched_getaffinity(0)
+    cpu = max(mine)
+    rec = Recorder(tmp_path / "a.h5", ["t"], attrs={}, cpus=(cpu,))
+    rec.open()
+    try:
+        assert os.sched_getaffinity(rec.process.pid) == {cpu}
+        assert os.sched_getaffinity(0) == mine                          # the caller stays
+    finally:
+        rec.close()

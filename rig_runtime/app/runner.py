@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from .. import __version__, analysis, schema
-from ..clock import Clock
+from ..clock import Clock, helper_cpus
 from ..config import RigConfig
 from ..errors import DeviceInitError
 from ..loop import ControlLoop
@@ -92,7 +92,8 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
                      "duration_s": float(duration), "controlled": list(cfg.controlled)}
             attrs.update(extra_attrs or {})
             rec = Recorder(log_path, loop.columns, attrs=attrs, buffer_cycles=cfg.recorder.buffer_cycles,
-                           flush_s=cfg.recorder.flush_s, outputs=outputs, when_full=recorder_when_full)
+                           flush_s=cfg.recorder.flush_s, outputs=outputs, when_full=recorder_when_full,
+                           cpus=helper_cpus(cfg.realtime))
             rec.open()
             loop.recorder = rec
             loop.mailbox = rec.mailbox      # operator commands, if an output (rig ctl's server) sends any
