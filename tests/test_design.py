@@ -81,6 +81,9 @@ def test_tune_design_json_and_write(tmp_path, capsys):
     assert r["ok"] and r["configured"]["gains"]["K_P_y"] == 3.0
     w = yaml.safe_load(out.read_text())["controller"]["pipd"]
     assert w == pytest.approx(r["gains"], rel=1e-5)
+    bounds = yaml.safe_load(out.read_text())["controller"]["tuning"]    # live tuning still possible
+    assert bounds == {k: list(v) for k, v in config.load().controller.tuning.items()}
+    assert "the designed 7.5 lies outside" in out.read_text()          # K_P_y 7.5 vs [1, 6]
     assert main(["tune", "--design", "--write", str(out)]) == 2        # never overwrites
     assert "overwrite" in capsys.readouterr().err
     assert main(["tune", "--write", str(tmp_path / "x.yaml")]) == 2    # --write needs --design

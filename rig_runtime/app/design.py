@@ -140,7 +140,22 @@ def controller_yaml(cfg: RigConfig, g: PIPDGains) -> str:
             f"  h: {c.h!r}\n  law: {c.law}\n  pipd:\n"
             f"    K_P_y: {g.K_P_y:.6g}\n    K_I_y: {g.K_I_y:.6g}\n    K_P_psi: {g.K_P_psi:.6g}\n"
             f"    K_D_psi: {g.K_D_psi:.6g}\n    T_f_psi: {g.T_f_psi:.6g}\n"
-            f"  K_P: {c.K_P!r}\n  discretization: {c.discretization}\n")
+            f"  K_P: {c.K_P!r}\n  discretization: {c.discretization}\n" + _tuning_yaml(cfg, g))
+
+
+def _tuning_yaml(cfg: RigConfig, g: PIPDGains) -> str:
+    """The configured live-tuning bounds, carried over: the fragment replaces the whole
+    ``controller:`` section, and without them no gain could be set live. A designed gain
+    outside its bounds is marked (the bounds are the operator's choice, not redesigned)."""
+    c = cfg.controller
+    if not c.tuning:
+        return ""
+    lines = [f"  tuning:             # live-tuning bounds, as configured in {cfg.source}\n"]
+    for name, (lo, hi) in c.tuning.items():
+        v = getattr(g, name, None) if name != "K_P" else c.K_P
+        note = f"  # the designed {v:.6g} lies outside" if v is not None and not lo <= v <= hi else ""
+        lines.append(f"    {name}: [{lo!r}, {hi!r}]{note}\n")
+    return "".join(lines)
 
 
 OBJECTIVE = ("inner: largest K_P,psi, K_D,psi with each term <= u_design_max at psi_design / psi_rate_design; "
