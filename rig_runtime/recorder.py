@@ -43,6 +43,7 @@ from typing import Mapping, Sequence
 
 from . import ring
 from .errors import DeviceInitError
+from .mailbox import Mailbox
 from .logfile import (EVENT_FIELDS, EVENT_NUM_FIELDS, EVENT_STR_FIELDS, LOG_FORMAT, LOG_FORMAT_VERSION,  # noqa: F401 - re-exported
                       RESERVED_ATTRS, check_attrs, check_columns)
 from .clock import sched_other
@@ -179,7 +180,6 @@ class Recorder:
     def mailbox(self):
         """The operator mailbox in the shared memory (loop side), or None before ``open``."""
         if self._mailbox is None and self._prod is not None:
-            from .mailbox import Mailbox
             self._mailbox = Mailbox(self._prod.mailbox_view())
         return self._mailbox
 
@@ -191,7 +191,11 @@ class Recorder:
             raise RuntimeError(f"recorder {self.path}: already opened")
         self._opened = True
         layout = ring.Layout(self._ncols, self.buffer_cycles, self.event_capacity)
-        path, self._mm = ring.create(layout)
+        try:
+            path, self._mm = ring.create(layout)
+        except OSError as e:
+            raise DeviceInitError(f"recorder {self.path}", f"no shared memory for the recording ring "
+                                  f"({layout.size} bytes in {ring.shm_dir()}): {e.strerror or e}") from None
         spec = SidecarSpec(str(self.path), self.columns, self._attrs, self.flush_s, self.min_free_bytes,
                            self.outputs)
         here, there = socket.socketpair()

@@ -91,11 +91,17 @@ def shm_dir() -> Path:
 
 
 def create(layout: Layout) -> tuple[str, mmap.mmap]:
-    """A new zero-filled shared block; returns its file path (the sidecar unlinks it) and map."""
+    """A new zero-filled shared block; returns its file path (the sidecar unlinks it) and map.
+
+    The file's pages are allocated here (``posix_fallocate``), not on first touch: a full
+    /dev/shm then fails now with an OSError instead of a SIGBUS in the loop minutes later."""
     fd, path = tempfile.mkstemp(prefix="rig-ring-", dir=shm_dir())
     try:
-        os.ftruncate(fd, layout.size)
+        os.posix_fallocate(fd, 0, layout.size)
         mm = mmap.mmap(fd, layout.size)
+    except BaseException:
+        os.unlink(path)
+        raise
     finally:
         os.close(fd)
     h = memoryview(mm).cast("q")

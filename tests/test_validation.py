@@ -9,6 +9,7 @@ import shutil
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -386,3 +387,22 @@ def test_rig_check_prints_what_would_run(tmp_path):
     loose = configs_copy(tmp_path, "controller.yaml", lambda c: c["limits"].__setitem__("u_max", 20.0))
     one_line_error(rig("check", "--config", loose / "sim.yaml"), "limits.u_max", "at most 16 A", "20.0",
                    "hardware.yaml")
+
+
+def test_no_room_for_the_recording_ring_is_one_line(tmp_path):
+    """A full /dev/shm (here: a file size limit below the ring's size) is refused when the
+    recorder starts — one line, exit 2, no ring file, no log — not a SIGBUS in the loop later."""
+    import resource
+    import signal
+
+    def small_files():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)       # a write past the limit fails (EFBIG)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (64 * 1024, 64 * 1024))
+
+    before = set(Path("/dev/shm").glob("rig-ring-*")) if Path("/dev/shm").is_dir() else set()
+    r = subprocess.run(RIG + ["dry-run", "--log", str(tmp_path / "x.h5")], capture_output=True, text=True,
+                       cwd=tmp_path, timeout=60, preexec_fn=small_files)
+    one_line_error(r, "recorder", "no shared memory for the recording ring")
+    assert not (tmp_path / "x.h5").exists()
+    after = set(Path("/dev/shm").glob("rig-ring-*")) if Path("/dev/shm").is_dir() else set()
+    assert after <= before
