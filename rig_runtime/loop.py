@@ -150,8 +150,9 @@ class ControlLoop:
         """The controller gains in force (every controlled carrier has the same)."""
         return self.controllers[0].gains() if self.controllers else {}
 
-    def _operator(self, cmd: Command, t: float, hold_on_fault: bool, arm_timeout_s: float) -> None:
-        """Carry out one operator command at the start of a cycle and answer it."""
+    def _operator(self, cmd: Command, t: float, hold_on_fault: bool, arm_timeout_s: float) -> bool:
+        """Carry out one operator command at the start of a cycle and answer it; True if it
+        reset a latched fault (the run then arms and starts afresh)."""
         mb, sup = self.mailbox, self.supervisor
         kind = cmd.kind
         if kind == "stop":
@@ -164,14 +165,14 @@ class ControlLoop:
             ctrls = self.controllers
             if not ctrls or name not in ctrls[0].gains():
                 mb.answer(cmd.seq, False, f"{name!r} is not a gain of the controller in use")
-                return
+                return False
             old = ctrls[0].gains()[name]
             try:
                 for c in ctrls:
                     c.set_gain(name, new)
             except ValueError as e:     # not finite / not positive: nothing was changed
                 mb.answer(cmd.seq, False, str(e))
-                return
+                return False
             text = f"{name} {old:g} -> {new:g}"
             if self.recorder is not None:
                 self.recorder.event(t, "operator", "controller", name, new, old, text)
@@ -187,8 +188,10 @@ class ControlLoop:
                 sup.reset(t)
                 sup.request_arm(t + arm_timeout_s)
                 mb.answer(cmd.seq, True, "fault reset: arming again, the scenario restarts when RUNNING")
+                return True
         else:
             mb.answer(cmd.seq, False, f"unknown command {kind!r}")
+        return False
 
     def row(self) -> list[float]:
         """This cycle's log row, in ``columns`` order."""
@@ -243,10 +246,8 @@ class ControlLoop:
                 # ---- operator commands (rig ctl): at the cycle boundary, before anything uses the gains
                 if mb is not None:
                     cmd = mb.take()
-                    if cmd is not None:
-                        self._operator(cmd, t, hold_on_fault, arm_timeout_s)
-                        if sup.state is State.IDLE:     # a fault was reset: the next RUNNING starts afresh
-                            t_fault_end = t_end = math.inf
+                    if cmd is not None and self._operator(cmd, t, hold_on_fault, arm_timeout_s):
+                        t_fault_end = t_end = math.inf      # a fault was reset: the next RUNNING starts afresh
                 # ---- read
                 inp = dev.poll(t)
                 s = inp.samples
@@ -331,7 +332,7 @@ class ControlLoop:
         return RunResult(final_state=sup.state.name, faults=[f.as_dict() for f in sup.faults],
                          cycles=summary.pop("cycles"), max_abs_current_A=self.max_abs_current,
                          timing=summary, t_start=self.t_start, wall_time_s=time.perf_counter() - wall0,
-                         arm_blockers=sup.arm_blockers if math.isnan(self.t_start) else [])
+                         arm_blockers=sup.arm_blockers if sup.arm_failed or math.isnan(self.t_start) else [])
 
     def _safe_off(self) -> None:
         """Zero current on the wire and power stages off; never raises."""

@@ -35,7 +35,7 @@ class MemRecorder:
         self.events.append((t, kind, device, check, value, limit, message))
 
 
-def run_loop(cfg, scenario_name, duration_s, script, hold_on_fault=False):
+def run_loop(cfg, scenario_name, duration_s, script, hold_on_fault=False, **run_kw):
     """Run the loop; ``script(loop, server, t)`` runs before every release ``t`` (between
     two cycles) and may submit commands through ``server``."""
     sc = load_scenario(scenario_name)
@@ -57,7 +57,7 @@ def run_loop(cfg, scenario_name, duration_s, script, hold_on_fault=False):
         loop.mailbox = Mailbox(memoryview(buf))
         try:
             devices.configure()
-            result = loop.run(duration_s, hold_on_fault=hold_on_fault)
+            result = loop.run(duration_s, hold_on_fault=hold_on_fault, **run_kw)
         finally:
             devices.close()
     finally:
@@ -254,6 +254,23 @@ def test_reset_fault_against_the_simulated_drives_arms_again(cfg):
     assert states[k + 1].startswith("IDLE -> ARMED") and states[k + 2].startswith("ARMED -> RUNNING"), states
     after = np.flatnonzero(c["state"] == float(State.RUNNING))
     assert after[-1] > np.flatnonzero(held)[-1]          # running again after the reset
+
+
+def test_a_failed_rearm_after_reset_ends_the_run_with_its_blockers(cfg):
+    """Reset while the cause persists (s_rl silent for 2 s): arming again times out, the loop
+    ends in IDLE with power off, and the result names what blocked the arm (the runner makes
+    that exit 3, not a quiet 0)."""
+    sent = []
+
+    def script(loop, server, t):
+        if loop.supervisor.state is State.FAULT and not sent:
+            sent.append(server.submit("reset-fault"))
+
+    loop, result, rec, c = run_loop(cfg, "fault-during-step", 5.0, script, hold_on_fault=True, arm_timeout_s=0.5)
+    assert result.final_state == "IDLE" and loop.supervisor.arm_failed
+    assert any(b.startswith("s_rl:") for b in result.arm_blockers), result.arm_blockers
+    assert c["state"][-1] == float(State.IDLE) and np.all(c["rear_u_lim"][c["state"] != float(State.RUNNING)] == 0.0)
+    assert rec.rows and c["t"][-1] < 1.4 + 0.1 + 0.5 + 0.2      # ended at the arm deadline, not at 5 s
 
 
 def test_reset_fault_without_hold_is_refused(cfg):

@@ -406,3 +406,13 @@ def test_no_room_for_the_recording_ring_is_one_line(tmp_path):
     assert not (tmp_path / "x.h5").exists()
     after = set(Path("/dev/shm").glob("rig-ring-*")) if Path("/dev/shm").is_dir() else set()
     assert after <= before
+
+
+def test_hold_on_fault_needs_a_ctl_socket(tmp_path):
+    """A held fault ends only by `rig ctl reset-fault` or `stop`: without a socket (lockstep,
+    --no-ctl) the run would cycle in FAULT until killed."""
+    one_line_error(rig("dry-run", "--hold-on-fault", "--log", tmp_path / "a.h5", cwd=tmp_path),
+                   "--hold-on-fault", "rig ctl")
+    one_line_error(rig("dry-run", "--realtime", "--no-ctl", "--hold-on-fault", "--log", tmp_path / "b.h5",
+                       cwd=tmp_path), "--hold-on-fault", "rig ctl")
+    assert not list(tmp_path.glob("*.h5"))

@@ -51,6 +51,8 @@ def _print_summary(summary: dict, as_json: bool) -> None:
     for f in summary["faults"]:
         print(f"  fault at {_run_time(summary, f['t'])}: {f['device']} {f['check']} value={f['value']} "
               f"limit={f['limit']} {f['message']}")
+    if summary.get("arm_failed"):
+        print(f"  {summary['arm_failed']}")
     if summary.get("clock") == "lockstep":
         cycles = max(summary["cycles"], 1)
         print(f"timing: lockstep (simulated clock, no deadlines): {summary['wall_time_s'] * 1e3 / cycles:.3f} ms "
@@ -103,6 +105,9 @@ def _live_outputs(args: argparse.Namespace, realtime: bool) -> list[tuple[str, d
     if realtime and not args.no_ctl:
         from .ctl_server import default_ctl_path
         ctl = str(args.ctl_socket or default_ctl_path())
+    if args.hold_on_fault and ctl is None:      # nothing could reset or stop the held fault
+        raise ConfigError(None, "--hold-on-fault", "a real-time run with a `rig ctl` socket (not lockstep, "
+                          "not --no-ctl): a held fault ends only by rig ctl reset-fault or stop")
     panel = realtime and sys.stderr.isatty() and not args.json and not args.no_panel
     return outputs_for(telemetry=args.telemetry, telemetry_every=args.telemetry_every, foxglove=args.foxglove,
                        panel=panel, ctl_socket=ctl)

@@ -145,4 +145,7 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     elif operator_stop:
         summary["stopped_by"] = "rig ctl"
     code = EXIT_FAULT if result.final_state == "FAULT" else EXIT_OK
+    if result.arm_blockers:     # RUNNING once, then arming again after `rig ctl reset-fault` failed
+        summary["arm_failed"] = "could not arm again after the fault reset: " + "; ".join(result.arm_blockers[:4])
+        code = EXIT_FAULT
     return summary, code, loop
