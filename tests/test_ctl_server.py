@@ -242,3 +242,40 @@ def test_status_with_numpy_values_and_nan(cfg, tmp_path):
         assert ans["row"] == {"t": 2.5}
     finally:
         server.close()
+
+
+def test_an_idle_client_does_not_hold_off_a_stop(cfg, tmp_path):
+    """One request per connection, read within a second: a client that connects and says
+    nothing (or keeps the connection for a second request) does not block the next one."""
+    import socket as _socket
+    from rig_runtime.app import ctl_server
+    buf = bytearray(SIZE)
+    loop_side = Mailbox(memoryview(buf))
+    server = CtlServer(info_of(cfg, tmp_path), tmp_path / "i" / "ctl.sock", Mailbox(memoryview(buf)), timeout_s=5.0)
+    answered = threading.Event()
+
+    def loop():                             # the control loop's side: answer what arrives
+        while not answered.is_set():
+            cmd = loop_side.take()
+            if cmd is not None:
+                loop_side.answer(cmd.seq, True, "stop requested in RUNNING")
+            time.sleep(0.001)
+
+    th = threading.Thread(target=loop, daemon=True)
+    th.start()
+    idle = _socket.socket(_socket.AF_UNIX, _socket.SOCK_STREAM)
+    try:
+        idle.connect(str(server.path))                      # connects, sends nothing
+        ans = request(server.path, {"cmd": "stop"}, timeout_s=ctl_server.REQUEST_READ_S + 3.0)   # < the 10 s an idle client held it before
+        assert ans["ok"] and ans["message"] == "stop requested in RUNNING"
+        two = _socket.socket(_socket.AF_UNIX, _socket.SOCK_STREAM)
+        with two:
+            two.connect(str(server.path))
+            two.sendall(b'{"cmd": "stop"}\n{"cmd": "stop"}\n')
+            f = two.makefile("rb")
+            assert json.loads(f.readline())["ok"]
+            assert f.readline() == b""                      # one answer, then the server closed
+    finally:
+        answered.set()
+        idle.close()
+        server.close()

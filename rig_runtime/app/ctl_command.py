@@ -50,6 +50,8 @@ def format_status(ans: dict) -> str:
 @arg("action", choices=ACTIONS, help="status | stop | set NAME VALUE | reset-fault")
 @arg("operands", nargs="*", metavar="NAME VALUE", help="for set: the gain's name and its new value")
 def ctl(args) -> int:
+    if not 0 < args.timeout < math.inf:
+        raise CtlError(f"--timeout: a number of seconds > 0, got {args.timeout!r}")
     path = args.socket or default_ctl_path()
     req: dict = {"cmd": args.action}
     if args.action == "set":

@@ -40,6 +40,7 @@ from typing import Any
 from ..errors import RigError
 
 MAX_REQUEST_BYTES = 4096
+REQUEST_READ_S = 1.0        # a local client writes its one line at once
 SOCKET_PATH_MAX = 107           # sun_path, less its terminating NUL
 REQUESTS = ("status", "stop", "set", "reset-fault")
 
@@ -212,16 +213,17 @@ class CtlServer:
             return os.getuid()
 
     def _session(self, conn: socket.socket) -> None:
+        """One request per connection, read within REQUEST_READ_S: the server serves one
+        client at a time, and an idle or chatty one must not hold off another's ``stop``."""
+        conn.settimeout(REQUEST_READ_S)
+        line = conn.makefile("rb").readline(MAX_REQUEST_BYTES + 1)
+        if not line:
+            return
+        if len(line) > MAX_REQUEST_BYTES:
+            conn.sendall(self._encode({"ok": False, "message": f"request longer than {MAX_REQUEST_BYTES} bytes"}))
+            return
         conn.settimeout(self.timeout_s + 5.0)
-        f = conn.makefile("rb")
-        while True:
-            line = f.readline(MAX_REQUEST_BYTES + 1)
-            if not line:
-                return
-            if len(line) > MAX_REQUEST_BYTES:
-                conn.sendall(self._encode({"ok": False, "message": f"request longer than {MAX_REQUEST_BYTES} bytes"}))
-                return
-            conn.sendall(self._encode(self.handle(line)))
+        conn.sendall(self._encode(self.handle(line)))
 
     @staticmethod
     def _encode(ans: dict) -> bytes:
