@@ -108,6 +108,7 @@ class Recorder:
         self._opened = False
         self._closed = False
         self._mailbox = None
+        self.status_refused = 0             # status snapshots too large for the slot
 
     # ------------------------------------------------------------------ status
     @property
@@ -289,9 +290,16 @@ class Recorder:
             self._fail(f"recorder event buffer overflow: {self.event_capacity} events pending; events dropped")
 
     def publish_status(self, status: dict) -> None:
-        """Hand a status snapshot (JSON-able) to the sidecar's live outputs."""
+        """Hand a status snapshot (JSON-able) to the sidecar's live outputs. One that does not
+        fit the status slot is counted, and the first such is recorded as an event (the live
+        views then show the last snapshot that fitted)."""
         if self._prod is not None and not self._refuse:
-            self._prod.publish_status(json.dumps(status, default=str).encode())
+            data = json.dumps(status, default=str).encode()
+            if not self._prod.publish_status(data):
+                self.status_refused += 1
+                if self.status_refused == 1:
+                    self.event(status.get("t", math.nan), "recorder", "recorder", "status", len(data), math.nan,
+                               f"status snapshot of {len(data)} bytes does not fit its slot: live views not updated")
 
     # ------------------------------------------------------------------ close
     def close(self, timeout: float | None = None) -> None:

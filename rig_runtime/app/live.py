@@ -14,13 +14,7 @@ FOXGLOVE = "rig_runtime.app.foxglove_out:FoxgloveServer"
 PANEL = "rig_runtime.app.panel:LivePanel"
 CTL = "rig_runtime.app.ctl_server:CtlServer"
 
-_TAKES_MAILBOX = {CTL}
-
-
-
-def takes_mailbox(name: str) -> bool:
-    """Whether the output talks back to the loop (operator commands through the mailbox)."""
-    return name in _TAKES_MAILBOX
+STATUS_FAULTS = 10     # the newest faults in a snapshot (a held run may collect many); all are in the log
 
 
 def _num(x: float):
@@ -41,8 +35,8 @@ def snapshot(loop: ControlLoop, duration_s: float) -> dict:
         "duration_s": _num(duration_s),
         "state": sup.state.name,
         "controlled": list(loop.cfg.controlled),
-        "faults": [{"t_run": (f.t - t0) if started else None, "device": f.device, "check": f.check,
-                    "value": _num(f.value), "limit": _num(f.limit), "message": f.message} for f in sup.faults],
+        "faults": [{**f.as_dict(), "t_run": (f.t - t0) if started else None} for f in sup.faults[-STATUS_FAULTS:]],
+        "faults_total": len(sup.faults),
         "devices": [{"name": c.name, "kind": c.kind, "state": c.state.value, "cause": c.cause,
                      "value": _num(c.value), "age_s": _num(t - c.t), "bad_frames": c.bad} for c in loop.channels],
         "counters": loop.dev.counters() if hasattr(loop.dev, "counters") else {},
