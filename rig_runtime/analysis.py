@@ -159,7 +159,7 @@ class UnstableLoopError(ConfigError):
     """The configured gains give an unstable closed loop: they are never armed."""
 
 
-def _ev_txt(e: complex) -> str:
+def ev_text(e: complex) -> str:
     return f"{e.real:+.3g}" + (f"{e.imag:+.3g}j" if abs(e.imag) > 1e-9 else "") + " 1/s"
 
 
@@ -192,7 +192,7 @@ def stability_gate(cfg: RigConfig) -> None:
             cfg.source or None, "controller.K_P" if law == "p" else "controller.pipd",
             f"gains whose sampled closed loop ({law}, h = {cfg.controller.h:g} s, plant (10) with D = {D:g}) "
             "is stable, but " + ("it cannot be computed with these parameters (numbers overflow)" if ev != ev
-                                 else f"it has an eigenvalue at {_ev_txt(ev)} (`rig tune` shows the analysis)"))
+                                 else f"it has an eigenvalue at {ev_text(ev)} (`rig tune` shows the analysis)"))
 
 
 def tune_failures(cfg: RigConfig, r: "TuneResult") -> list[str]:
@@ -203,11 +203,11 @@ def tune_failures(cfg: RigConfig, r: "TuneResult") -> list[str]:
                      ("complete closed loop (19)", r.closed_loop)):
         bad = [e for e in ev if not e.real < 0]
         if bad:
-            out.append(f"{name} unstable: eigenvalue at {_ev_txt(max(bad, key=lambda e: e.real))}")
+            out.append(f"{name} unstable: eigenvalue at {ev_text(max(bad, key=lambda e: e.real))}")
     bad = sampled_instability(cfg)    # r.closed_loop_sampled is its D_min case (pipd)
     if bad is not None:
         out.append(f"sampled loop as implemented ({cfg.controller.law}, D = {bad[0]:g}) unstable: "
-                   f"eigenvalue at {_ev_txt(bad[1])}")
+                   f"eigenvalue at {ev_text(bad[1])}")
     for k, c in r.checks.items():
         if not c["ok"]:
             out.append(f"design check {k} fails: {c['value']:.4g} (limit {c['limit']:g})")

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from operator import attrgetter
 from typing import Callable, Iterable, Optional, Protocol, Sequence
 
+from . import tuning
 from .clock import Clock
 from .config import LASER_ROLES, WHEELS, RigConfig
 from .control import make_controller
@@ -29,6 +30,7 @@ from .geometry import Measurement, measure
 from .mailbox import Command
 from .safety import Channel, State, Supervisor
 from .stats import CycleStats
+from .tuning import TuningError
 
 
 class DeviceSet(Protocol):
@@ -161,8 +163,16 @@ class ControlLoop:
             self.stop_requested = True
             mb.answer(cmd.seq, True, f"stop requested in {sup.state.name}")
         elif kind == "set":
-            name, new = cmd.name, cmd.value
+            # the server ran tuning.check (bounds and the stability gate) before posting; the
+            # loop repeats its cheap part, so nothing outside the bounds is applied whoever
+            # wrote into the mailbox
+            name = cmd.name
             ctrls = self.controllers
+            try:
+                new = tuning.admissible(self.cfg, name, cmd.value)
+            except TuningError as e:
+                mb.answer(cmd.seq, False, str(e))
+                return False
             if not ctrls or name not in ctrls[0].gains():
                 mb.answer(cmd.seq, False, f"{name!r} is not a gain of the controller in use")
                 return False

@@ -25,7 +25,6 @@ line on stderr; it never stops recording.
 from __future__ import annotations
 
 import importlib
-import inspect
 import json
 import math
 import multiprocessing.connection
@@ -70,15 +69,15 @@ class SidecarSpec:
 
 
 def load_output(name: str, info: LogInfo, options: dict, mailbox: Callable[[], Any]) -> Any:
-    """Import ``"module:Class"`` and construct it (``mailbox()`` only if it takes one)."""
+    """Import ``"module:Class"`` and construct it. Only a class that declares
+    ``TAKES_MAILBOX = True`` (the ``rig ctl`` server) is handed the mailbox to the loop:
+    talking back to the loop is something an output says it does, not something its
+    constructor's signature happens to allow."""
     mod, _, attr = name.partition(":")
     cls = getattr(importlib.import_module(mod), attr)
     kw = dict(options)
-    try:
-        if "mailbox" in inspect.signature(cls).parameters:
-            kw["mailbox"] = mailbox()
-    except (TypeError, ValueError):
-        pass
+    if getattr(cls, "TAKES_MAILBOX", False) is True:
+        kw["mailbox"] = mailbox()
     return cls(info, **kw)
 
 

@@ -70,6 +70,25 @@ def with_gains(cfg: RigConfig, gains: Mapping[str, float]) -> RigConfig:
 def check(cfg: RigConfig, name: str, value: float, gains: Mapping[str, float] | None = None) -> GainChange:
     """Check setting gain ``name`` to ``value`` with ``gains`` in force (default: the
     configured ones); returns the change or raises :class:`TuningError` saying why not."""
+    v = admissible(cfg, name, value)
+    in_force = dict(gains_of(cfg))
+    if gains is not None:
+        in_force.update({k: float(x) for k, x in gains.items() if k in in_force})
+    old = in_force[name]
+    in_force[name] = v
+    bad = analysis.sampled_instability(with_gains(cfg, in_force))
+    if bad is not None:
+        D, ev = bad
+        where = "cannot be computed" if ev != ev else f"has an eigenvalue at {analysis.ev_text(ev)}"
+        raise TuningError(f"{name} = {v:g} would make the sampled closed loop unstable (plant (10) with "
+                          f"D = {D:g} {where}; gains then: " + ", ".join(f"{k} {x:g}" for k, x in in_force.items()) + ")")
+    return GainChange(name, old, v)
+
+
+def admissible(cfg: RigConfig, name: str, value: float) -> float:
+    """Checks 1 and 2 (a tunable gain of the law in use, finite, within its bounds): the
+    value as a float, or :class:`TuningError`. Cheap (no numpy): the loop repeats it on
+    every ``set`` it takes from the mailbox, whoever wrote it there."""
     law = cfg.controller.law
     if name in LIMIT_NAMES:
         raise TuningError(f"{name} is a limit: limits cannot be changed while running "
@@ -92,18 +111,7 @@ def check(cfg: RigConfig, name: str, value: float, gains: Mapping[str, float] | 
     lo, hi = bounds
     if not lo <= v <= hi:
         raise TuningError(f"{name} = {v:g} is outside its bounds [{lo:g}, {hi:g}] (controller.tuning)")
-    in_force = dict(gains_of(cfg))
-    if gains is not None:
-        in_force.update({k: float(x) for k, x in gains.items() if k in in_force})
-    old = in_force[name]
-    in_force[name] = v
-    bad = analysis.sampled_instability(with_gains(cfg, in_force))
-    if bad is not None:
-        D, ev = bad
-        where = "cannot be computed" if ev != ev else f"has an eigenvalue at {analysis._ev_txt(ev)}"
-        raise TuningError(f"{name} = {v:g} would make the sampled closed loop unstable (plant (10) with "
-                          f"D = {D:g} {where}; gains then: " + ", ".join(f"{k} {x:g}" for k, x in in_force.items()) + ")")
-    return GainChange(name, old, v)
+    return v
 
 
 def config_from_json(text: str) -> RigConfig:

@@ -116,6 +116,20 @@ def test_set_gain_is_applied_from_the_next_cycle_and_recorded(cfg):
                            c["rear_u_unsat"][k2:][run[k2:]], rtol=1e-12, atol=1e-12)
 
 
+def test_the_loop_refuses_a_set_outside_bounds_whoever_posted_it(cfg):
+    """The mailbox is written by the ctl server after tuning.check; a set posted straight
+    into it is still held to the gain's bounds and name by the loop (nothing applied)."""
+    s = Script([(1.0, "set", "K_P_y", 60.0), (1.1, "set", "u_max", 5.0), (1.2, "set", "K_P_y", math.inf),
+                (1.3, "set", "K_P_y", 5.0)])
+    loop, result, rec, c = run_loop(cfg, "single-step", 2.0, s)
+    got = [a for _, a in s.answers]
+    assert got[0] == (False, "K_P_y = 60 is outside its bounds [1, 6] (controller.tuning)")
+    assert not got[1][0] and "u_max is a limit" in got[1][1]
+    assert not got[2][0] and "not a finite number" in got[2][1]
+    assert got[3] == (True, "K_P_y 3 -> 5")
+    assert [e[3:5] for e in rec.events if e[1] == "operator" and e[2] == "controller"] == [("K_P_y", 5.0)]
+
+
 def test_stop_command_is_a_clean_stop(cfg):
     s = Script([(1.0, "stop", "", math.nan)])
     loop, result, rec, c = run_loop(cfg, "single-step", 10.0, s)

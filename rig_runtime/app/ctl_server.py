@@ -133,6 +133,8 @@ def request(path: str | Path, req: dict, timeout_s: float = 10.0) -> dict:
 class CtlServer:
     """The control socket as a sidecar output (see the module docstring)."""
 
+    TAKES_MAILBOX = True        # the sidecar hands the loop's mailbox to this output only
+
     def __init__(self, info, path: str | os.PathLike | None = None, mailbox=None, config_json: str | None = None,
                  timeout_s: float = 2.0, poll_s: float = 0.002):
         from .. import tuning          # numpy/scipy: only where a server runs, not in `rig ctl`
