@@ -68,3 +68,17 @@ class LogError(RigError):
     def __init__(self, path: object, why: str):
         self.path = str(path)
         super().__init__(f"{path}: not a readable rig log ({why})")
+
+
+def picklable(exc: BaseException | None) -> BaseException | None:
+    """``exc`` if it survives pickling (the OS error behind a failed open: refused,
+    unreachable, …), else its text as a RuntimeError: a helper process sends the cause of
+    a failure to its parent, which raises it ``from`` this."""
+    if exc is None:
+        return None
+    import pickle
+    try:
+        pickle.loads(pickle.dumps(exc))
+        return exc
+    except Exception:                       # noqa: BLE001 - anything that does not round-trip
+        return RuntimeError(f"{type(exc).__name__}: {exc}")

@@ -107,11 +107,14 @@ def _h5_attr(v: object) -> object:
     return v
 
 
+MIN_FREE_BYTES = 32 * 2**20      # below this much free disk space the writer stops cleanly
+
+
 class LogFile:
     """One HDF5 log being written (never overwriting an existing file)."""
 
     def __init__(self, path: str | Path, columns: Sequence[str], attrs: Mapping[str, object],
-                 min_free_bytes: int = 32 * 2**20):
+                 min_free_bytes: int = MIN_FREE_BYTES):
         self.path = Path(path)
         self.columns = check_columns(columns)
         self.attrs = dict(attrs)

@@ -42,12 +42,12 @@ from pathlib import Path
 from typing import Mapping, Sequence
 
 from . import ring
-from .errors import DeviceInitError
-from .mailbox import Mailbox
-from .logfile import (EVENT_FIELDS, EVENT_NUM_FIELDS, EVENT_STR_FIELDS, LOG_FORMAT, LOG_FORMAT_VERSION,  # noqa: F401 - re-exported
-                      RESERVED_ATTRS, check_attrs, check_columns)
 from .clock import sched_other
-from .sidecar import MAX_FLUSH_S, SidecarSpec
+from .errors import DeviceInitError
+from .logfile import (EVENT_FIELDS, EVENT_NUM_FIELDS, EVENT_STR_FIELDS, LOG_FORMAT, LOG_FORMAT_VERSION,  # noqa: F401 - re-exported
+                      MIN_FREE_BYTES, RESERVED_ATTRS, check_attrs, check_columns)
+from .mailbox import Mailbox
+from .sidecar import SidecarSpec, flush_period
 
 _START_GRACE_S = 30.0       # interpreter start + imports on a loaded machine
 _ALIVE_EVERY = 50           # health reads between two looks at the sidecar process
@@ -73,7 +73,7 @@ class Recorder:
 
     def __init__(self, path: str | Path, columns: Sequence[str], *, attrs: Mapping[str, object],
                  buffer_cycles: int = 4096, flush_s: float = 0.5, event_capacity: int = 1024,
-                 min_free_bytes: int = 32 * 2**20, outputs: Sequence[tuple[str, dict]] = (),
+                 min_free_bytes: int = MIN_FREE_BYTES, outputs: Sequence[tuple[str, dict]] = (),
                  when_full: str = "drop", cpus: Sequence[int] | None = None):
         self.path = Path(path)
         self.columns: tuple[str, ...] = check_columns(columns)
@@ -86,7 +86,7 @@ class Recorder:
             raise ValueError(f"recorder: event_capacity >= 1, got {event_capacity!r}")
         self.buffer_cycles = int(buffer_cycles)
         self.flush_s = float(flush_s)
-        self.flush_period = min(self.flush_s, MAX_FLUSH_S)
+        self.flush_period = flush_period(self.flush_s)
         self.event_capacity = int(event_capacity)
         self.min_free_bytes = int(min_free_bytes)
         self.outputs = tuple((str(n), dict(o)) for n, o in outputs)

@@ -36,8 +36,8 @@ from typing import Any, Callable
 
 from . import ring
 from .clock import as_background_thread
-from .errors import DeviceError, RigError
-from .logfile import LogFile
+from .errors import DeviceError, RigError, picklable
+from .logfile import MIN_FREE_BYTES, LogFile
 from .stats import Histogram
 
 _POLL_S = 0.025            # wake-up period with no live output
@@ -60,12 +60,17 @@ class SidecarSpec:
     columns: tuple[str, ...]
     attrs: dict
     flush_s: float = 0.5
-    min_free_bytes: int = 32 * 2**20
+    min_free_bytes: int = MIN_FREE_BYTES
     outputs: tuple[tuple[str, dict], ...] = ()
 
     @property
     def flush_period(self) -> float:
-        return min(self.flush_s, MAX_FLUSH_S)
+        return flush_period(self.flush_s)
+
+
+def flush_period(flush_s: float) -> float:
+    """How often the sidecar flushes: as configured, and at least every MAX_FLUSH_S."""
+    return min(flush_s, MAX_FLUSH_S)
 
 
 def load_output(name: str, info: LogInfo, options: dict, mailbox: Callable[[], Any]) -> Any:
@@ -118,7 +123,7 @@ def main(ring_path: str, spec: SidecarSpec, conn: multiprocessing.connection.Con
         log.create()
     except DeviceError as e:
         _close_outputs(outputs)
-        conn.send(("error", e.device, str(e)[len(e.device) + 2:], _picklable(e.__cause__)))
+        conn.send(("error", e.device, str(e)[len(e.device) + 2:], picklable(e.__cause__)))
         return
     except RigError as e:           # an output's option the operator got wrong (a port in use, ...)
         _close_outputs(outputs)
@@ -135,17 +140,6 @@ def main(ring_path: str, spec: SidecarSpec, conn: multiprocessing.connection.Con
 def _us(h: Histogram) -> dict:
     p50, p99 = h.percentiles((50.0, 99.0)) if h.n else (math.nan, math.nan)
     return {"last": h.last * 1e6, "p50": p50 * 1e6, "p99": p99 * 1e6, "max": h.max * 1e6}
-
-
-def _picklable(e: BaseException | None) -> BaseException | None:
-    if e is None:
-        return None
-    try:
-        import pickle
-        pickle.dumps(e)
-        return e
-    except Exception:  # noqa: BLE001
-        return RuntimeError(str(e))
 
 
 def _close_outputs(outputs) -> None:

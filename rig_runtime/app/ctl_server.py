@@ -56,21 +56,11 @@ def default_ctl_path() -> Path:
     return base / "ctl.sock"
 
 
-def _json_safe(x: Any) -> Any:
-    """NaN/inf as None (JSON has no such numbers)."""
-    if isinstance(x, float):
-        return x if math.isfinite(x) else None
-    if isinstance(x, dict):
-        return {str(k): _json_safe(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json_safe(v) for v in x]
-    return x
-
-
 def _plain(x: Any) -> Any:
     """A value JSON does not know (a numpy scalar, ...): its Python value, else its text."""
     item = getattr(x, "item", None)
-    return _json_safe(item()) if callable(item) else str(x)
+    from ..metrics import clean     # numpy: the server's side only, not the `rig ctl` client's
+    return clean(item()) if callable(item) else str(x)
 
 
 def _private_dir(d: Path) -> None:
@@ -229,7 +219,8 @@ class CtlServer:
 
     @staticmethod
     def _encode(ans: dict) -> bytes:
-        return json.dumps(_json_safe(ans), default=_plain).encode() + b"\n"
+        from ..metrics import clean     # numpy: the server's side only, not the `rig ctl` client's
+        return json.dumps(clean(ans), default=_plain).encode() + b"\n"
 
     # ------------------------------------------------------------------ requests
     def handle(self, line: bytes | str) -> dict:
