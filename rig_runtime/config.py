@@ -109,7 +109,9 @@ class PIPDGains:
     T_f_psi: float = check(positive)   # differentiator time constant, s
 
 
-TUNABLE_GAINS = ("K_P_y", "K_I_y", "K_P_psi", "K_D_psi", "T_f_psi", "K_P")   # what `rig ctl set` may change
+PIPD_GAINS = ("K_P_y", "K_I_y", "K_P_psi", "K_D_psi", "T_f_psi")   # the PI-PD law's gains (PIPDGains)
+P_GAINS = ("K_P",)                                                  # the P law's (Controller.K_P)
+TUNABLE_GAINS = PIPD_GAINS + P_GAINS                                # what `rig ctl set` may change
 
 
 @dataclass(frozen=True, kw_only=True)

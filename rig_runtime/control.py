@@ -17,6 +17,7 @@ import math
 from dataclasses import dataclass
 from typing import Sequence
 
+from .config import PIPD_GAINS
 from .config import Controller as ControllerConfig
 
 
@@ -104,7 +105,7 @@ class PIPDController:
         self._e_psi_prev = e_psi
         return u
 
-    GAINS = {"K_P_y": "kpy", "K_I_y": "kiy", "K_P_psi": "kpp", "K_D_psi": "kdp", "T_f_psi": "tf"}
+    GAINS = dict(zip(PIPD_GAINS, ("kpy", "kiy", "kpp", "kdp", "tf")))     # config name -> attribute
 
     def gains(self) -> dict[str, float]:
         """The gains in force, by their config names."""
@@ -134,9 +135,7 @@ class PIPDController:
         attr = self.GAINS.get(name)
         if attr is None:
             raise ValueError(f"{name!r} is not a gain of the PI-PD law ({', '.join(self.GAINS)})")
-        v = float(value)
-        if not (math.isfinite(v) and v > 0):
-            raise ValueError(f"{name}: {value!r} is not a finite positive number")
+        v = _positive(name, value)
         st = self.st
         if self._started and name in ("K_P_y", "K_I_y") and self.kiy:
             psi_ref = self.kpy * st.e_y + self.kiy * st.x_I          # unclipped, as the last step made it
@@ -188,13 +187,18 @@ class PController:
         the wire. ValueError for another name or a value that is not finite and positive."""
         if name != "K_P":
             raise ValueError(f"{name!r} is not a gain of the P law (K_P)")
-        v = float(value)
-        if not (math.isfinite(v) and v > 0):
-            raise ValueError(f"{name}: {value!r} is not a finite positive number")
-        self.kp = v
+        self.kp = _positive(name, value)
 
     def limit_feedback(self, u_applied: float) -> None:
         pass
+
+
+def _positive(name: str, value: float) -> float:
+    """A gain's new value as a float; ValueError unless finite and positive."""
+    v = float(value)
+    if not (math.isfinite(v) and v > 0):
+        raise ValueError(f"{name}: {value!r} is not a finite positive number")
+    return v
 
 
 def make_controller(cfg: ControllerConfig, u_max: float, psi_ref_max: float | None = None):

@@ -25,12 +25,9 @@ import math
 from typing import Mapping
 
 from . import analysis, schema
-from .config import TUNABLE_GAINS, Limits, RigConfig
+from .config import P_GAINS, PIPD_GAINS, TUNABLE_GAINS, Limits, RigConfig
 from .errors import ConfigError, RigError
 
-PIPD_GAINS = ("K_P_y", "K_I_y", "K_P_psi", "K_D_psi", "T_f_psi")
-P_GAINS = ("K_P",)
-assert set(PIPD_GAINS + P_GAINS) == set(TUNABLE_GAINS)
 LIMIT_NAMES = tuple(f.name for f in dataclasses.fields(Limits))
 
 
