@@ -19,12 +19,8 @@ separate process they cannot.
   however it died) or when its parent pid changes; ``close()`` asks, joins, then terminates
   (then kills) after ``timeout_s + 2`` s.
 * Shared memory: one fixed-size slot per sensor, written by exactly one poll thread of the
-  child, read by the loop. Seqlock: the writer makes the slot's sequence number odd, writes
-  the payload and its CRC-32, makes it even again; the reader copies the payload between two
-  reads of the sequence number and accepts it only if both are equal and even and the CRC
-  matches (the CRC also guards against store/load reordering on weakly ordered CPUs, which
-  Python code cannot fence). A rejected read keeps the previous state; the next ``poll()``
-  retries — the reader never waits.
+  child, read by the loop: a seqlock with a CRC (:mod:`rig_runtime.seqlock` has the
+  protocol). A rejected read keeps the previous state; the next ``poll()`` retries.
 """
 
 from __future__ import annotations
@@ -37,10 +33,10 @@ import pickle
 import signal
 import struct
 import time
-import zlib
 from multiprocessing import shared_memory
 from typing import Any, Callable, Optional
 
+from rig_runtime import seqlock
 from rig_runtime.clock import as_background_thread, sched_other
 from rig_runtime.config import FTBus
 
@@ -54,10 +50,7 @@ CAUSE_BYTES = 240
 # t, fx..mz | has_wrench, timeouts, errors, bad_frames, samples, connects, connect_failures,
 # disconnects | exception code (-1: none), cause length | cause (UTF-8, truncated)
 _PAYLOAD = struct.Struct(f"<7d8QiH2x{CAUSE_BYTES}s")
-_HEAD = struct.Struct("<QI4x")              # sequence number, CRC-32 of the payload
-SLOT_SIZE = _HEAD.size + _PAYLOAD.size      # a multiple of 8: every slot's sequence is aligned
-_CRC = struct.Struct("<I")
-_SEQ = struct.Struct("<Q")
+SLOT_SIZE = seqlock.HEADER_BYTES + _PAYLOAD.size   # a multiple of 8: every slot's lock is aligned
 _START_GRACE_S = 30.0                       # interpreter start + imports on a loaded machine
 _WATCH_S = 0.2                              # how often the child looks at its parent
 
@@ -77,13 +70,7 @@ class SlotWriter:
                                 counters.get("samples", 0), counters.get("connects", 0),
                                 counters.get("connect_failures", 0), counters.get("disconnects", 0),
                                 -1 if p.exc_code is None else p.exc_code, len(cause), cause)
-        buf = self._buf
-        off = k * SLOT_SIZE
-        seq = _SEQ.unpack_from(buf, off)[0] | 1
-        _SEQ.pack_into(buf, off, seq)            # odd: being written
-        buf[off + _HEAD.size: off + SLOT_SIZE] = payload
-        _CRC.pack_into(buf, off + 8, zlib.crc32(payload))
-        _SEQ.pack_into(buf, off, seq + 1)        # even: complete
+        seqlock.write(self._buf, k * SLOT_SIZE, payload)
 
 
 class SlotReader:
@@ -100,22 +87,17 @@ class SlotReader:
         self.rejected = 0                   # torn or inconsistent copies seen (retried next time)
 
     def refresh(self) -> None:
-        buf, last, seq_of = self._buf, self._last, _SEQ.unpack_from
+        buf, last, seq_of = self._buf, self._last, seqlock.seq
         for k, off in zip(self._ks, self._offs):
-            if seq_of(buf, off)[0] != last[k]:
+            if seq_of(buf, off) != last[k]:
                 self._load(k, off)
 
     def _load(self, k: int, off: int) -> None:
-        buf = self._buf
-        s1 = _SEQ.unpack_from(buf, off)[0]
-        if s1 & 1:
+        r = seqlock.read(self._buf, off, _PAYLOAD.size)
+        if r is None:
             self.rejected += 1
             return
-        crc = _CRC.unpack_from(buf, off + 8)[0]
-        payload = bytes(buf[off + _HEAD.size: off + SLOT_SIZE])
-        if _SEQ.unpack_from(buf, off)[0] != s1 or zlib.crc32(payload) != crc:
-            self.rejected += 1
-            return
+        s1, payload = r
         (t, fx, fy, fz, mx, my, mz, has_w, timeouts, errors, bad_frames, samples, connects,
          connect_failures, disconnects, exc, n, cause) = _PAYLOAD.unpack(payload)
         self._sensors[k].pub = self._make(

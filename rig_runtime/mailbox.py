@@ -8,21 +8,16 @@ Protocol: the server :meth:`Mailbox.submit`\\ s a command (``stop``, ``set NAME 
 command is in flight at a time (the server waits for each answer); a new submit replaces
 a command the loop has not taken yet.
 
-Layout (little endian, every header 8-byte aligned)::
+Layout (little endian, every slot 8-byte aligned)::
 
-    0   command slot   lock u64 | crc32 u32 | pad | kind u8, name length u8, pad, value f64, name 32 B
-    64  answer slot    lock u64 | crc32 u32 | pad | seq u64, ok u8, pad, message length u16, message 240 B
+    0   command slot   seqlock header | kind u8, name length u8, pad, value f64, name 32 B
+    64  answer slot    seqlock header | seq u64, ok u8, pad, message length u16, message 240 B
 
-Each slot is a seqlock with a CRC, as ``drivers/ft_process.py``'s sensor slots: its one
-writer makes ``lock`` odd, writes the payload and the CRC-32 of the payload, then makes
-``lock`` even again. A reader copies the payload between two reads of ``lock`` and accepts
-the copy only if both reads are equal and even and the CRC matches: a torn copy (the writer
-was mid-write) fails one of the three, and the CRC also catches stores seen out of order on
-a weakly ordered CPU, which Python code cannot fence. A rejected read changes nothing; the
-reader tries again on its next call and never waits.
+Each slot is a seqlock slot (:mod:`rig_runtime.seqlock` has the protocol) with one
+writer: the server writes the command slot, the loop the answer slot.
 
-The command slot's even ``lock`` value is the command's sequence number (2, 4, …; 0: no
-command yet), so the loop's :meth:`take` is one unpack of that number compared with the
+The command slot's sequence number numbers the commands (2, 4, …; 0: no command yet), so
+the loop's :meth:`take` is one unpack of that number (:func:`seqlock.seq`) compared with the
 last one taken — no allocation beyond it, no system call — while nothing is pending. The
 answer names the sequence number it answers; :meth:`result` returns None until the answer
 for the asked number is there.
@@ -32,23 +27,21 @@ from __future__ import annotations
 
 import math
 import struct
-import zlib
 from dataclasses import dataclass
+
+from . import seqlock
 
 NAME_BYTES = 32
 MESSAGE_BYTES = 240
 KINDS = ("stop", "set", "reset-fault")          # kind codes 1, 2, 3 (0: none)
 
-_LOCK = struct.Struct("<Q")
-_CRC = struct.Struct("<I")
-_HEAD = struct.Struct("<QI4x")                  # lock, CRC-32 of the payload
 _CMD = struct.Struct(f"<BB6xd{NAME_BYTES}s")    # kind, name length, value, name (UTF-8)
 _ANS = struct.Struct(f"<QB1xH4x{MESSAGE_BYTES}s")  # seq answered, ok, message length, message (UTF-8)
 
 _CMD_OFF = 0
-_CMD_END = _CMD_OFF + _HEAD.size + _CMD.size
+_CMD_END = _CMD_OFF + seqlock.HEADER_BYTES + _CMD.size
 _ANS_OFF = (_CMD_END + 7) // 8 * 8
-_ANS_END = _ANS_OFF + _HEAD.size + _ANS.size
+_ANS_END = _ANS_OFF + seqlock.HEADER_BYTES + _ANS.size
 SIZE = (_ANS_END + 7) // 8 * 8                  # bytes the mailbox needs
 
 
@@ -65,28 +58,6 @@ def _cut(text: str, n: int) -> bytes:
     """``text`` as UTF-8, at most ``n`` bytes, cut at a character boundary."""
     b = text.encode("utf-8", "replace")
     return b if len(b) <= n else b[:n].decode("utf-8", "ignore").encode("utf-8")
-
-
-def _write(buf: memoryview, off: int, payload: bytes) -> int:
-    """Seqlock write of ``payload`` into the slot at ``off``; returns the new (even) lock."""
-    lock = _LOCK.unpack_from(buf, off)[0] | 1
-    _LOCK.pack_into(buf, off, lock)                               # odd: being written
-    buf[off + _HEAD.size: off + _HEAD.size + len(payload)] = payload
-    _CRC.pack_into(buf, off + 8, zlib.crc32(payload))
-    _LOCK.pack_into(buf, off, lock + 1)                           # even: complete
-    return lock + 1
-
-
-def _read(buf: memoryview, off: int, size: int) -> tuple[int, bytes] | None:
-    """Seqlock read of the slot at ``off``: (lock, payload), or None if the copy is torn."""
-    lock = _LOCK.unpack_from(buf, off)[0]
-    if lock & 1:
-        return None
-    crc = _CRC.unpack_from(buf, off + 8)[0]
-    payload = bytes(buf[off + _HEAD.size: off + _HEAD.size + size])
-    if _LOCK.unpack_from(buf, off)[0] != lock or zlib.crc32(payload) != crc:
-        return None
-    return lock, payload
 
 
 class Mailbox:
@@ -109,11 +80,11 @@ class Mailbox:
         nb = name.encode("utf-8")
         if len(nb) > NAME_BYTES:
             raise ValueError(f"name longer than {NAME_BYTES} bytes: {name[:40]!r}")
-        return _write(self._buf, _CMD_OFF, _CMD.pack(KINDS.index(kind) + 1, len(nb), float(value), nb))
+        return seqlock.write(self._buf, _CMD_OFF, _CMD.pack(KINDS.index(kind) + 1, len(nb), float(value), nb))
 
     def result(self, seq: int) -> tuple[bool, str] | None:
         """(ok, message) of command ``seq`` once the loop answered it; None while pending."""
-        r = _read(self._buf, _ANS_OFF, _ANS.size)
+        r = seqlock.read(self._buf, _ANS_OFF, _ANS.size)
         if r is None:
             return None
         answered, ok, n, msg = _ANS.unpack(r[1])
@@ -125,9 +96,9 @@ class Mailbox:
     def take(self) -> Command | None:
         """The command posted since the last ``take``, or None (nothing new, or the server
         is mid-write: the next call sees it)."""
-        if _LOCK.unpack_from(self._buf, _CMD_OFF)[0] == self._taken:
+        if seqlock.seq(self._buf, _CMD_OFF) == self._taken:
             return None
-        r = _read(self._buf, _CMD_OFF, _CMD.size)
+        r = seqlock.read(self._buf, _CMD_OFF, _CMD.size)
         if r is None:
             self.rejected += 1
             return None
@@ -142,4 +113,4 @@ class Mailbox:
     def answer(self, seq: int, ok: bool, message: str) -> None:
         """Answer command ``seq`` (the message is cut to MESSAGE_BYTES of UTF-8)."""
         m = _cut(message, MESSAGE_BYTES)
-        _write(self._buf, _ANS_OFF, _ANS.pack(seq, bool(ok), len(m), m))
+        seqlock.write(self._buf, _ANS_OFF, _ANS.pack(seq, bool(ok), len(m), m))

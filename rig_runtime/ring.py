@@ -14,11 +14,11 @@ indices mean "full" and "empty" cannot be confused; neither side ever waits for 
 or takes a lock. Each counter is an aligned 8-byte store (a ``memoryview`` of format ``q``),
 and x86-64 — the rig PC — does not reorder a store with earlier stores nor a load with
 earlier loads, so a reader that sees ``W`` advanced sees the item's bytes. (On a weakly
-ordered CPU this hand-off would need a checksum like the F/T slots' seqlock.)
+ordered CPU this hand-off would need a checksum like the seqlock's.)
 
-The status snapshot (a few hundred bytes of JSON, a few times a second) uses a seqlock
-with a CRC-32: the loop makes the sequence odd, writes length, CRC and bytes, makes it even;
-the sidecar accepts a copy only if the sequence was even and unchanged and the CRC matches.
+The status snapshot (a few hundred bytes of JSON, a few times a second, at most
+``Layout.status_bytes``) is one seqlock slot (:mod:`rig_runtime.seqlock` has the protocol)
+at the start of the status region: written by the loop, read by the sidecar.
 """
 
 from __future__ import annotations
@@ -27,18 +27,17 @@ import mmap
 import os
 import struct
 import tempfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from . import mailbox
+from . import mailbox, seqlock
 
-MAGIC = 0x52494752494E4731          # "RIGRING1"
+MAGIC = 0x52494752494E4732          # "RIGRING2" (2: the status seqlock moved into its region)
 # header slots (int64 each)
-_MAGIC, _NCOLS, _CAP, _EVCAP, _W, _R, _EW, _ER, _ST_SEQ, _ST_LEN, _ST_CRC, _ERR_LEN, \
-    _ROWS_WRITTEN, _ROWS_FLUSHED, _DROPPED, _EV_DROPPED, _STATUS_BYTES, _MAILBOX_BYTES = range(18)
+_MAGIC, _NCOLS, _CAP, _EVCAP, _W, _R, _EW, _ER, _ERR_LEN, \
+    _ROWS_WRITTEN, _ROWS_FLUSHED, _DROPPED, _EV_DROPPED, _STATUS_BYTES, _MAILBOX_BYTES = range(15)
 HEADER_SLOTS = 32
 ERROR_BYTES = 1024
 KIND_B, DEVICE_B, CHECK_B, MESSAGE_B = 16, 64, 64, 512
@@ -57,7 +56,7 @@ class Layout:
     ncols: int
     capacity: int                  # rows
     event_capacity: int
-    status_bytes: int = 16384
+    status_bytes: int = 16384     # the status snapshot's largest payload
     mailbox_bytes: int = mailbox.SIZE
 
     @property
@@ -70,7 +69,7 @@ class Layout:
 
     @property
     def mailbox_at(self) -> int:
-        return _align(self.status_at + self.status_bytes)
+        return _align(self.status_at + seqlock.HEADER_BYTES + self.status_bytes)
 
     @property
     def events_at(self) -> int:
@@ -150,7 +149,6 @@ class Producer:
         self._cap = layout.capacity
         self._w = 0
         self._ew = 0
-        self._st_seq = 0
 
     def mailbox_view(self) -> memoryview:
         lo = self.layout.mailbox_at
@@ -185,17 +183,10 @@ class Producer:
         return True
 
     def publish_status(self, data: bytes) -> bool:
-        """Seqlock write of a status snapshot; False if it does not fit."""
-        lay = self.layout
-        if len(data) > lay.status_bytes:
+        """Publish a status snapshot (a seqlock write); False if it does not fit."""
+        if len(data) > self.layout.status_bytes:
             return False
-        h = self._h
-        self._st_seq += 1
-        h[_ST_SEQ] = self._st_seq * 2 - 1   # odd: being written
-        h[_ST_LEN] = len(data)
-        h[_ST_CRC] = zlib.crc32(data)
-        self._mm[lay.status_at:lay.status_at + len(data)] = data
-        h[_ST_SEQ] = self._st_seq * 2
+        seqlock.write(self._mm, self.layout.status_at, data)
         return True
 
     def count_dropped(self, rows: int, events: int) -> None:
@@ -273,17 +264,13 @@ class Consumer:
 
     def status(self) -> bytes | None:
         """The newest status snapshot not seen before, or None (none new, or torn: retry later)."""
-        h = self._h
-        s1 = h[_ST_SEQ]
-        if s1 == self._st_seen or s1 & 1:
+        lay = self.layout
+        if seqlock.seq(self._mm, lay.status_at) == self._st_seen:
             return None
-        n = h[_ST_LEN]
-        crc = h[_ST_CRC]
-        lo = self.layout.status_at
-        data = bytes(self._mm[lo:lo + min(n, self.layout.status_bytes)])
-        if h[_ST_SEQ] != s1 or zlib.crc32(data) != crc:
+        r = seqlock.read(self._mm, lay.status_at, lay.status_bytes)
+        if r is None:
             return None
-        self._st_seen = s1
+        self._st_seen, data = r
         return data
 
     def dropped(self) -> tuple[int, int]:

@@ -7,7 +7,7 @@ import struct
 import pytest
 from hypothesis import given, strategies as st
 
-from rig_runtime import mailbox
+from rig_runtime import mailbox, seqlock
 from rig_runtime.mailbox import KINDS, MESSAGE_BYTES, NAME_BYTES, SIZE, Command, Mailbox
 
 names = st.text(max_size=NAME_BYTES).filter(lambda s: len(s.encode("utf-8")) <= NAME_BYTES)
@@ -122,8 +122,8 @@ def test_take_with_nothing_pending_reads_only_the_sequence_number(monkeypatch):
     _, server, loop = pair()
     loop.take() if server.submit("stop") else None
     calls = []
-    monkeypatch.setattr(mailbox, "_read", lambda *a: calls.append(a))
-    monkeypatch.setattr(mailbox.zlib, "crc32", lambda *a: calls.append(a))
+    monkeypatch.setattr(seqlock, "read", lambda *a: calls.append(a))
+    monkeypatch.setattr(seqlock.zlib, "crc32", lambda *a: calls.append(a))
     for _ in range(100):
         assert loop.take() is None
     assert calls == []
