@@ -29,7 +29,6 @@ import logging
 import multiprocessing
 import multiprocessing.connection
 import os
-import pickle
 import signal
 import struct
 import time
@@ -40,7 +39,7 @@ from rig_runtime import seqlock
 from rig_runtime.clock import as_background_thread, sched_other
 from rig_runtime.config import FTBus
 
-from rig_runtime.errors import DeviceInitError
+from rig_runtime.errors import DeviceInitError, picklable
 from .ft_codec import Wrench
 from .ft_poll import PollCore, Poller, Published
 
@@ -252,7 +251,7 @@ def child_main(cfg: FTBus, endpoints: dict[str, tuple[str, int]], reconnect_s: f
         try:
             core.open()
         except DeviceInitError as exc:
-            conn.send(("error", exc.device, _message(exc), _picklable(exc.__cause__)))
+            conn.send(("error", exc.device, _message(exc), picklable(exc.__cause__)))
             return
         except Exception as exc:            # noqa: BLE001 - reported to the parent, which raises
             conn.send(("error", "ft", f"poll process: {type(exc).__name__}: {exc}", None))
@@ -278,15 +277,3 @@ def _message(exc: DeviceInitError) -> str:
     text = str(exc)
     prefix = f"{exc.device}: "
     return text[len(prefix):] if text.startswith(prefix) else text
-
-
-def _picklable(exc: Optional[BaseException]) -> Optional[BaseException]:
-    """The OS error behind a failed open (refused, unreachable, …) survives pickling; anything
-    else is passed on as its text."""
-    if exc is None:
-        return None
-    try:
-        pickle.loads(pickle.dumps(exc))
-        return exc
-    except Exception:                       # noqa: BLE001
-        return RuntimeError(f"{type(exc).__name__}: {exc}")
