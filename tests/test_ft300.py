@@ -15,6 +15,7 @@ import subprocess
 import sys
 import threading
 import time
+import warnings
 from multiprocessing import shared_memory
 
 import pytest
@@ -96,8 +97,18 @@ def server():
 
 
 def _running(server, poller: str, **kw):
-    d = FTSensorSet(bus("left", "right", poller=poller, **kw), server.endpoints)
-    d.configure()
+    for attempt in range(1, 4):
+        d = FTSensorSet(bus("left", "right", poller=poller, **kw), server.endpoints)
+        try:
+            d.configure()
+            break
+        except DeviceInitError as exc:
+            # the open's 3 reads each wait timeout_s (0.1 s for ``driver``) for the server's
+            # thread: all three late is a stall of the loaded machine, not what is tested
+            if "(timeout)" not in str(exc) or attempt == 3:
+                raise
+            warnings.warn(f"F/T open, attempt {attempt}: the server's thread answered late "
+                          f"(a stall of the machine), opening again: {exc}")
     # inline: the reads at open have no time on the caller's clock (STALE until polled)
     wait_for(lambda: all(r.health.fresh for r in d.poll(time.monotonic()).values()))
     return d
@@ -405,7 +416,7 @@ def test_silent_device_at_open_is_an_init_error(server, poller):
 
 @pytest.mark.parametrize("poller", POLLERS)
 def test_close_is_idempotent_and_stops_the_poller(server, poller):
-    d = FTSensorSet(bus("left", "right", poller=poller), server.endpoints)
+    d = FTSensorSet(bus("left", "right", poller=poller, timeout_s=1.0), server.endpoints)
     d.configure()
     if poller == "thread":
         assert ft_threads() and not multiprocessing.active_children()
@@ -430,7 +441,9 @@ def test_connection_loss_is_reported_and_reconnected(poller):
     srv = VirtualFTServer(["left"], ports={"left": quiet_port()}).start()
     srv.set_wrench("left", W_LEFT)
     endpoint = srv.endpoints["left"]
-    with FTSensorSet(bus("left", poller=poller), srv.endpoints, reconnect_s=0.02) as d:
+    # a 1 s timeout: a late reply must not time out and reconnect (disconnects are counted);
+    # the loss itself shows at once (EOF, then refused connects)
+    with FTSensorSet(bus("left", poller=poller, timeout_s=1.0), srv.endpoints, reconnect_s=0.02) as d:
         wait_for(lambda: driver_health(d).fresh)
         srv.close()
         h = wait_for(lambda: (x := driver_health(d)).state is Freshness.STALE and x)
@@ -518,7 +531,7 @@ def test_process_poller_reports_the_counters_and_causes_of_the_child(server):
 def test_killing_the_server_makes_the_process_poller_stale_with_a_cause():
     srv = VirtualFTServer(["left"], ports={"left": quiet_port()}).start()
     srv.set_wrench("left", W_LEFT)
-    with FTSensorSet(bus("left"), srv.endpoints, reconnect_s=0.05, ) as d:
+    with FTSensorSet(bus("left", timeout_s=1.0), srv.endpoints, reconnect_s=0.05, ) as d:
         wait_for(lambda: d.poll(time.monotonic())["left"].health.fresh)
         srv.close()
         r = wait_for(lambda: (x := d.poll(time.monotonic())["left"]).health.state is not Freshness.FRESH and x)
@@ -528,7 +541,7 @@ def test_killing_the_server_makes_the_process_poller_stale_with_a_cause():
 
 
 def test_a_dead_poll_process_shows_as_stale_with_its_exit(server):
-    with FTSensorSet(bus("left", "right"), server.endpoints, ) as d:
+    with FTSensorSet(bus("left", "right", timeout_s=1.0), server.endpoints, ) as d:
         proc = d.poller.process
         os.kill(proc.pid, signal.SIGKILL)
         h = wait_for(lambda: (x := d.poll(time.monotonic())["left"].health).state is Freshness.STALE and x)
@@ -545,7 +558,7 @@ def test_poll_process_runs_sched_other_even_when_started_from_a_fifo_thread(serv
         except (OSError, AttributeError) as exc:
             out["skip"] = repr(exc)
             return
-        d = FTSensorSet(bus("left"), {"left": server.endpoints["left"]})
+        d = FTSensorSet(bus("left", timeout_s=1.0), {"left": server.endpoints["left"]})
         d.configure()
         out["d"] = d
 
@@ -567,7 +580,8 @@ sys.path.insert(0, {root!r})
 from rig_runtime.config import FTBus, FTSensor
 from drivers.ft300 import FTSensorSet
 if __name__ == "__main__":
-    d = FTSensorSet(FTBus(poll_hz=50.0, sensors=(FTSensor(name="left"),)), {{"left": ("127.0.0.1", {port})}})
+    d = FTSensorSet(FTBus(poll_hz=50.0, timeout_s=1.0, sensors=(FTSensor(name="left"),)),
+                    {{"left": ("127.0.0.1", {port})}})
     d.configure()
     print(d.poller.process.pid, flush=True)
     time.sleep(60)
