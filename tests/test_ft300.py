@@ -367,11 +367,12 @@ def test_poll_never_waits_while_the_device_hangs(server, poller):
         rounds = [poll_costs(d, 500) for _ in range(5)]
         assert d.poll(time.monotonic())["left"].health.timeouts == before   # still hanging
         # waiting on the hanging request would cost up to 5 s on a call, and no call may come
-        # near that; a call of a few ms is preemption on a loaded machine (up to ~20 of the
-        # 2500 calls measured beside two CPU hogs), so 98 % of the calls must take under
-        # 1 ms, and every round's median under 0.1 ms (a few µs measured)
+        # near that (a lone call of 0.5 s was seen on a loaded machine: a stall); a call of a
+        # few ms is preemption (up to ~20 of the 2500 calls measured beside two CPU hogs), so
+        # 98 % of the calls must take under 1 ms, and every round's median under 0.1 ms (a
+        # few µs measured)
         assert all(r[len(r) // 2] < 1e-4 for r in rounds), [f"{r[len(r) // 2] * 1e6:.0f} µs" for r in rounds]
-        assert all(r[-1] < 0.5 for r in rounds), [f"{r[-1] * 1e3:.2f} ms" for r in rounds]
+        assert all(r[-1] < 2.0 for r in rounds), [f"{r[-1] * 1e3:.2f} ms" for r in rounds]
         slow = sum(c >= 1e-3 for r in rounds for c in r)
         assert slow <= 50, f"{slow} of 2500 calls took 1 ms or more"
         wait_for(lambda: d.poll(time.monotonic())["left"].health.timeouts > before, timeout=15.0)
