@@ -304,9 +304,12 @@ def test_flushed_at_least_every_flush_s(log):
     # flush_s = 0.1 gives ~16 flushes in 2 s; flushing only at the 1 s maximum period would
     # give 2, only when a batch (1024 rows) is full none (at most 400 rows arrive)
     assert len(stamps) >= 6, stamps
-    # period + wake-up granularity + slack for fsync and a stall of the loaded machine (either
-    # process); still well below the 1 s maximum period
-    assert gaps.max() < 0.1 + 2 * sidecar._POLL_S + 0.45, gaps
+    # the typical gap: period + wake-up granularity (+ fsync), far from the 1 s maximum
+    assert np.median(gaps) < 0.1 + 2 * sidecar._POLL_S + 0.1, gaps
+    # every gap: the same + slack for fsync on a CI disk and a stall of the loaded machine
+    # (either process; 0.5 s stalls were seen beside the other session's tests), still
+    # below the 1 s maximum period
+    assert gaps.max() < 0.1 + 2 * sidecar._POLL_S + 0.7, gaps
 
 READER = textwrap.dedent("""
     import sys, h5py
