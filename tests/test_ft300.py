@@ -55,7 +55,7 @@ def bus(*names: str, poll_hz: float = 100.0, timeout_s: float = TIMEOUT_S, polle
     return FTBus(poller=poller, poll_hz=poll_hz, timeout_s=timeout_s, stale_s=stale_s, sensors=sensors)
 
 
-def wait_for(pred, timeout: float = 3.0, step: float = 0.005):
+def wait_for(pred, timeout: float = 5.0, step: float = 0.005):
     """Poll ``pred()`` until it returns something truthy; fail after ``timeout``."""
     end = time.monotonic() + timeout
     while time.monotonic() < end:

@@ -48,7 +48,7 @@ def feed(rec: Recorder, start: int, stop: int, timeout: float = 10.0) -> None:
         assert rec.append(row(i)), f"row {i} refused: {rec.error}"
 
 
-def wait_for(cond, timeout: float = 3.0) -> None:
+def wait_for(cond, timeout: float = 5.0) -> None:
     deadline = time.monotonic() + timeout
     while not cond():
         assert time.monotonic() < deadline, "condition not reached in time"
