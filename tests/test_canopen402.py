@@ -6,6 +6,7 @@ import math
 import random
 import time
 import uuid
+import warnings
 
 import can
 import canopen
@@ -27,6 +28,10 @@ VF = 0.0001                       # velocity factor, rad/s per unit of 0x606C
 STEP_A = RATED / 1000.0           # one per-mille step of the target torque
 EDS = resolve_config_path("irdw-drive.eds")
 BASE_SPEEDS = {"fl": 30.0, "fr": 31.0, "rl": -29.0, "rr": 0.5}
+# configure() against drives a thread answers (the virtual drives serving, canopen's
+# LocalNode): the driver's 0.3 s SDO timeout has no retry, so a stall of that thread on a
+# loaded machine would fail the start-up. Only the missing-node test wants a short one.
+SDO_TIMEOUT_S = 2.0
 
 
 def drives(*ids: int) -> tuple[Drive, ...]:
@@ -100,7 +105,7 @@ def configured(buses, channel):
     """Configured (drives started, no power), not activated."""
     cfg = can_cfg(channel)
     vds = VirtualDriveSet(cfg, buses[1])
-    drv = DriveBus(cfg, buses[0], period_s=H)
+    drv = DriveBus(cfg, buses[0], period_s=H, sdo_timeout_s=SDO_TIMEOUT_S)
     open_lockstep(drv, vds)
     yield Rig(drv, vds)
     drv.close()
@@ -460,10 +465,14 @@ def test_poll_survives_garbage_frames(rig, buses):
 
 
 def test_missing_drive_names_the_node(buses, channel):
-    vds = VirtualDriveSet(can_cfg(channel, ids=(1,)), buses[1])
-    drv = DriveBus(can_cfg(channel, ids=(1, 9)), buses[0], sdo_timeout_s=0.05)
+    # the missing node (9, fl) is configured first: the short SDO timeout applies to its
+    # first SDO only, never to the ~25 SDOs the present node (1, fr) answers from a thread
+    present = CanBus(interface="virtual", channel=channel,
+                     drives=(Drive(wheel="fr", node_id=1, rated_current_A=RATED, velocity_factor=VF),))
+    vds = VirtualDriveSet(present, buses[1])
+    drv = DriveBus(can_cfg(channel, ids=(9, 1)), buses[0], sdo_timeout_s=0.05)
     t0 = time.monotonic()
-    with pytest.raises(DeviceInitError, match=r"node 9 \(fr\).*no SDO answer"):
+    with pytest.raises(DeviceInitError, match=r"node 9 \(fl\).*no SDO answer"):
         open_lockstep(drv, vds)
     assert time.monotonic() - t0 < 2.0 and not drv.is_configured
     buses[0].send(can.Message(arbitration_id=0x80, data=b""))      # a passed-in bus stays usable
@@ -476,7 +485,7 @@ def test_drive_stuck_in_fault_names_node_and_state(buses, channel):
     cfg = can_cfg(channel, ids=(5,))
     vds = VirtualDriveSet(cfg, buses[1])
     vds.inject("out_of_range")                                      # overcurrent as soon as powered
-    drv = DriveBus(cfg, buses[0], period_s=H, enable_timeout_s=0.2)
+    drv = DriveBus(cfg, buses[0], period_s=H, enable_timeout_s=0.2, sdo_timeout_s=SDO_TIMEOUT_S)
     open_lockstep(drv, vds)
     try:
         t = 0.0
@@ -509,7 +518,7 @@ def test_bus_open_failure_and_config_checks(channel):
 
 def test_owned_bus_open_close_idempotent(buses, channel):
     vds = VirtualDriveSet(can_cfg(channel), buses[1])
-    drv = DriveBus(can_cfg(channel))            # creates its own virtual bus in configure()
+    drv = DriveBus(can_cfg(channel), sdo_timeout_s=SDO_TIMEOUT_S)   # creates its own virtual bus in configure()
     drv.close()                                 # never configured: fine
     open_lockstep(drv, vds)
     own = drv._bus
@@ -546,34 +555,83 @@ def test_unconfigured_tpdo_mapping_shows_up_as_garbled(rig):
     assert "DLC 2 != 8" in r["rr"].health.cause and r["fl"].health.fresh
 
 
-def test_realtime_mode(buses, channel):
+def _realtime_attempt(channel: str):
+    """One run of test_realtime_mode on a bus of its own. Returns None when it passed, or
+    why a stall of this thread spoiled it: a gap between two writes longer than the drives'
+    watchdog (a loaded machine) faults them, which is the drives' job, not a driver bug."""
+    a = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    b = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
     cfg = can_cfg(channel)
-    vds = VirtualDriveSet(cfg, buses[1])
-    drv = DriveBus(cfg, buses[0], period_s=H)
+    watchdog_s = cfg.watchdog_ms / 1000
+    vds = VirtualDriveSet(cfg, b)
+    drv = DriveBus(cfg, a, period_s=H, sdo_timeout_s=SDO_TIMEOUT_S)
     vds.start_realtime()
     try:
         drv.configure()
         drv.activate(time.monotonic())
         for w in WHEELS:
             vds.set_wheel_speed(w, BASE_SPEEDS[w])
-        t_next = time.monotonic()
-        for k in range(200):                                  # up to 1 s on a loaded machine
-            now = time.monotonic()
-            r = drv.poll(now)
-            drv.write({w: -1.25 for w in WHEELS}, now)
-            if k >= 10 and r.enabled:
-                break
-            t_next += H
-            time.sleep(max(0.0, t_next - time.monotonic()))
-        assert r.enabled, [x.health.cause for x in r]
-        time.sleep(0.005)
-        assert all(vds.current_A(w) == pytest.approx(-1.25, abs=STEP_A / 2) for w in WHEELS)
+        state = {"last": None, "gap": 0.0}
+
+        def cycle_until(done, timeout: float):
+            """Poll and write -1.25 A every period until ``done(r)``; the last readings, or
+            None if ``timeout`` passed first."""
+            deadline = time.monotonic() + timeout
+            t_next = time.monotonic()
+            while True:
+                now = time.monotonic()
+                r = drv.poll(now)
+                drv.write({w: -1.25 for w in WHEELS}, now)
+                if state["last"] is not None:
+                    state["gap"] = max(state["gap"], now - state["last"])
+                state["last"] = now
+                if done(r):
+                    return r
+                if now > deadline:
+                    return None
+                t_next += H
+                time.sleep(max(0.0, t_next - time.monotonic()))
+
+        def spoiled(what: str):
+            if state["gap"] > 0.8 * watchdog_s:
+                return f"{what}, after a {state['gap'] * 1e3:.0f} ms gap between writes"
+            pytest.fail(f"{what} (longest gap between writes {state['gap'] * 1e3:.0f} ms)")
+
+        k = {"n": 0}
+
+        def enabled(r):
+            k["n"] += 1
+            return k["n"] > 10 and r.enabled
+
+        r = cycle_until(enabled, 5.0)
+        if r is None:
+            return spoiled(f"not enabled within 5 s: {[x.health.cause for x in drv.poll(time.monotonic())]}")
+        # the drive thread applies the current when it handles the RPDOs: cycle until it has
+        r = cycle_until(lambda r: all(vds.current_A(w) == pytest.approx(-1.25, abs=STEP_A / 2)
+                                      for w in WHEELS), 2.0)
+        if r is None:
+            return spoiled(f"currents {[vds.current_A(w) for w in WHEELS]} A, not -1.25 A within 2 s")
         assert r["rl"].omega == pytest.approx(BASE_SPEEDS["rl"], abs=VF)
-        time.sleep(cfg.watchdog_ms / 1000 + 0.05)             # writes stop: converters cut current
-        assert all(vds.current_A(w) == 0.0 for w in WHEELS)
+        # writes stop: converters cut current (the drives' watchdog, cfg.watchdog_ms)
+        deadline = time.monotonic() + 2.0
+        while not all(vds.current_A(w) == 0.0 for w in WHEELS):
+            assert time.monotonic() < deadline, [vds.current_A(w) for w in WHEELS]
+            time.sleep(0.005)
+        return None
     finally:
         vds.stop()
         drv.close()
+        a.shutdown()
+        b.shutdown()
+
+
+def test_realtime_mode(channel):
+    for attempt in range(1, 4):
+        why = _realtime_attempt(f"{channel}-{attempt}")
+        if why is None:
+            return
+        warnings.warn(f"test_realtime_mode, attempt {attempt} spoiled by a stall of the machine: {why}")
+    pytest.fail(f"test_realtime_mode: 3 attempts spoiled, the last: {why}")
 
 
 # =========================================================================== independent peer
@@ -611,9 +669,12 @@ def test_startup_against_canopen_localnode(buses, channel):
             _peer_402(node)
             net.add_node(node)
             peers.append(node)
-        drv = DriveBus(cfg, buses[0], period_s=H)
+        drv = DriveBus(cfg, buses[0], period_s=H, sdo_timeout_s=SDO_TIMEOUT_S)
         drv.configure()
         try:
+            deadline = time.monotonic() + 5.0     # the peer's notifier thread handles the NMT start
+            while any(n.nmt.state != "OPERATIONAL" for n in peers) and time.monotonic() < deadline:
+                time.sleep(0.005)
             for node in peers:
                 assert node.nmt.state == "OPERATIONAL"
                 assert node.sdo[0x6060].raw == 10 and node.sdo[0x6075].raw == 8000
@@ -624,7 +685,7 @@ def test_startup_against_canopen_localnode(buses, channel):
                 assert c4.state_of(node.sdo[0x6041].raw) == c4.SWITCH_ON_DISABLED
             # canopen's LocalNode produces the heartbeat itself (python-can periodic task)
             drv.poll(time.monotonic())
-            deadline = time.monotonic() + 1.0
+            deadline = time.monotonic() + 5.0
             while True:
                 time.sleep(0.01)
                 r = drv.poll(time.monotonic())
@@ -636,7 +697,7 @@ def test_startup_against_canopen_localnode(buses, channel):
                 assert x.health.state is Freshness.STALE and "no TPDO" in x.health.cause
         finally:
             drv.close()
-        deadline = time.monotonic() + 1.0          # the peer's notifier thread handles the NMT
+        deadline = time.monotonic() + 5.0          # the peer's notifier thread handles the NMT
         while any(n.nmt.state != "PRE-OPERATIONAL" for n in peers) and time.monotonic() < deadline:
             time.sleep(0.005)
         assert all(node.nmt.state == "PRE-OPERATIONAL" for node in peers)

@@ -8,12 +8,14 @@ import asyncio
 import math
 import multiprocessing
 import os
+import random
 import signal
 import socket
 import subprocess
 import sys
 import threading
 import time
+import warnings
 from multiprocessing import shared_memory
 
 import pytest
@@ -35,6 +37,10 @@ from sim_backend.virtual_ft import VirtualFTServer
 
 TIMEOUT_S = 0.1
 STALE_S = 0.3
+# For the tests that count no timeout or one connect: TIMEOUT_S lets a reply the server's
+# thread sends 0.1 s late (a loaded machine) count as a timeout and reconnect. The short
+# ones stay for the tests of dropouts, staleness and bad frames.
+PATIENT = {"timeout_s": 1.0, "stale_s": 2.0}
 W_LEFT = Wrench(fx=-12.34, fy=0.5, fz=9.81, mx=-0.25, my=-0.5, mz=1.5)
 # the same wrench, encoded by hand: -1234 -> 65536-1234 = 64302, -250 -> 65286, -500 -> 65036
 REGS_LEFT = [64302, 50, 981, 65286, 65036, 1500]
@@ -44,12 +50,12 @@ POLLERS = ("process", "thread", "inline")
 
 
 def bus(*names: str, poll_hz: float = 100.0, timeout_s: float = TIMEOUT_S, poller: str = "process",
-        **kw) -> FTBus:
+        stale_s: float = STALE_S, **kw) -> FTBus:
     sensors = kw.pop("sensors", None) or tuple(FTSensor(name=n) for n in names)
-    return FTBus(poller=poller, poll_hz=poll_hz, timeout_s=timeout_s, stale_s=STALE_S, sensors=sensors)
+    return FTBus(poller=poller, poll_hz=poll_hz, timeout_s=timeout_s, stale_s=stale_s, sensors=sensors)
 
 
-def wait_for(pred, timeout: float = 3.0, step: float = 0.005):
+def wait_for(pred, timeout: float = 5.0, step: float = 0.005):
     """Poll ``pred()`` until it returns something truthy; fail after ``timeout``."""
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -63,10 +69,22 @@ def close_to(a: Wrench, b: Wrench, tol: float = 1e-9) -> bool:
     return all(abs(x - y) <= tol for x, y in zip(a.as_tuple(), b.as_tuple()))
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def quiet_port() -> int:
+    """A free TCP port outside the kernel's ephemeral range, for a server a test closes
+    while the driver reconnects: a connect() to a closed ephemeral port can be given that
+    same port as its source (a TCP self-connect, about 1 in 28 000 attempts), which "answers"
+    the driver and keeps the port from the server reopened there."""
+    with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
+        lo, hi = map(int, f.read().split())
+    outside = [p for p in range(10_000, 65_536) if not lo <= p <= hi]
+    for port in random.sample(outside, min(200, len(outside))):
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    pytest.fail(f"no free port outside the ephemeral range {lo}-{hi}")
 
 
 @pytest.fixture
@@ -78,14 +96,39 @@ def server():
     srv.close()
 
 
+def _running(server, poller: str, **kw):
+    for attempt in range(1, 4):
+        d = FTSensorSet(bus("left", "right", poller=poller, **kw), server.endpoints)
+        try:
+            d.configure()
+            break
+        except DeviceInitError as exc:
+            # the open's 3 reads each wait timeout_s (0.1 s for ``driver``) for the server's
+            # thread: all three late is a stall of the loaded machine, not what is tested
+            if "(timeout)" not in str(exc) or attempt == 3:
+                raise
+            warnings.warn(f"F/T open, attempt {attempt}: the server's thread answered late "
+                          f"(a stall of the machine), opening again: {exc}")
+    # inline: the reads at open have no time on the caller's clock (STALE until polled)
+    wait_for(lambda: all(r.health.fresh for r in d.poll(time.monotonic()).values()))
+    return d
+
+
 @pytest.fixture(params=POLLERS)
 def driver(server, request):
     """The driver polling in real time: in its own process (default), in threads, or inline
-    (in the ``poll(time.monotonic())`` calls of the test; the server answers from its thread)."""
-    d = FTSensorSet(bus("left", "right", poller=request.param), server.endpoints)
-    d.configure()
-    # inline: the reads at open have no time on the caller's clock (STALE until polled)
-    wait_for(lambda: all(r.health.fresh for r in d.poll(time.monotonic()).values()))
+    (in the ``poll(time.monotonic())`` calls of the test; the server answers from its thread).
+    Short timeout and staleness (TIMEOUT_S, STALE_S): for dropouts, staleness, bad frames."""
+    d = _running(server, request.param)
+    yield d
+    d.close()
+
+
+@pytest.fixture(params=POLLERS)
+def patient_driver(server, request):
+    """``driver`` with a 1 s timeout and 2 s staleness (PATIENT): for the tests that count
+    no timeout, where a late reply of the server's thread must not count as one."""
+    d = _running(server, request.param, **PATIENT)
     yield d
     d.close()
 
@@ -188,12 +231,18 @@ def test_codec_values_inside_the_range_are_not_saturated(values):
 
 
 # --------------------------------------------------------------------------- driver <-> virtual sensors
-def test_values_arrive_fresh(server, driver):
-    r = wait_for(lambda: (p := driver.poll(time.monotonic()))["right"].health.fresh and p)
+def test_values_arrive_fresh(server, patient_driver):
+    driver = patient_driver
+
+    def all_fresh():
+        p = driver.poll(time.monotonic())
+        return all(x.health.fresh for x in p.values()) and p
+
+    r = wait_for(all_fresh)
     assert r["left"].wrench == W_LEFT
     assert r["right"].wrench == Wrench(fz=100.0)
     for reading in r.values():
-        assert reading.health.state is Freshness.FRESH and reading.age < STALE_S
+        assert reading.health.state is Freshness.FRESH and reading.age < PATIENT["stale_s"]
     server.set_wrench("left", Wrench(fy=-1.0))
     wait_for(lambda: driver.poll(time.monotonic())["left"].wrench == Wrench(fy=-1.0))
 
@@ -209,7 +258,7 @@ def test_dropout_goes_stale_counts_timeouts_and_recovers(server, driver):
     t_stale = r.t
     later = wait_for(lambda: (x := driver.poll(time.monotonic())["left"]).age > r.age + 0.05 and x)
     assert later.t == t_stale                      # age grows, no new sample
-    assert driver.poll(time.monotonic())["right"].health.state is Freshness.FRESH
+    wait_for(lambda: driver.poll(time.monotonic())["right"].health.state is Freshness.FRESH)   # unaffected
     server.clear("left", "dropout")
     wait_for(lambda: driver.poll(time.monotonic())["left"].health.fresh)
 
@@ -229,8 +278,15 @@ def test_health_is_one_value_until_something_changes(server, driver):
             healths.append(driver.poll(time.monotonic())["left"].health)
             time.sleep(0.001)
 
+    def sample_until(state: Freshness, timeout: float = 3.0) -> None:
+        end = time.monotonic() + timeout
+        while not healths or healths[-1].state is not state:
+            assert time.monotonic() < end, f"{state} not sampled within {timeout} s"
+            sample(1)
+
     sample(50)
     server.inject("left", "out_of_range", code=4)
+    sample_until(Freshness.INVALID)                # the next reply, however late it comes
     sample(50)
     server.clear("left")
     server.inject("left", "dropout")
@@ -245,7 +301,8 @@ def test_health_is_one_value_until_something_changes(server, driver):
     assert {h.state for h in healths} == {Freshness.FRESH, Freshness.INVALID, Freshness.STALE}
 
 
-def test_exception_response_is_invalid_with_code(server, driver):
+def test_exception_response_is_invalid_with_code(server, patient_driver):
+    driver = patient_driver
     server.inject("right", "out_of_range", code=4)
     h = wait_for(lambda: (x := driver.poll(time.monotonic())["right"].health).state is Freshness.INVALID and x)
     assert "exception 4" in h.cause and "device failure" in h.cause
@@ -256,11 +313,12 @@ def test_exception_response_is_invalid_with_code(server, driver):
     wait_for(lambda: driver.poll(time.monotonic())["right"].health.fresh)
 
 
-def test_saturated_sample_is_invalid_with_axis_and_value_and_recovers(server, driver):
+def test_saturated_sample_is_invalid_with_axis_and_value_and_recovers(server, patient_driver):
+    driver = patient_driver
     server.set_wrench("right", Wrench(fz=480.0, fy=3.0))       # beyond the range: pinned at +32767
     r = wait_for(lambda: (x := driver.poll(time.monotonic())["right"]).health.state is Freshness.INVALID and x)
     assert r.health.cause == "Fz saturated at +327.67 N (int16 limit)"
-    assert r.wrench == Wrench(fz=327.67, fy=3.0) and r.age < STALE_S     # passed on, flagged
+    assert r.wrench == Wrench(fz=327.67, fy=3.0) and r.age < PATIENT["stale_s"]     # passed on, flagged
     assert r.health.errors >= 1 and r.health.timeouts == r.health.bad_frames == 0
     n = driver.counters()["right.samples"]
     wait_for(lambda: driver.poll(time.monotonic())["right"].health.errors >= r.health.errors + 2)
@@ -281,7 +339,8 @@ def test_garbled_frames_are_counted_as_bad_frames(server, driver, mode):
     wait_for(lambda: driver.poll(time.monotonic())["left"].health.fresh)
 
 
-def test_stuck_and_offset_faults_change_what_arrives(server, driver):
+def test_stuck_and_offset_faults_change_what_arrives(server, patient_driver):
+    driver = patient_driver
     server.inject("left", "stuck")
     server.set_wrench("left", Wrench())
     n = server.served("left")
@@ -296,22 +355,28 @@ def test_stuck_and_offset_faults_change_what_arrives(server, driver):
 
 @pytest.mark.parametrize("poller", POLLERS)
 def test_poll_never_waits_while_the_device_hangs(server, poller):
-    cfg = bus("left", "right", timeout_s=0.5, poller=poller)
+    # a 5 s timeout: the measurement (2500 polls, normally ~50 ms) ends long before the
+    # hanging requests time out, also on a loaded machine
+    cfg = bus("left", "right", timeout_s=5.0, poller=poller)
     with FTSensorSet(cfg, server.endpoints) as d:
         server.inject("left", "dropout")
         server.inject("right", "dropout")
         d.poll(time.monotonic())                   # inline: the requests go out here
-        time.sleep(0.05)                           # both requests now hang (0.5 s timeout)
+        time.sleep(0.05)                           # both requests now hang (5 s timeout)
         before = d.poll(time.monotonic())["left"].health.timeouts
         rounds = [poll_costs(d, 500) for _ in range(5)]
         assert d.poll(time.monotonic())["left"].health.timeouts == before   # still hanging
-        # waiting on the hanging request would cost up to 0.5 s on every call; a lone outlier
-        # of one scheduler tick (4 ms) is preemption on a loaded machine, so one clean round
-        # of 500 calls all under 1 ms is required, and no call may come near the timeout
-        assert all(r[len(r) // 2] < 1e-4 for r in rounds)
-        assert all(r[-1] < 0.05 for r in rounds), [f"{r[-1] * 1e3:.2f} ms" for r in rounds]
-        assert min(r[-1] for r in rounds) < 1e-3, [f"{r[-1] * 1e3:.2f} ms" for r in rounds]
-        wait_for(lambda: d.poll(time.monotonic())["left"].health.timeouts > before)
+        # waiting on the hanging request would cost up to 5 s on a call, and no call may come
+        # near that (a lone call of 0.5 s was seen on a loaded machine: a stall); a call of a
+        # few ms is preemption (up to ~20 of the 2500 calls measured beside two CPU hogs), so
+        # 98 % of the calls must take under 1 ms, and every round's median under 0.1 ms (a
+        # few µs measured)
+        assert all(r[len(r) // 2] < 1e-4 for r in rounds), [f"{r[len(r) // 2] * 1e6:.0f} µs" for r in rounds]
+        assert all(r[-1] < 2.0 for r in rounds), [f"{r[-1] * 1e3:.2f} ms" for r in rounds]
+        slow = sum(c >= 1e-3 for r in rounds for c in r)
+        assert slow <= 50, f"{slow} of 2500 calls took 1 ms or more"
+        wait_for(lambda: d.poll(time.monotonic())["left"].health.timeouts > before, timeout=15.0)
+        server.close()          # EOF ends the next hanging request: close() need not wait 5 s for it
 
 
 def poll_costs(d: FTSensorSet, n: int) -> list[float]:
@@ -326,10 +391,14 @@ def poll_costs(d: FTSensorSet, n: int) -> list[float]:
 
 @pytest.mark.parametrize("poller", POLLERS)
 def test_refused_connection_at_open_names_the_endpoint(poller):
-    port = free_port()
-    d = FTSensorSet(bus("left", poller=poller), {"left": ("127.0.0.1", port)})
-    with pytest.raises(DeviceInitError, match=rf"ft left \(127\.0\.0\.1:{port}\)") as ei:
-        d.configure()
+    with socket.socket() as holder:
+        # bound, never listening: a connect is refused, and the port is never given to a
+        # connect() as its source (no self-connect, nobody else binds it meanwhile)
+        holder.bind(("127.0.0.1", 0))
+        port = holder.getsockname()[1]
+        d = FTSensorSet(bus("left", poller=poller), {"left": ("127.0.0.1", port)})
+        with pytest.raises(DeviceInitError, match=rf"ft left \(127\.0\.0\.1:{port}\)") as ei:
+            d.configure()
     assert isinstance(ei.value.__cause__, ConnectionRefusedError)
     assert not d.is_configured
     assert not multiprocessing.active_children() and not ft_threads()
@@ -348,7 +417,7 @@ def test_silent_device_at_open_is_an_init_error(server, poller):
 
 @pytest.mark.parametrize("poller", POLLERS)
 def test_close_is_idempotent_and_stops_the_poller(server, poller):
-    d = FTSensorSet(bus("left", "right", poller=poller), server.endpoints)
+    d = FTSensorSet(bus("left", "right", poller=poller, timeout_s=1.0), server.endpoints)
     d.configure()
     if poller == "thread":
         assert ft_threads() and not multiprocessing.active_children()
@@ -370,10 +439,12 @@ def test_close_is_idempotent_and_stops_the_poller(server, poller):
 
 @pytest.mark.parametrize("poller", POLLERS)
 def test_connection_loss_is_reported_and_reconnected(poller):
-    srv = VirtualFTServer(["left"]).start()
+    srv = VirtualFTServer(["left"], ports={"left": quiet_port()}).start()
     srv.set_wrench("left", W_LEFT)
     endpoint = srv.endpoints["left"]
-    with FTSensorSet(bus("left", poller=poller), srv.endpoints, reconnect_s=0.02) as d:
+    # a 1 s timeout: a late reply must not time out and reconnect (disconnects are counted);
+    # the loss itself shows at once (EOF, then refused connects)
+    with FTSensorSet(bus("left", poller=poller, timeout_s=1.0), srv.endpoints, reconnect_s=0.02) as d:
         wait_for(lambda: driver_health(d).fresh)
         srv.close()
         h = wait_for(lambda: (x := driver_health(d)).state is Freshness.STALE and x)
@@ -384,7 +455,7 @@ def test_connection_loss_is_reported_and_reconnected(poller):
         try:
             srv2.set_wrench("left", Wrench(fx=3.0))
             wait_for(lambda: d.poll(time.monotonic())["left"].wrench == Wrench(fx=3.0))
-            assert driver_health(d).fresh
+            wait_for(lambda: driver_health(d).fresh)
         finally:
             srv2.close()
 
@@ -414,7 +485,7 @@ def test_virtual_server_rejects_unknown_faults(server):
 
 
 def test_virtual_server_close_frees_ports_and_threads():
-    srv = VirtualFTServer(["a", "b"]).start()
+    srv = VirtualFTServer(["a", "b"], ports={"a": quiet_port(), "b": quiet_port()}).start()
     endpoints = dict(srv.endpoints)
     srv.close()
     srv.close()
@@ -427,22 +498,25 @@ def test_virtual_server_close_frees_ports_and_threads():
 
 # --------------------------------------------------------------------------- the poll process
 def test_process_poller_delivers_new_values_within_a_few_periods(server):
-    cfg = bus("left", "right", poll_hz=100.0)
+    cfg = bus("left", "right", poll_hz=100.0, **PATIENT)
     with FTSensorSet(cfg, server.endpoints) as d:
         r = d.poll(time.monotonic())
         assert r["left"].wrench == W_LEFT and r["left"].health.fresh     # read once by open()
-        for k in range(1, 4):
+        delays = []
+        for k in range(1, 6):
             w = Wrench(fx=float(k), mz=-0.001 * k)
             server.set_wrench("left", w)
             t0 = time.monotonic()
-            got = wait_for(lambda w=w: (x := d.poll(time.monotonic())["left"]).wrench == w and x, timeout=2.0)
-            # 100 Hz polling: normally within 1-2 periods; 0.5 s leaves room for a loaded machine
-            assert time.monotonic() - t0 < 0.5
+            got = wait_for(lambda w=w: (x := d.poll(time.monotonic())["left"]).wrench == w and x, timeout=5.0)
+            delays.append(time.monotonic() - t0)
             assert got.t >= t0 - 0.011 and got.health.fresh and d.counters()["left.samples"] >= 2
+        # 100 Hz polling: normally within 1-2 periods (10-20 ms); the median of five leaves
+        # room for two stalls of a loaded machine, a poller at a few Hz fails it
+        assert sorted(delays)[2] < 0.1, [f"{x * 1e3:.0f} ms" for x in delays]
 
 
 def test_process_poller_reports_the_counters_and_causes_of_the_child(server):
-    with FTSensorSet(bus("left", "right"), server.endpoints, ) as d:
+    with FTSensorSet(bus("left", "right", **PATIENT), server.endpoints, ) as d:
         server.inject("right", "out_of_range", code=6)
         h = wait_for(lambda: (x := d.poll(time.monotonic())["right"].health).state is Freshness.INVALID and x)
         assert h.cause == "Modbus exception 6 (server device busy)" and h.errors >= 1
@@ -450,15 +524,16 @@ def test_process_poller_reports_the_counters_and_causes_of_the_child(server):
         assert c["right.connects"] == 1 and c["right.samples"] >= 1
         server.clear("right")
         server.inject("left", "corrupt")
-        h = wait_for(lambda: (x := d.poll(time.monotonic())["left"].health).state is Freshness.STALE and x)
+        h = wait_for(lambda: (x := d.poll(time.monotonic())["left"].health).state is Freshness.STALE and x,
+                     timeout=10.0)                # stale after PATIENT["stale_s"]
         assert "garbled response: byte count 255" in h.cause and h.bad_frames >= 2 and h.errors == 0
 
 
 def test_killing_the_server_makes_the_process_poller_stale_with_a_cause():
-    srv = VirtualFTServer(["left"]).start()
+    srv = VirtualFTServer(["left"], ports={"left": quiet_port()}).start()
     srv.set_wrench("left", W_LEFT)
-    with FTSensorSet(bus("left"), srv.endpoints, reconnect_s=0.05, ) as d:
-        assert d.poll(time.monotonic())["left"].health.fresh
+    with FTSensorSet(bus("left", timeout_s=1.0), srv.endpoints, reconnect_s=0.05, ) as d:
+        wait_for(lambda: d.poll(time.monotonic())["left"].health.fresh)
         srv.close()
         r = wait_for(lambda: (x := d.poll(time.monotonic())["left"]).health.state is not Freshness.FRESH and x)
         assert r.health.state is Freshness.STALE and r.wrench == W_LEFT
@@ -467,7 +542,7 @@ def test_killing_the_server_makes_the_process_poller_stale_with_a_cause():
 
 
 def test_a_dead_poll_process_shows_as_stale_with_its_exit(server):
-    with FTSensorSet(bus("left", "right"), server.endpoints, ) as d:
+    with FTSensorSet(bus("left", "right", timeout_s=1.0), server.endpoints, ) as d:
         proc = d.poller.process
         os.kill(proc.pid, signal.SIGKILL)
         h = wait_for(lambda: (x := d.poll(time.monotonic())["left"].health).state is Freshness.STALE and x)
@@ -484,7 +559,7 @@ def test_poll_process_runs_sched_other_even_when_started_from_a_fifo_thread(serv
         except (OSError, AttributeError) as exc:
             out["skip"] = repr(exc)
             return
-        d = FTSensorSet(bus("left"), {"left": server.endpoints["left"]})
+        d = FTSensorSet(bus("left", timeout_s=1.0), {"left": server.endpoints["left"]})
         d.configure()
         out["d"] = d
 
@@ -506,7 +581,8 @@ sys.path.insert(0, {root!r})
 from rig_runtime.config import FTBus, FTSensor
 from drivers.ft300 import FTSensorSet
 if __name__ == "__main__":
-    d = FTSensorSet(FTBus(poll_hz=50.0, sensors=(FTSensor(name="left"),)), {{"left": ("127.0.0.1", {port})}})
+    d = FTSensorSet(FTBus(poll_hz=50.0, timeout_s=1.0, sensors=(FTSensor(name="left"),)),
+                    {{"left": ("127.0.0.1", {port})}})
     d.configure()
     print(d.poller.process.pid, flush=True)
     time.sleep(60)
@@ -621,15 +697,18 @@ def test_rtu_over_pty_reads_values_and_counts_crc_errors(poller):
     with VirtualFTServer(["r"], rtu=["r"]) as srv:
         srv.set_wrench("r", W_LEFT)
         cfg = bus(sensors=(FTSensor(name="r", transport="rtu", serial_port=srv.serial_ports["r"]),),
-                  poller=poller, poll_hz=20.0)
+                  poller=poller, poll_hz=20.0, **PATIENT)
         with FTSensorSet(cfg) as d:
             assert d.poll(time.monotonic())["r"].wrench == W_LEFT
             srv.inject("r", "corrupt")              # RTU: CRC inverted
-            h = wait_for(lambda: (x := d.poll(time.monotonic())["r"].health).bad_frames >= 2 and x)
+            # pymodbus reads on after a bad CRC until the timeout: one bad frame per timeout_s
+            h = wait_for(lambda: (x := d.poll(time.monotonic())["r"].health).bad_frames >= 2 and x,
+                         timeout=10.0)
             assert h.timeouts == 0 and h.errors == 0
             srv.clear("r")
             srv.set_wrench("r", Wrench(fy=2.0))
-            wait_for(lambda: (x := d.poll(time.monotonic())["r"]).health.fresh and x.wrench == Wrench(fy=2.0))
+            wait_for(lambda: (x := d.poll(time.monotonic())["r"]).health.fresh and x.wrench == Wrench(fy=2.0),
+                     timeout=10.0)
 
 
 # --------------------------------------------------------------------------- independent peers
@@ -659,7 +738,7 @@ class _PlainPymodbusServer:
 def test_driver_reads_a_plain_pymodbus_server(poller):
     peer = _PlainPymodbusServer([-1234, 50, 981, -250, -500, 1500])
     try:
-        d = FTSensorSet(bus("left", poller=poller), {"left": ("127.0.0.1", peer.port)})
+        d = FTSensorSet(bus("left", poller=poller, **PATIENT), {"left": ("127.0.0.1", peer.port)})
         d.configure()
         try:
             assert d.poll(time.monotonic())["left"].wrench == W_LEFT
@@ -677,10 +756,10 @@ def test_a_register_pinned_at_the_int16_limit_of_a_pymodbus_server_is_invalid(po
     +32767 and Mx at -32768, as a real sensor at its limit answers."""
     peer = _PlainPymodbusServer([-1234, 50, 32767, -32768, -500, 1500])
     try:
-        d = FTSensorSet(bus("left", poller=poller), {"left": ("127.0.0.1", peer.port)})
+        d = FTSensorSet(bus("left", poller=poller, **PATIENT), {"left": ("127.0.0.1", peer.port)})
         d.configure()                       # a saturated sensor answers: the open succeeds
         try:
-            r = wait_for(lambda: (x := d.poll(time.monotonic())["left"]).age < STALE_S
+            r = wait_for(lambda: (x := d.poll(time.monotonic())["left"]).age < PATIENT["stale_s"]
                          and x.health.errors >= 2 and x)
             assert r.health.state is Freshness.INVALID
             assert r.health.cause == "Fz saturated at +327.67 N, Mx saturated at -32.768 N·m (int16 limit)"
@@ -720,7 +799,7 @@ def test_plain_pymodbus_client_reads_the_virtual_server(server):
 
 @pytest.mark.parametrize("poller", POLLERS)
 def test_wrong_unit_id_is_an_init_error_like_behind_a_gateway(server, poller):
-    cfg = bus(sensors=(FTSensor(name="left", unit_id=5),), poller=poller)
+    cfg = bus(sensors=(FTSensor(name="left", unit_id=5),), poller=poller, **PATIENT)
     d = FTSensorSet(cfg, {"left": server.endpoints["left"]})
     with pytest.raises(DeviceInitError, match=r"ft left .*unit 5 not reachable.*exception 11"):
         d.configure()

@@ -48,7 +48,7 @@ def feed(rec: Recorder, start: int, stop: int, timeout: float = 10.0) -> None:
         assert rec.append(row(i)), f"row {i} refused: {rec.error}"
 
 
-def wait_for(cond, timeout: float = 3.0) -> None:
+def wait_for(cond, timeout: float = 5.0) -> None:
     deadline = time.monotonic() + timeout
     while not cond():
         assert time.monotonic() < deadline, "condition not reached in time"
@@ -114,7 +114,10 @@ def test_append_never_blocks_when_the_sidecar_stalls(log):
         refused = [rec.append(row(i)) for i in range(64, 164)]
         elapsed = time.perf_counter() - t0
         assert refused == [False] * 100
-        assert elapsed < 0.5                      # no waiting on the stopped sidecar
+        # no waiting on the stopped sidecar: waiting for room would never end (or, as
+        # when_full="wait" does, take its 30 s limit); 100 refusals take microseconds, the
+        # bound only leaves room for a stall of the loaded machine
+        assert elapsed < 2.0
         assert not rec.healthy and "overflow" in rec.error and rec.rows_dropped == 100
         for k in range(10):
             rec.event(k, "operator")              # event ring (capacity 4) overflows, never blocks
@@ -222,17 +225,23 @@ def test_the_loop_process_gains_no_thread(log):
     threads (the loop's process runs a single thread)."""
     with pytest.raises(TypeError):
         Recorder(log, COLS, attrs={}, writer="inline")
-    n_threads = threading.active_count()
-    tasks = len(os.listdir(f"/proc/{os.getpid()}/task"))
+    # compared as sets of ids: a thread an earlier test left behind may end meanwhile
+    threads = {t.ident for t in threading.enumerate()}
+    tasks = set(os.listdir(f"/proc/{os.getpid()}/task"))
+
+    def new_threads() -> tuple[list, set]:
+        return ([t.name for t in threading.enumerate() if t.ident not in threads],
+                set(os.listdir(f"/proc/{os.getpid()}/task")) - tasks)
+
     rec = Recorder(log, COLS, attrs={}, buffer_cycles=64, flush_s=0.05)
     rec.open()
-    assert threading.active_count() == n_threads
-    assert len(os.listdir(f"/proc/{os.getpid()}/task")) == tasks
+    assert new_threads() == ([], set())
     assert rec.process.pid != os.getpid() and rec.process.poll() is None
     for i in range(40):
         assert rec.append(row(i))
     rec.event(0.1, "state", message="x")
     wait_for(lambda: rec.rows_written == 40)
+    assert new_threads() == ([], set())               # recording: still none
     rec.close()                                       # the rest, events, flush, attributes
     assert rec.process.poll() == 0
     d = read_log(log)
@@ -281,7 +290,7 @@ def test_flushed_at_least_every_flush_s(log):
     rec.open()
     stamps = []
     flushed = 0
-    t_end = time.monotonic() + 1.0
+    t_end = time.monotonic() + 2.0
     i = 0
     while time.monotonic() < t_end:                # a 200 Hz loop, watching what is durable
         rec.append(row(i))
@@ -292,8 +301,15 @@ def test_flushed_at_least_every_flush_s(log):
             stamps.append(time.monotonic())
     rec.close()
     gaps = np.diff(stamps)
+    # flush_s = 0.1 gives ~16 flushes in 2 s; flushing only at the 1 s maximum period would
+    # give 2, only when a batch (1024 rows) is full none (at most 400 rows arrive)
     assert len(stamps) >= 6, stamps
-    assert gaps.max() < 0.1 + 2 * sidecar._POLL_S + 0.15, gaps   # period + wake-up granularity + load slack
+    # the typical gap: period + wake-up granularity (+ fsync), far from the 1 s maximum
+    assert np.median(gaps) < 0.1 + 2 * sidecar._POLL_S + 0.1, gaps
+    # every gap: the same + slack for fsync on a CI disk and a stall of the loaded machine
+    # (either process; 0.5 s stalls were seen beside the other session's tests), still
+    # below the 1 s maximum period
+    assert gaps.max() < 0.1 + 2 * sidecar._POLL_S + 0.7, gaps
 
 READER = textwrap.dedent("""
     import sys, h5py
@@ -304,11 +320,13 @@ READER = textwrap.dedent("""
 
 
 def test_live_reader_sees_data_within_a_second(log):
+    """Another process opening the log while it is being recorded reads every flushed row.
+    (That a flush comes within flush_s, at most a second: test_flushed_at_least_every_flush_s.)"""
     rec = Recorder(log, COLS, attrs={})           # default flush_s = 0.5
     rec.open()
     try:
-        feed(rec, 0, 500)
-        time.sleep(1.0)
+        feed(rec, 0, 500)                          # under a batch (1024 rows): the timed flush writes them
+        wait_for(lambda: rec.rows_flushed == 500, timeout=5.0)
         out = subprocess.run([sys.executable, "-c", READER, str(log)], capture_output=True,
                              text=True, timeout=20, cwd=ROOT)
         assert out.returncode == 0, out.stderr
@@ -397,11 +415,11 @@ def test_append_cost(log):
     rec = Recorder(log, cols, attrs={}, buffer_cycles=1 << 18)
     rec.open()
     r = tuple(float(i) for i in range(24))
-    n = 20_000
-    per_call = min(timeit.repeat(lambda: rec.append(r), number=n, repeat=5)) / n
+    n = 5_000                                      # short runs: the best one is rarely preempted
+    per_call = min(timeit.repeat(lambda: rec.append(r), number=n, repeat=20)) / n
     rec.close()
     print(f"\nRecorder.append, 24 columns: {per_call * 1e6:.2f} µs/call")
-    assert rec.healthy and rec.rows_written == 5 * n
+    assert rec.healthy and rec.rows_written == 20 * n
     assert per_call < 10e-6                       # a few µs at most (≈0.5 µs measured)
 
 
