@@ -66,6 +66,18 @@ def _recv(bus, timeout=2.0):
     return None
 
 
+def _until(cond, what: str, timeout: float = 2.0) -> None:
+    """Poll ``cond()`` until true (the adapter's threads act asynchronously); fail after ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < deadline, f"{what}: not within {timeout} s"
+        time.sleep(0.005)
+
+
+def _readable(fd) -> bool:
+    return bool(select.select([fd], [], [], 0)[0])
+
+
 def test_slcan_python_can_client_both_ways(slcan_pair):
     adapter, far = slcan_pair
     client = can.Bus(interface="slcan", channel=adapter.port_name, bitrate=1_000_000, sleep_after_open=0)
@@ -113,7 +125,7 @@ def test_slcan_python_can_client_both_ways(slcan_pair):
         for _ in range(20):
             client.send(can.Message(arbitration_id=0x80, is_extended_id=False), timeout=0)
         n = 0
-        while _recv(far, 0.5) is not None:
+        while _recv(far) is not None:
             n += 1
             if n == 20:
                 break
@@ -126,8 +138,7 @@ def test_slcan_python_can_client_both_ways(slcan_pair):
         time.sleep(0.005)
     assert not adapter.is_open                 # python-can sends C at shutdown
     far.send(can.Message(arbitration_id=0x181, is_extended_id=False, data=b"\x01"))
-    time.sleep(0.1)
-    assert adapter.counters["closed_dropped"] >= 1
+    _until(lambda: adapter.counters["closed_dropped"] >= 1, "a frame while closed dropped")
     assert adapter.counters["bad_commands"] == 0
 
 
@@ -160,7 +171,7 @@ def test_slcan_protocol_details(slcan_pair):
         assert _raw_exchange(fd, b"t8000\r", 1) == b"\x07"            # 11-bit id out of range
         assert _raw_exchange(fd, b"F\r", 4) == b"F00\r"
         far.send(can.Message(is_error_frame=True, arbitration_id=0, dlc=0))
-        time.sleep(0.1)
+        _until(lambda: adapter.counters["error_frames"] == 1, "the error frame seen by the adapter")
         assert _raw_exchange(fd, b"F\r", 4) == b"F80\r"              # bus error seen, then cleared
         assert _raw_exchange(fd, b"F\r", 4) == b"F00\r"
         assert _raw_exchange(fd, b"V\r", 6) == b"V1013\r"
@@ -168,14 +179,15 @@ def test_slcan_protocol_details(slcan_pair):
         # frames while closed are dropped; what the host left unread is discarded when it opens again
         assert _raw_exchange(fd, b"C\r", 1) == b"\r"
         far.send(can.Message(arbitration_id=0x701, is_extended_id=False, data=b"\x05"))
-        time.sleep(0.1)
+        _until(lambda: adapter.counters["closed_dropped"] == 1, "0x701 dropped while closed")
         assert _raw_exchange(fd, b"O\r", 1) == b"\r"
         far.send(can.Message(arbitration_id=0x702, is_extended_id=False, data=b"\x05"))   # left unread
-        time.sleep(0.1)
+        _until(lambda: _readable(fd), "0x702 written to the host")
+        opens = adapter.counters["opens"]
         os.write(fd, b"C\rO\r")
-        time.sleep(0.1)
+        _until(lambda: adapter.counters["opens"] == opens + 1 and _readable(fd), "the reopen answered")
         far.send(can.Message(arbitration_id=0x1FFFFFFF, is_extended_id=True, data=b""))
-        out = _raw_exchange(fd, b"", 12, timeout=1.0)
+        out = _raw_exchange(fd, b"", 12)
         assert out == b"\rT1FFFFFFF0\r", out
         assert adapter.counters["closed_dropped"] == 1
     finally:
@@ -233,47 +245,133 @@ def test_slcan_direct_mode_answers_in_the_reading_thread():
     assert adapter.device_bus is not None
 
 
+class _Feeder:
+    """The runtime's part of the cycle — poll, then write the currents — every period on a
+    thread of its own, so that the drives stay fed (their RPDO watchdog is 50 ms) while the
+    test asks the simulator for its status. Its latest reading, its cycle count and the
+    largest gap between two of its cycles (a stall of this process, not of the simulator)."""
+
+    def __init__(self, db, currents: dict, h: float):
+        self.db, self.currents, self.h = db, currents, h
+        self.cycles = 0
+        self.max_gap = 0.0
+        self.last = None
+        self.error: BaseException | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="feeder", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        t_prev = None
+        try:
+            while not self._stop.is_set():
+                now = time.monotonic()
+                self.last = self.db.poll(now)
+                self.db.write(self.currents, now)
+                if t_prev is not None:
+                    self.max_gap = max(self.max_gap, now - t_prev)
+                t_prev = now
+                self.cycles += 1
+                time.sleep(self.h)
+        except BaseException as e:  # noqa: BLE001 - raised in the test's thread by stop()
+            self.error = e
+
+    def wait(self, cond, timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while not cond():
+            assert self.error is None and self._thread.is_alive(), f"the feeding thread ended: {self.error!r}"
+            assert time.monotonic() < deadline, f"{what}: not within {timeout} s"
+            time.sleep(0.005)
+
+    def halt(self) -> None:
+        """Stop after the cycle under way."""
+        self._stop.set()
+        self._thread.join(10.0)
+
+    def stop(self):
+        """Stop after the cycle under way; its reading."""
+        self.halt()
+        assert not self._thread.is_alive(), "the feeding thread did not end"
+        if self.error is not None:
+            raise self.error
+        return self.last
+
+
 @pytest.mark.parametrize("mode", ["process", "thread"])
 def test_can_responder_serves_the_drives(mode):
     """RealtimeSim with the CAN responder in a child process or on a thread of its own: the
     runtime's drive driver (over rig_slcan) starts the drives, every SYNC gets its TPDOs,
-    the commanded currents reach the plant side, an NMT stop ends the session."""
+    the commanded currents reach the plant side, an NMT stop ends the session.
+
+    The drives are fed by a thread of this process while the status is asked for; an attempt
+    that failed after that thread stalled for half the drives' watchdog time or more (this
+    process starved on a loaded machine, not the simulator) is repeated, with a warning."""
+    for i in range(ATTEMPTS):
+        feeder = _serve_the_drives(mode)
+        if feeder is None:
+            return
+        warnings.warn(f"attempt {i + 1}/{ATTEMPTS}: the test's own feeding thread stalled "
+                      f"{feeder.max_gap * 1e3:.0f} ms (drive watchdog {WATCHDOG_S * 1e3:.0f} ms): repeated")
+    pytest.fail(f"the feeding thread stalled in all {ATTEMPTS} attempts")
+
+
+def _serve_the_drives(mode: str):
+    """One attempt: None if it passed; the feeder if it failed after a stall of its own."""
     from drivers.canopen402 import DriveBus
     cfg = config.load()
-    with RealtimeSim(cfg, seed=0, can_responder=mode) as rt:
-        cc = cfg.devices.can
-        bus = can.Bus(interface="rig_slcan", channel=rt.can_port, bitrate=cc.bitrate)
-        db = DriveBus(cc, bus=bus, period_s=cfg.controller.h)
-        try:
-            db.configure()
-            db.activate(time.monotonic())   # the following writes walk the drives to OPERATION ENABLED
-            t_end = time.monotonic() + 0.5
-            while time.monotonic() < t_end:
-                now = time.monotonic()
-                db.poll(now)
-                db.write({"fl": 1.0, "fr": -1.0, "rl": 0.0, "rr": 0.5}, now)
-                time.sleep(cfg.controller.h)
-            st = rt.status()
-            assert st["can_responder"]["mode"] == mode and st["error"] == ""
-            assert (mode == "process") == (st["can_responder"]["pid"] != os.getpid())
-            assert st["session"]["active"] and st["session"]["count"] == 1
-            assert st["currents"]["fl"] == pytest.approx(1.0, abs=0.01)
-            assert st["currents"]["rr"] == pytest.approx(0.5, abs=0.01)
-            assert rt.can.currents[0] == pytest.approx(1.0, abs=0.01)          # what the plant integrates
-            assert all(st["drives"][w]["state"] == "OPERATION ENABLED" for w in WHEELS)
-            lat = st["session_stats"]["tpdo_latency_ms"]
-            assert lat["n"] > 50 and lat["max"] < 100
-            r = db.poll(time.monotonic())
-            assert all(x.health.state.value == "fresh" for x in r), r
-        finally:
-            db.close()                      # deactivates first
-            bus.shutdown()
-        deadline = time.monotonic() + 2.0
-        while rt.session_active and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert not rt.session_active
-        st = rt.status()
-        assert all(v == 0.0 for v in st["currents"].values())
+    h = cfg.controller.h
+    feeder = None
+    try:
+        with RealtimeSim(cfg, seed=0, can_responder=mode) as rt:
+            cc = cfg.devices.can
+            bus = can.Bus(interface="rig_slcan", channel=rt.can_port, bitrate=cc.bitrate)
+            db = DriveBus(cc, bus=bus, period_s=h)
+            try:
+                db.configure()
+                t_activate = time.monotonic()
+                db.activate(t_activate)   # the following writes walk the drives to OPERATION ENABLED
+                feeder = _Feeder(db, {"fl": 1.0, "fr": -1.0, "rl": 0.0, "rr": 0.5}, h)
+                feeder.wait(lambda: rt.session_active, 5.0, "the session started (every drive enabled)")
+                t_session, n0 = time.monotonic(), feeder.cycles
+                feeder.wait(lambda: feeder.cycles - n0 >= 60 and time.monotonic() - t_activate >= 0.5, 10.0,
+                            "60 cycles in the session")
+                # a snapshot from the session (the child's reply; ResponderProcess.snapshot would
+                # give the previous one, from before any SYNC, after 0.5 s without a reply)
+                st: dict = {}
+
+                def fresh() -> bool:
+                    nonlocal st
+                    st = rt.status()
+                    return all((st["drives"].get(w, {}).get("last_sync_t") or 0.0) > t_session for w in WHEELS)
+
+                feeder.wait(fresh, 5.0, "a status snapshot from the session")
+                assert st["can_responder"]["mode"] == mode and st["error"] == ""
+                assert (mode == "process") == (st["can_responder"]["pid"] != os.getpid())
+                assert st["session"]["active"] and st["session"]["count"] == 1
+                assert st["currents"]["fl"] == pytest.approx(1.0, abs=0.01)
+                assert st["currents"]["rr"] == pytest.approx(0.5, abs=0.01)
+                assert rt.can.currents[0] == pytest.approx(1.0, abs=0.01)          # what the plant integrates
+                assert all(st["drives"][w]["state"] == "OPERATION ENABLED" for w in WHEELS), st["drives"]
+                lat = st["session_stats"]["tpdo_latency_ms"]
+                assert lat["n"] > 50 and lat["max"] < 100
+                r = feeder.stop()               # the reading of its last cycle
+                assert all(x.health.state.value == "fresh" for x in r), r
+            finally:
+                if feeder is not None:
+                    feeder.halt()
+                db.close()                      # deactivates first
+                bus.shutdown()
+            deadline = time.monotonic() + 2.0
+            while (rt.session_active or any(v != 0.0 for v in st["currents"].values())) and time.monotonic() < deadline:
+                time.sleep(0.01)
+                st = rt.status()                # the child's reply (the previous one if it is late)
+            assert not rt.session_active
+            assert all(v == 0.0 for v in st["currents"].values()), st["currents"]
+    except AssertionError:
+        if feeder is not None and feeder.max_gap >= 0.5 * WATCHDOG_S:
+            return feeder
+        raise
+    return None
 
 
 def test_session_starts_when_every_drive_is_enabled_not_at_the_first_sync():
@@ -313,7 +411,9 @@ def test_session_starts_when_every_drive_is_enabled_not_at_the_first_sync():
             deadline = time.monotonic() + 2.0
             while not db.enabled and time.monotonic() < deadline:
                 cycles(1)
-            cycles(2)
+            deadline = time.monotonic() + 2.0      # the plant thread picks the session start up
+            while not rt.session_active and time.monotonic() < deadline:
+                cycles(1)
             st = rt.status()
             assert st["session"]["active"] and st["session"]["count"] == count + 1, st["session"]
             assert st["session"]["t0"] >= t_enable
