@@ -35,7 +35,10 @@ from sim_backend.realtime_sim import RealtimeSim
 from sim_backend.slcan import SlcanAdapter, encode_frame, parse_frame
 
 WHEELS = ("fl", "fr", "rl", "rr")
-WATCHDOG_S = config.load().devices.can.watchdog_ms / 1000.0
+_CFG = config.load()
+WATCHDOG_S = _CFG.devices.can.watchdog_ms / 1000.0
+CONSUMER_S = _CFG.devices.can.heartbeat_ms * _CFG.devices.can.heartbeat_timeout_factor / 1000.0   # drives' consumer
+H_S = _CFG.controller.h
 STATUS_PERIOD_S = 0.05
 
 
@@ -428,20 +431,53 @@ def test_session_starts_when_every_drive_is_enabled_not_at_the_first_sync():
 
 
 # ============================================================================ 2./3. processes
+# SCHED_FIFO for the simulator and (via the generated config) the runtime, the runtime
+# above, when the OS permits (both report and carry on when it does not). Measured on a
+# loaded 2-core machine (docs/sim-process.md): without it the runtime faulted on its own
+# deadline misses or driver races in 2 of 5 runs of 6 s, with it in none of 5. No CPU
+# pinning: each process's helper threads would then compete with its real-time thread
+# for one CPU with no time slicing, which measured no better
+SIM_RT_ARGS = ["--rt-priority", "50", "--runtime-rt-priority", "80"]
+
+
+class SharedSim:
+    """One `rig sim` (SIM_RT_ARGS) shared by a module's tests, each running its own `rig run`
+    session against it; attributes are the SimProcess's. Started afresh when a run that
+    stalled (a known runtime fault) left a drive in FAULT or with an error code (its RPDO
+    watchdog or heartbeat consumer fired): a drive in FAULT keeps the next `rig run` from
+    arming, and an error code stays until a fault reset."""
+
+    def __init__(self, tmp_path_factory, extra_args=()):
+        self._tmp, self._extra = tmp_path_factory, list(extra_args)
+        self.sp = self._start()
+
+    def _start(self):
+        return start_sim_process(extra_args=SIM_RT_ARGS + self._extra, workdir=self._tmp.mktemp("rig-sim"))
+
+    def __getattr__(self, name):            # status(), wait_status(), config_path, ports, ...
+        return getattr(self.sp, name)
+
+    def restart_if_faulted(self) -> None:
+        t = time.monotonic()
+        st = self.sp.wait_status(lambda s: s["t"] > t, timeout_s=2.0)
+        faulted = {w: (d["state"], hex(d["error_code"])) for w, d in st["drives"].items()
+                   if d["state"] == "FAULT" or d["error_code"]}
+        if faulted:
+            warnings.warn(f"rig sim started afresh: drives left in FAULT or with an error code {faulted}")
+            self.close()
+            self.sp = self._start()
+
+    def close(self) -> None:
+        code = self.sp.stop(signal.SIGINT)
+        assert code == 0, self.sp.stderr()
+
+
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
     """One `rig sim` for the module; each test runs its own `rig run` session against it."""
-    wd = tmp_path_factory.mktemp("rig-sim")
-    # SCHED_FIFO for the simulator and (via the generated config) the runtime, the runtime
-    # above, when the OS permits (both report and carry on when it does not). Measured on a
-    # loaded 2-core machine (docs/sim-process.md): without it the runtime faulted on its own
-    # deadline misses or driver races in 2 of 5 runs of 6 s, with it in none of 5. No CPU
-    # pinning: each process's helper threads would then compete with its real-time thread
-    # for one CPU with no time slicing, which measured no better
-    sp = start_sim_process(extra_args=["--rt-priority", "50", "--runtime-rt-priority", "80"], workdir=wd)
-    yield sp
-    code = sp.stop(signal.SIGINT)
-    assert code == 0, sp.stderr()
+    s = SharedSim(tmp_path_factory)
+    yield s
+    s.close()
 
 
 class KnownRuntimeFault(Exception):
@@ -456,7 +492,10 @@ class KnownRuntimeFault(Exception):
       arrive in between, which a streaming device makes happen;
     * ``stale`` TPDOs or laser values while the simulator demonstrably served them in time:
       its session statistics show every TPDO on the pty within 10 ms of its SYNC and the
-      lasers' emission thread never more than 10 ms late (the runtime flags 20 ms).
+      lasers' emission thread never more than 10 ms late (the runtime flags 20 ms);
+    * a drive's EMCY 0x8250 RPDO timeout (its 50 ms watchdog) or 0x8130 heartbeat error (its
+      consumer time) while the simulator saw the runtime's SYNCs stop for that long (the
+      largest SYNC gap of the session): the runtime fell silent, the drive reacted as it must.
 
     Tests retry such an attempt (with a warning); any other fault fails them."""
 
@@ -465,7 +504,9 @@ ATTEMPTS = 3
 SIM_PROMPT_MS = 10.0
 
 
-def _retrying(fn):
+def _retrying(fn, sim: SharedSim | None = None):
+    """``fn(i)`` until it does not raise KnownRuntimeFault (at most ATTEMPTS times); ``sim``,
+    if shared, started afresh before the next attempt if the last one left a drive in FAULT."""
     last = None
     for i in range(ATTEMPTS):
         try:
@@ -473,6 +514,8 @@ def _retrying(fn):
         except KnownRuntimeFault as e:
             last = e
             warnings.warn(f"attempt {i + 1}/{ATTEMPTS}: {e}")
+            if sim is not None:
+                sim.restart_if_faulted()
     pytest.fail(f"rig run stopped on its own known faults in all {ATTEMPTS} attempts; last: {last}")
 
 
@@ -487,6 +530,11 @@ def _known_runtime_fault(f, stats) -> bool:
         return lat["n"] > 0 and lat["max"] < SIM_PROMPT_MS
     if chk == "stale" and dev in config.LASER_ROLES:
         return stats["tick_lateness_max_ms"] < SIM_PROMPT_MS
+    # (the watchdog and the consumer count from the last frame, the gap between SYNCs: a period's slack)
+    if "RPDO timeout" in msg:
+        return stats.get("sync_gap_max_ms", 0.0) >= (WATCHDOG_S - H_S) * 1e3
+    if "heartbeat error" in msg:
+        return stats.get("sync_gap_max_ms", 0.0) >= (CONSUMER_S - H_S) * 1e3
     return False
 
 
@@ -613,7 +661,7 @@ def test_rig_run_against_rig_sim_tracks_the_step(sim, tmp_path):
         proc, log = _start_run(sim, tmp_path, f"e2e-{i}", "--duration", "6")
         return sessions0, _finish(sim, proc, log, 30), log
 
-    sessions0, summary, log = _retrying(attempt)
+    sessions0, summary, log = _retrying(attempt, sim)
     assert summary["final_state"] == "IDLE", summary
     assert summary["faults"] == [], summary
     assert summary["recorder"]["healthy"] and summary["recorder"]["rows"] > 1000
@@ -646,7 +694,7 @@ def test_signal_stops_rig_run_cleanly(sim, tmp_path, sig):
         summary = _finish(sim, proc, log, 20)
         return trips0, summary, log, time.monotonic()
 
-    trips0, summary, log, t_exit = _retrying(attempt)
+    trips0, summary, log, t_exit = _retrying(attempt, sim)
     assert summary["final_state"] == "IDLE" and summary["faults"] == [], summary
     d = read_log(log)
     assert len(d["columns"]["t"]) == summary["recorder"]["rows"] > 0
@@ -679,7 +727,7 @@ def test_sigkill_converter_watchdog_cuts_current(sim, tmp_path):
         assert faults == [], faults
         return trips0, st, t_kill
 
-    trips0, st, t_kill = _retrying(attempt)
+    trips0, st, t_kill = _retrying(attempt, sim)
     powered = [w for w in WHEELS if st["currents"][w] != 0.0]
     assert "rl" in powered and "rr" in powered
     # the status file (rewritten every 50 ms) shows every converter off within the watchdog time
@@ -713,9 +761,9 @@ def test_sigkill_converter_watchdog_cuts_current(sim, tmp_path):
 def test_scenario_faults_act_in_scenario_time(tmp_path):
     """`rig sim --scenario fault-dropout`: laser b_f falls silent 3 s into the session
     (scenario time starts when the runtime has enabled every drive, about when it goes RUNNING)."""
-    with start_sim_process(scenario="fault-dropout", workdir=tmp_path / "sim",
-                           extra_args=["--rt-priority", "50", "--runtime-rt-priority", "80"]) as sp:
-        def attempt(i):
+    def attempt(i):
+        # a rig sim of its own per attempt: one that stalled may have left the drives in FAULT
+        with start_sim_process(scenario="fault-dropout", workdir=tmp_path / f"sim-{i}", extra_args=SIM_RT_ARGS) as sp:
             log = tmp_path / f"dropout-{i}.h5"
             proc = subprocess.Popen(rig_run_cmd("--config", str(sp.config_path), "--scenario", "fault-dropout",
                                                 "--json", "--log", str(log)),
@@ -726,13 +774,16 @@ def test_scenario_faults_act_in_scenario_time(tmp_path):
                 proc.kill()
                 out, err = proc.communicate()
                 pytest.fail(f"rig run did not end\nstderr: {err[-3000:]}")
-            summary = json.loads(out.strip().splitlines()[-1])
+            try:
+                summary = json.loads(out.strip().splitlines()[-1])
+            except (IndexError, ValueError):
+                pytest.fail(f"rig run exited {proc.returncode} without a JSON summary\nstderr: {err[-3000:]}")
             first = summary["faults"][:1]
             if first and first[0]["device"] != "b_f":
                 _check_faults(sp, first, "a fault before the injected one")
             return summary, sp.status()
 
-        summary, st = _retrying(attempt)
+    summary, st = _retrying(attempt)
     assert summary["final_state"] == "FAULT", summary
     f = summary["faults"][0]
     assert (f["device"], f["check"]) == ("b_f", "stale"), summary["faults"]

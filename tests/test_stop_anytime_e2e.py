@@ -7,11 +7,11 @@ the runtime's first line, when nothing was open yet) and one line saying what ha
 written, is readable; every simulated drive is switched off — SWITCH ON DISABLED with zero
 current, not FAULT (the runtime switched their heartbeat consumers off before it left).
 
-Real time on a shared 2-CPU VM: the instants are placed from a measured start-up (one
-unsignalled run first), and more are added while either side of RUNNING has fewer than
+Real time on a shared 2-CPU VM: the instants in the start-up are placed from a measured
+start-up (one unsignalled run first), those from RUNNING on from the simulator's session
+start (every drive enabled), and more are added while either side of RUNNING has fewer than
 three. A run that stopped on a fault of the runtime's own that a real-time stall of the
-machine explains (tests/test_sim_process.py's known runtime faults, a drive's heartbeat
-error) is repeated at the same instant (at most three times, with a warning); any other
+machine explains (tests/test_sim_process.py's known runtime faults) is repeated at the same instant (at most three times, with a warning); any other
 outcome fails at once.
 """
 
@@ -28,45 +28,20 @@ import pytest
 
 from rig_runtime.config import WHEELS
 from rig_runtime.export import read_log
-from sim_backend.launcher import start_sim_process
 
-from .test_sim_process import _known_runtime_fault, _sim_stats
+from .test_sim_process import SharedSim, _known_runtime_fault, _sim_stats
 
 CONSUMER_S = 0.25      # the drives' heartbeat consumer time (sim.yaml: 100 ms x 2.5)
 DURATION_S = 1.0       # each run's --duration
 ATTEMPTS = 3           # per instant: a real-time stall of the machine repeats it
-SIM_ARGS = ["--rt-priority", "50", "--runtime-rt-priority", "80"]   # as tests/test_sim_process.py's sim
 EXIT_SETUP, EXIT_FAULT = 2, 3
-
-
-class _Sim:
-    """The module's `rig sim` (SCHED_FIFO for it and, through the generated config, for the
-    runtime: without it the runtime faults on its own deadline misses in 2 of 5 runs of 6 s,
-    docs/sim-process.md). Started afresh when a stalled run left a drive in FAULT (a drive in
-    FAULT keeps the next run from arming)."""
-
-    def __init__(self, tmp_path_factory):
-        self._tmp = tmp_path_factory
-        self.sp = self._start()
-
-    def _start(self):
-        return start_sim_process(workdir=self._tmp.mktemp("rig-sim"), extra_args=SIM_ARGS)
-
-    def __getattr__(self, name):            # status(), wait_status(), config_path, ...
-        return getattr(self.sp, name)
-
-    def restart(self, why: str) -> None:
-        warnings.warn(f"rig sim started afresh: {why}")
-        self.close()
-        self.sp = self._start()
-
-    def close(self) -> None:
-        assert self.sp.stop(signal.SIGINT) == 0, self.sp.stderr()
 
 
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
-    s = _Sim(tmp_path_factory)
+    """SCHED_FIFO for rig sim and, through the generated config, for the runtime: without it
+    the runtime faults on its own deadline misses in 2 of 5 runs of 6 s (docs/sim-process.md)."""
+    s = SharedSim(tmp_path_factory)
     yield s
     s.close()
 
@@ -93,15 +68,14 @@ def _summary(out: str) -> dict:
 
 def _stall(sim, code: int, out: str, err: str) -> str:
     """Why this run's end is what a real-time stall of the machine looks like ("" if it is not):
-    a FAULT made only of the runtime's known faults (its own deadline misses, a stale TPDO or
-    laser value the simulator demonstrably served in time: tests/test_sim_process.py) or of a
-    drive's heartbeat error (the runtime's heartbeat late by the consumer time); or arming
-    refused because the loop was still losing periods to deadline misses."""
+    a FAULT made only of the runtime's known faults (tests/test_sim_process.py: its own
+    deadline misses, a stale TPDO or laser value the simulator demonstrably served in time, a
+    drive's RPDO watchdog or heartbeat consumer after the runtime's SYNCs stopped for that
+    long); or arming refused because the loop was still losing periods to deadline misses."""
     if code == EXIT_FAULT:
         faults = _summary(out).get("faults") or []
         stats = _sim_stats(sim)
-        if faults and all(_known_runtime_fault(f, stats) or "heartbeat error" in (f.get("message") or "")
-                          for f in faults):
+        if faults and all(_known_runtime_fault(f, stats) for f in faults):
             brief = [(f["device"], f["check"], f.get("message")) for f in faults]
             return f"FAULT {brief}; simulator: {stats}; runtime timing: {_summary(out).get('timing')}"
     if code == EXIT_SETUP and "periods lost to deadline misses" in err:
@@ -109,21 +83,40 @@ def _stall(sim, code: int, out: str, err: str) -> str:
     return ""
 
 
-def _signal_at(sim, tmp_path, name: str, delay: float | None, sig) -> tuple[str, float | str | None]:
-    """One `rig run`, sent ``sig`` ``delay`` s after its start (none if ``delay`` is None);
-    checks the clean stop. Returns (what the signal met: "before Python", "before RUNNING",
-    "after RUNNING", "" if it was not sent or came after the run's end; or "stall" and the
-    reason), and when RUNNING began, s after the start (None if unknown; the reason of a stall)."""
+def _session_t0(sim, proc, count0: int) -> float | None:
+    """When the simulator's next session began (every drive enabled: the runtime goes RUNNING
+    a cycle or two later), as its status shows it (rewritten every 50 ms); None if the run
+    ended first."""
+    deadline = time.monotonic() + 30.0
+    while time.monotonic() < deadline and proc.poll() is None:
+        ses = sim.status()["session"]
+        if ses["count"] > count0 and ses["t0"] is not None:
+            return ses["t0"]
+        time.sleep(0.01)
+    return None
+
+
+def _signal_at(sim, tmp_path, name: str, when: tuple[str, float] | None, sig) -> tuple[str, float | str | None]:
+    """One `rig run`, sent ``sig`` at ``when`` = (anchor, delay): ``delay`` s after its start
+    ("start") or after the simulator's session began ("session", i.e. about RUNNING); no
+    signal if ``when`` is None. Checks the clean stop. Returns (what the signal met: "before
+    Python", "before RUNNING", "after RUNNING", "" if it was not sent or came after the run's
+    end; or "stall" and the reason), and when RUNNING began, s after the start (None if
+    unknown; the reason of a stall)."""
     log = tmp_path / f"{name}.h5"
-    events0 = {w: d["heartbeat_events"] for w, d in sim.status()["drives"].items()}
+    st0 = sim.status()
+    events0 = {w: d["heartbeat_events"] for w, d in st0["drives"].items()}
     t_start = time.monotonic()
     proc = _run(sim, log)
     sent = False
-    if delay is not None:
-        time.sleep(max(0.0, t_start + delay - time.monotonic()))
-        sent = proc.poll() is None
-        if sent:
-            proc.send_signal(sig)
+    if when is not None:
+        anchor, delay = when
+        t0 = t_start if anchor == "start" else _session_t0(sim, proc, st0["session"]["count"])
+        if t0 is not None:
+            time.sleep(max(0.0, t0 + delay - time.monotonic()))
+            sent = proc.poll() is None
+            if sent:
+                proc.send_signal(sig)
     try:
         out, err = proc.communicate(timeout=30)
     except subprocess.TimeoutExpired:
@@ -131,7 +124,7 @@ def _signal_at(sim, tmp_path, name: str, delay: float | None, sig) -> tuple[str,
         out, err = proc.communicate()
         pytest.fail(f"{name}: rig run did not end within 30 s\nstdout {out[-1500:]}\nstderr {err[-1500:]}")
     t_exit = time.monotonic()
-    what = f"{name}: instant {delay} s, {sig.name}: exit {proc.returncode}\nstdout {out[-1500:]}\nstderr {err[-1500:]}"
+    what = f"{name}: instant {when}, {sig.name}: exit {proc.returncode}\nstdout {out[-1500:]}\nstderr {err[-1500:]}"
     assert "Traceback" not in err, what
     summary = _summary(out)
     started = summary.get("run_started_t")
@@ -168,21 +161,18 @@ def _signal_at(sim, tmp_path, name: str, delay: float | None, sig) -> tuple[str,
             assert dr["state"] == "SWITCH ON DISABLED", (what, w, dr)
             assert dr["heartbeat_events"] == events0[w] and dr["error_code"] == 0, (what, w, dr)
     if stall:
-        faulted = {w: (d["state"], hex(d["error_code"])) for w, d in st["drives"].items()
-                   if d["state"] == "FAULT" or d["error_code"]}
-        if faulted:
-            sim.restart(f"drives left in FAULT by a stalled run {faulted}")
+        sim.restart_if_faulted()
         return "stall", stall
     return met, t_running
 
 
-def _attempts(sim, tmp_path, name: str, delay: float | None, sig) -> tuple[str, float | None]:
+def _attempts(sim, tmp_path, name: str, when: tuple[str, float] | None, sig) -> tuple[str, float | None]:
     """``_signal_at`` until the run is not ended by a real-time stall (at most ATTEMPTS times)."""
     for i in range(ATTEMPTS):
-        met, info = _signal_at(sim, tmp_path, f"{name}-{i}", delay, sig)
+        met, info = _signal_at(sim, tmp_path, f"{name}-{i}", when, sig)
         if met != "stall":
             return met, info
-        warnings.warn(f"{name} (instant {delay} s, {sig.name}), attempt {i + 1}/{ATTEMPTS}: a real-time "
+        warnings.warn(f"{name} (instant {when}, {sig.name}), attempt {i + 1}/{ATTEMPTS}: a real-time "
                       f"stall of the machine, not the code under test — repeated: {info}")
     pytest.fail(f"{name}: rig run stopped on a real-time stall in all {ATTEMPTS} attempts")
 
@@ -193,28 +183,29 @@ def test_a_signal_at_any_instant_ends_in_a_clean_stop(sim, tmp_path):
     # measure it once, unsignalled (the same clean end is checked)
     met, t_running = _attempts(sim, tmp_path, "calibration", None, signal.SIGINT)
     assert t_running is not None and t_running > 0.0, t_running
-    # instants (s after the start of `rig run`): the interpreter's start, start-up, RUNNING
+    # instants: s after the start of `rig run` over the interpreter's start and the start-up;
+    # s after the session began (about RUNNING, whenever the start-up ended) over RUNNING
     # (--duration 1.0), the 0.5 s stop ramp and closing
-    instants = [0.1, 0.3] + [f * t_running for f in (0.45, 0.65, 0.8, 0.92)] \
-        + [t_running + x for x in (0.05, 0.3, 0.6, 0.9, 1.1, 1.3)]
+    instants = [("start", 0.1), ("start", 0.3)] + [("start", f * t_running) for f in (0.45, 0.65, 0.8, 0.92)] \
+        + [("session", x) for x in (0.05, 0.3, 0.6, 0.9, 1.1, 1.3)]
     seen = {"before Python": 0, "before RUNNING": 0, "after RUNNING": 0, "": 0}
     k = 0
     while k < len(instants):
-        delay = instants[k]
+        anchor, delay = instants[k]
         sig = (signal.SIGINT, signal.SIGTERM)[k % 2]
-        met, t_run = _attempts(sim, tmp_path, f"run-{k}", round(delay, 3), sig)
+        met, t_run = _attempts(sim, tmp_path, f"run-{k}", (anchor, round(delay, 3)), sig)
         seen[met] += 1
         if t_run is not None:
-            t_running = t_run                           # the latest start-up seen
+            t_running = min(t_running, t_run)           # the shortest start-up seen
         k += 1
         # the start-up varies from run to run: while a side of RUNNING has fewer than three
         # signals, add an instant in its middle (at most 8 more runs)
         if k == len(instants) and len(instants) < 20:
             if seen["before RUNNING"] < 3:
-                instants.append(0.6 * t_running)
+                instants.append(("start", 0.6 * t_running))
             elif seen["after RUNNING"] < 3:
-                instants.append(t_running + 0.4)
-    print(f"start-up {t_running:.3f} s; instants {[round(x, 3) for x in instants]}; the signals met {seen}")
+                instants.append(("session", 0.4))
+    print(f"start-up {t_running:.3f} s; instants {[(a, round(x, 3)) for a, x in instants]}; the signals met {seen}")
     # the instants did land on both sides of RUNNING
     assert seen["before RUNNING"] >= 3 and seen["after RUNNING"] >= 3, (seen, instants)
 
