@@ -492,7 +492,9 @@ class KnownRuntimeFault(Exception):
       arrive in between, which a streaming device makes happen;
     * ``stale`` TPDOs or laser values while the simulator demonstrably served them in time:
       its session statistics show every TPDO on the pty within 10 ms of its SYNC and the
-      lasers' emission thread never more than 10 ms late (the runtime flags 20 ms);
+      lasers' emission thread never more than 10 ms late (the runtime flags 20 ms); also
+      ``converters``/``disabled`` then, which a drive's reading that is not fresh trips first
+      (a power stage counts as enabled only with a fresh reading);
     * a drive's EMCY 0x8250 RPDO timeout (its 50 ms watchdog) or 0x8130 heartbeat error (its
       consumer time) while the simulator saw the runtime's SYNCs stop for that long (the
       largest SYNC gap of the session): the runtime fell silent, the drive reacted as it must.
@@ -525,7 +527,7 @@ def _known_runtime_fault(f, stats) -> bool:
         return True
     if chk == "invalid" and "hang-up on the port" in msg:
         return True
-    if chk == "stale" and dev in WHEELS:
+    if (chk == "stale" and dev in WHEELS) or (dev, chk) == ("converters", "disabled"):
         lat = stats["tpdo_latency_ms"]
         return lat["n"] > 0 and lat["max"] < SIM_PROMPT_MS
     if chk == "stale" and dev in config.LASER_ROLES:
