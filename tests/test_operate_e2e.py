@@ -38,13 +38,14 @@ _LATE_INPUT = ("stale", "disabled")     # a stale input, a power stage whose rea
 
 
 def _stall(summary: dict, text: str) -> bool:
-    """The run's end is what a real-time stall of this VM looks like: the loop's overrun rule
-    (or arming blocked by lost periods), a drive's heartbeat error; or only stale inputs /
-    power stages not enabled while the loop itself skipped periods (docs/sim-process.md, known
-    runtime issue 5: no SYNC in a skipped period, so no TPDO; the simulator, starved alike)."""
-    if any(k in text for k in _STALLS):
-        return True
+    """The run's end (its summary; ``text``: what else it said) is what a real-time stall of
+    this VM looks like: the loop's overrun rule (or arming blocked by lost periods), a drive's
+    heartbeat error; or only stale inputs / power stages not enabled while the loop itself
+    skipped periods (docs/sim-process.md, known runtime issue 5: no SYNC in a skipped period,
+    so no TPDO; the simulator, starved alike)."""
     faults = summary.get("faults") or []
+    if any(k in text + json.dumps(faults) for k in _STALLS):
+        return True
     timing = summary.get("timing") or {}
     late = (timing.get("skipped_periods") or 0) > 0 or (timing.get("deadline_misses") or 0) > 0
     return bool(faults) and late and all(f.get("check") in _LATE_INPUT for f in faults)
