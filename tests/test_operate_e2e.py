@@ -26,6 +26,7 @@ import h5py
 import numpy as np
 import pytest
 
+from rig_runtime import config
 from rig_runtime.export import read_log
 from rig_runtime.safety import State
 
@@ -35,20 +36,27 @@ pytestmark = pytest.mark.slow
 ATTEMPTS = 3
 _STALLS = ("overrun", "periods lost", "heartbeat error")   # what a real-time stall of this VM looks like
 _LATE_INPUT = ("stale", "disabled")     # a stale input, a power stage whose reading is not fresh
+_WATCHDOG_S, _H_S = config.load().devices.can.watchdog_ms / 1000.0, config.load().controller.h
 
 
 def _stall(summary: dict, text: str) -> bool:
     """The run's end (its summary; ``text``: what else it said) is what a real-time stall of
     this VM looks like: the loop's overrun rule (or arming blocked by lost periods), a drive's
-    heartbeat error; or only stale inputs / power stages not enabled while the loop itself
+    heartbeat error; only stale inputs / power stages not enabled while the loop itself
     skipped periods (docs/sim-process.md, known runtime issue 5: no SYNC in a skipped period,
-    so no TPDO; the simulator, starved alike)."""
+    so no TPDO; the simulator, starved alike); a drive's RPDO timeout after a cycle of the
+    loop as long as the drives' watchdog."""
     faults = summary.get("faults") or []
     if any(k in text + json.dumps(faults) for k in _STALLS):
         return True
     timing = summary.get("timing") or {}
     late = (timing.get("skipped_periods") or 0) > 0 or (timing.get("deadline_misses") or 0) > 0
-    return bool(faults) and late and all(f.get("check") in _LATE_INPUT for f in faults)
+    if faults and late and all(f.get("check") in _LATE_INPUT for f in faults):
+        return True
+    # a drive's RPDO watchdog after one cycle of the loop (its release lateness and work) took
+    # as long as the watchdog: the runtime fell silent
+    longest = sum((timing.get(k) or {}).get("max") or 0.0 for k in ("release_lateness_us", "cycle_work_us")) * 1e-6
+    return bool(faults) and longest >= _WATCHDOG_S - _H_S and all("RPDO timeout" in (f.get("message") or "") for f in faults)
 
 
 def _summary(out: str) -> dict:
