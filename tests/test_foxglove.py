@@ -8,6 +8,7 @@ import json
 import math
 import struct
 import sys
+import time
 
 import h5py
 import numpy as np
@@ -22,6 +23,7 @@ needs_sdk = pytest.mark.skipif(importlib.util.find_spec("foxglove") is None,
                                reason="foxglove-sdk not installed (the foxglove extra)")
 
 RECV_TIMEOUT_S = 2.0
+SUBSCRIBE_TIMEOUT_S = 15.0                # a guard: the messages usually flow within ~0.1 s
 SUBPROTOCOL = "foxglove.sdk.v1"           # what foxglove-sdk's server speaks (successor of foxglove.websocket.v1)
 ROW_TOPICS = {"/rig/state", "/rig/front", "/rig/rear", "/rig/timing", "/rig/currents"}
 ALL_TOPICS = ROW_TOPICS | {"/rig/health", "/rig/events"}
@@ -65,7 +67,10 @@ def test_websocket_client_sees_channels_and_rows():
             # the subscription takes effect asynchronously: feed rows until messages arrive
             got: dict[int, dict] = {}
             block = make_rows(cols, 1)
-            for k in range(400):
+            deadline = time.monotonic() + SUBSCRIBE_TIMEOUT_S
+            k = -1
+            while time.monotonic() < deadline:
+                k += 1
                 block[0, ix["t"]] = 100.0 + k * 0.005
                 out.rows(block)
                 out.status(dict(STATUS, t=100.0 + k * 0.005))
@@ -81,7 +86,8 @@ def test_websocket_client_sees_channels_and_rows():
                     got[sub] = msg
                 if len(got) == len(subs):
                     break
-            assert set(got) == set(subs), f"messages only for subscriptions {sorted(got)} of {sorted(subs)}"
+            assert set(got) == set(subs), \
+                f"within {SUBSCRIBE_TIMEOUT_S} s, messages only for subscriptions {sorted(got)} of {sorted(subs)}"
             assert got[1]["y"] == block[0, ix["y_r"]] and got[1]["u"] == block[0, ix["rear_u_cmd"]]
             assert got[2]["name"] == "RUNNING" and got[2]["code"] == 2
             assert got[3]["devices"]["rl"]["state"] == 1

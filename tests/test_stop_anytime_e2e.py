@@ -6,6 +6,13 @@ After every stop: the process exited with the documented code (0 after RUNNING b
 the runtime's first line, when nothing was open yet) and one line saying what happened, no traceback; the log, if one was
 written, is readable; every simulated drive is switched off — SWITCH ON DISABLED with zero
 current, not FAULT (the runtime switched their heartbeat consumers off before it left).
+
+Real time on a shared 2-CPU VM: the instants in the start-up are placed from a measured
+start-up (one unsignalled run first), those from RUNNING on from the simulator's session
+start (every drive enabled), and more are added while either side of RUNNING has fewer than
+three. A run that stopped on a fault of the runtime's own that a real-time stall of the
+machine explains (tests/test_sim_process.py's known runtime faults) is repeated at the same instant (at most three times, with a warning); any other
+outcome fails at once.
 """
 
 from __future__ import annotations
@@ -15,27 +22,31 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 
 import pytest
 
 from rig_runtime.config import WHEELS
 from rig_runtime.export import read_log
-from sim_backend.launcher import start_sim_process
 
-# instants after the start of `rig run` (s): imports, configure, warm-up/arm, running
-# (--duration 1.0), the 0.5 s stop ramp, closing
-INSTANTS = (0.1, 0.3, 0.5, 0.7, 0.9, 1.1, 1.4, 1.7, 2.0, 2.4, 2.8, 3.3)
+from .test_sim_process import SharedSim, _known_runtime_fault, _sim_stats
+
 CONSUMER_S = 0.25      # the drives' heartbeat consumer time (sim.yaml: 100 ms x 2.5)
+DURATION_S = 1.0       # each run's --duration
+ATTEMPTS = 3           # per instant: a real-time stall of the machine repeats it
+EXIT_SETUP, EXIT_FAULT = 2, 3
 
 
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
-    sp = start_sim_process(workdir=tmp_path_factory.mktemp("rig-sim"))
-    yield sp
-    assert sp.stop(signal.SIGINT) == 0, sp.stderr()
+    """SCHED_FIFO for rig sim and, through the generated config, for the runtime: without it
+    the runtime faults on its own deadline misses in 2 of 5 runs of 6 s (docs/sim-process.md)."""
+    s = SharedSim(tmp_path_factory)
+    yield s
+    s.close()
 
 
-def _run(sim, log, duration="1.0"):
+def _run(sim, log, duration=str(DURATION_S)):
     cmd = [sys.executable, "-m", "rig_runtime", "run", "--config", str(sim.config_path), "--json",
            "--duration", duration, "--log", str(log)]
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
@@ -48,48 +59,155 @@ def _drives_off(sim, t_after: float) -> dict:
     return sim.wait_status(lambda s: s["t"] > t_after + CONSUMER_S, timeout_s=3.0)
 
 
+def _summary(out: str) -> dict:
+    try:
+        return json.loads(out.strip().splitlines()[-1])
+    except (IndexError, ValueError):
+        return {}
+
+
+def _stall(sim, code: int, out: str, err: str) -> str:
+    """Why this run's end is what a real-time stall of the machine looks like ("" if it is not):
+    a FAULT made only of the runtime's known faults (tests/test_sim_process.py: its own
+    deadline misses, a stale TPDO or laser value the simulator demonstrably served in time, a
+    drive's RPDO watchdog or heartbeat consumer after the runtime's SYNCs stopped for that
+    long); or arming refused because the loop was still losing periods to deadline misses."""
+    if code == EXIT_FAULT:
+        faults = _summary(out).get("faults") or []
+        stats = _sim_stats(sim)
+        if faults and all(_known_runtime_fault(f, stats) for f in faults):
+            brief = [(f["device"], f["check"], f.get("message")) for f in faults]
+            return f"FAULT {brief}; simulator: {stats}; runtime timing: {_summary(out).get('timing')}"
+    if code == EXIT_SETUP and "periods lost to deadline misses" in err:
+        return err.strip().splitlines()[-1]
+    return ""
+
+
+def _session_t0(sim, proc, count0: int) -> float | None:
+    """When the simulator's next session began (every drive enabled: the runtime goes RUNNING
+    a cycle or two later), as its status shows it (rewritten every 50 ms); None if the run
+    ended first."""
+    deadline = time.monotonic() + 30.0
+    while time.monotonic() < deadline and proc.poll() is None:
+        ses = sim.status()["session"]
+        if ses["count"] > count0 and ses["t0"] is not None:
+            return ses["t0"]
+        time.sleep(0.01)
+    return None
+
+
+def _signal_at(sim, tmp_path, name: str, when: tuple[str, float] | None, sig) -> tuple[str, float | str | None]:
+    """One `rig run`, sent ``sig`` at ``when`` = (anchor, delay): ``delay`` s after its start
+    ("start") or after the simulator's session began ("session", i.e. about RUNNING); no
+    signal if ``when`` is None. Checks the clean stop. Returns (what the signal met: "before
+    Python", "before RUNNING", "after RUNNING", "" if it was not sent or came after the run's
+    end; or "stall" and the reason), and when RUNNING began, s after the start (None if
+    unknown; the reason of a stall)."""
+    log = tmp_path / f"{name}.h5"
+    st0 = sim.status()
+    events0 = {w: d["heartbeat_events"] for w, d in st0["drives"].items()}
+    t_start = time.monotonic()
+    proc = _run(sim, log)
+    sent = False
+    if when is not None:
+        anchor, delay = when
+        t0 = t_start if anchor == "start" else _session_t0(sim, proc, st0["session"]["count"])
+        if t0 is not None:
+            time.sleep(max(0.0, t0 + delay - time.monotonic()))
+            sent = proc.poll() is None
+            if sent:
+                proc.send_signal(sig)
+    try:
+        out, err = proc.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+        pytest.fail(f"{name}: rig run did not end within 30 s\nstdout {out[-1500:]}\nstderr {err[-1500:]}")
+    t_exit = time.monotonic()
+    what = f"{name}: instant {when}, {sig.name}: exit {proc.returncode}\nstdout {out[-1500:]}\nstderr {err[-1500:]}"
+    assert "Traceback" not in err, what
+    summary = _summary(out)
+    started = summary.get("run_started_t")
+    t_running = started - t_start if isinstance(started, float) and started == started else None
+    stall = _stall(sim, proc.returncode, out, err)
+    if stall:
+        met = "stall"
+    elif proc.returncode == -sig:
+        # the signal came before the interpreter reached the runtime's first line (its start
+        # takes ~0.1-0.3 s here): the default action ended it, nothing had been opened
+        assert sent, what
+        st = _drives_off(sim, t_exit)
+        assert all(d["nmt"] == "PRE-OPERATIONAL" for d in st["drives"].values()), (what, st)
+        met = "before Python"
+    elif proc.returncode == 128 + sig:
+        assert sent, what
+        lines = [ln for ln in err.splitlines() if ln.strip()]
+        assert lines and lines[-1].startswith(f"rig run: stopped by {sig.name} before RUNNING"), what
+        met = "before RUNNING"
+    else:
+        assert proc.returncode == 0, what
+        assert summary["final_state"] == "IDLE" and summary["faults"] == [], what
+        met = ""
+        if sent and summary.get("stopped_by"):
+            assert summary["stopped_by"] == sig.name, what
+            met = "after RUNNING"
+    if log.exists():
+        read_log(log)                                   # readable, whatever the instant
+    st = _drives_off(sim, t_exit)
+    for w in WHEELS:
+        dr = st["drives"][w]
+        assert dr["current_A"] == 0.0, (what, w, dr)     # even after a stall: no current left on
+        if not stall:
+            assert dr["state"] == "SWITCH ON DISABLED", (what, w, dr)
+            assert dr["heartbeat_events"] == events0[w] and dr["error_code"] == 0, (what, w, dr)
+    if stall:
+        sim.restart_if_faulted()
+        return "stall", stall
+    return met, t_running
+
+
+def _attempts(sim, tmp_path, name: str, when: tuple[str, float] | None, sig) -> tuple[str, float | None]:
+    """``_signal_at`` until the run is not ended by a real-time stall (at most ATTEMPTS times)."""
+    for i in range(ATTEMPTS):
+        met, info = _signal_at(sim, tmp_path, f"{name}-{i}", when, sig)
+        if met != "stall":
+            return met, info
+        warnings.warn(f"{name} (instant {when}, {sig.name}), attempt {i + 1}/{ATTEMPTS}: a real-time "
+                      f"stall of the machine, not the code under test — repeated: {info}")
+    pytest.fail(f"{name}: rig run stopped on a real-time stall in all {ATTEMPTS} attempts")
+
+
 @pytest.mark.slow
 def test_a_signal_at_any_instant_ends_in_a_clean_stop(sim, tmp_path):
-    seen = {"before RUNNING": 0, "after RUNNING": 0}
-    for k, delay in enumerate(INSTANTS):
+    # start-up (imports, configure, warm-up/arm) takes ~1 s here, more on a loaded machine:
+    # measure it once, unsignalled (the same clean end is checked)
+    met, t_running = _attempts(sim, tmp_path, "calibration", None, signal.SIGINT)
+    assert t_running is not None and t_running > 0.0, t_running
+    # instants: s after the start of `rig run` over the interpreter's start and the start-up;
+    # s after the session began (about RUNNING, whenever the start-up ended) over RUNNING
+    # (--duration 1.0), the 0.5 s stop ramp and closing
+    instants = [("start", 0.1), ("start", 0.3)] + [("start", f * t_running) for f in (0.45, 0.65, 0.8, 0.92)] \
+        + [("session", x) for x in (0.05, 0.3, 0.6, 0.9, 1.1, 1.3)]
+    seen = {"before Python": 0, "before RUNNING": 0, "after RUNNING": 0, "": 0}
+    k = 0
+    while k < len(instants):
+        anchor, delay = instants[k]
         sig = (signal.SIGINT, signal.SIGTERM)[k % 2]
-        log = tmp_path / f"run-{k}.h5"
-        events0 = {w: d["heartbeat_events"] for w, d in sim.status()["drives"].items()}
-        proc = _run(sim, log)
-        time.sleep(delay)
-        sent = proc.poll() is None
-        if sent:
-            proc.send_signal(sig)
-        out, err = proc.communicate(timeout=30)
-        t_exit = time.monotonic()
-        what = f"instant {delay} s, {sig.name}: exit {proc.returncode}\nstdout {out[-1500:]}\nstderr {err[-1500:]}"
-        assert "Traceback" not in err, what
-        if proc.returncode == -sig:
-            # the signal came before the interpreter reached the runtime's first line (its start
-            # takes ~0.1-0.3 s here): the default action ended it, nothing had been opened
-            st = _drives_off(sim, t_exit)
-            assert all(d["nmt"] == "PRE-OPERATIONAL" for d in st["drives"].values()), (what, st)
-            seen["before Python"] = seen.get("before Python", 0) + 1
-        elif proc.returncode == 128 + sig:
-            lines = [ln for ln in err.splitlines() if ln.strip()]
-            assert lines and lines[-1].startswith(f"rig run: stopped by {sig.name} before RUNNING"), what
-            seen["before RUNNING"] += 1
-        else:
-            assert proc.returncode == 0, what
-            summary = json.loads(out.strip().splitlines()[-1])
-            assert summary["final_state"] == "IDLE" and summary["faults"] == [], what
-            if sent and summary.get("stopped_by"):
-                assert summary["stopped_by"] == sig.name, what
-                seen["after RUNNING"] += 1
-        if log.exists():
-            read_log(log)                                   # readable, whatever the instant
-        st = _drives_off(sim, t_exit)
-        for w in WHEELS:
-            dr = st["drives"][w]
-            assert dr["current_A"] == 0.0 and dr["state"] == "SWITCH ON DISABLED", (what, w, dr)
-            assert dr["heartbeat_events"] == events0[w] and dr["error_code"] == 0, (what, w, dr)
+        met, t_run = _attempts(sim, tmp_path, f"run-{k}", (anchor, round(delay, 3)), sig)
+        seen[met] += 1
+        if t_run is not None:
+            t_running = min(t_running, t_run)           # the shortest start-up seen
+        k += 1
+        # the start-up varies from run to run: while a side of RUNNING has fewer than three
+        # signals, add an instant in its middle (at most 8 more runs)
+        if k == len(instants) and len(instants) < 20:
+            if seen["before RUNNING"] < 3:
+                instants.append(("start", 0.6 * t_running))
+            elif seen["after RUNNING"] < 3:
+                instants.append(("session", 0.4))
+    print(f"start-up {t_running:.3f} s; instants {[(a, round(x, 3)) for a, x in instants]}; the signals met {seen}")
     # the instants did land on both sides of RUNNING
-    assert seen["before RUNNING"] >= 3 and seen["after RUNNING"] >= 3, seen
+    assert seen["before RUNNING"] >= 3 and seen["after RUNNING"] >= 3, (seen, instants)
 
 
 @pytest.mark.slow
@@ -112,7 +230,10 @@ def test_sigkill_after_configure_the_drives_stop_by_themselves(sim, tmp_path):
     t_kill = time.monotonic()
     st = sim.wait_status(lambda s: s["t"] > t_kill + CONSUMER_S + 0.2
                          and all(s["drives"][w]["heartbeat_events"] > events0[w] for w in WHEELS), timeout_s=5.0)
+    # the status file shows NMT OPERATIONAL up to 50 ms late; a runtime at SCHED_FIFO may have
+    # armed by then and begun enabling the drives: one still READY TO SWITCH ON has no power
+    # stage on, and the consumer's reaction (for power-on states) leaves it there
     for w in WHEELS:
         dr = st["drives"][w]
-        assert dr["current_A"] == 0.0 and dr["state"] in ("SWITCH ON DISABLED", "FAULT"), dr
+        assert dr["current_A"] == 0.0 and dr["state"] in ("SWITCH ON DISABLED", "READY TO SWITCH ON", "FAULT"), dr
         assert dr["error_code"] in (0x8130, 0x8250), dr        # heartbeat lost (or its RPDO watchdog, if armed)

@@ -6,6 +6,7 @@ import errno
 import importlib.util
 import json
 import math
+import platform
 import socket
 import subprocess
 import sys
@@ -264,6 +265,26 @@ def test_bad_options_are_config_errors():
         UdpTelemetry(LogInfo("run.h5", cols), host="no such host.invalid")
 
 
+# SO_RCVBUFFORCE (not in Python's socket module): Linux, asm-generic value
+_SO_RCVBUFFORCE = 33 if sys.platform == "linux" and platform.machine() in ("x86_64", "aarch64") else None
+
+
+def _large_receive_buffer(sock: socket.socket, size: int) -> int:
+    """A lockstep dry run sends its datagrams in a burst (~200 in ~50 ms here): room for all of
+    them even while this process is not scheduled. SO_RCVBUF is capped by net.core.rmem_max
+    (often 208 KiB); SO_RCVBUFFORCE, where permitted (CAP_NET_ADMIN), is not. The size granted."""
+    for opt in (_SO_RCVBUFFORCE, socket.SO_RCVBUF):
+        if opt is None:
+            continue
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, opt, size)
+        except OSError:
+            continue
+        if sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) >= size:
+            break
+    return sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+
+
 FIELDS = {("rear", "u"): "rear_u_cmd", ("rear", "y"): "y_r", ("rear", "psi"): "psi_ar",
           ("rear", "dpsi"): "rear_de_psi", ("front", "delta_omega"): "dw_f", ("front", "y"): "y_f",
           ("currents", "rl"): "i_rl", ("timing", "work"): "work"}
@@ -277,7 +298,7 @@ def test_dry_run_streams_telemetry(tmp_path, receiver):
     from rig_runtime.export import read_log
 
     port = receiver.getsockname()[1]
-    receiver.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+    rcvbuf = _large_receive_buffer(receiver, 4 << 20)
     receiver.settimeout(0.2)
     log = tmp_path / "run.h5"
     proc = subprocess.Popen([sys.executable, "-m", "rig_runtime", "dry-run", "--duration", "1", "--log", str(log),
@@ -309,5 +330,6 @@ def test_dry_run_streams_telemetry(tmp_path, receiver):
             else:
                 assert msg[group][name] == v, (group, name, k)
         states.add(msg["state"]["name"])
-    assert "RUNNING" in states
-    assert any("devices" in json.loads(d) for d in raw)            # the status snapshots reached it
+    lost = f"{len(raw)} of {len(cols['t'])} rows received (receive buffer {rcvbuf} bytes)"
+    assert "RUNNING" in states, lost
+    assert any("devices" in json.loads(d) for d in raw), lost      # the status snapshots reached it
