@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import ast
 import concurrent.futures
-import random
-import socket
 import subprocess
 import sys
 import threading
@@ -30,6 +28,8 @@ from rig_runtime.config import FT_POLLERS, FTBus, FTSensor
 from rig_runtime.errors import ConfigError, DeviceInitError
 from sim_backend.virtual_ft import VirtualFTServer
 
+from .test_ft300 import quiet_port
+
 ROOT = Path(__file__).resolve().parent.parent
 H = 2.0 ** -7                   # 7.8125 ms "control period"
 POLL_HZ = 16.0                  # a round every 8 periods
@@ -42,23 +42,6 @@ def inline_bus(*names: str, **kw) -> FTBus:
     return FTBus(poller="inline", poll_hz=POLL_HZ, timeout_s=TIMEOUT_S, stale_s=STALE_S,
                  sensors=tuple(FTSensor(name=n) for n in names), **kw)
 
-
-def quiet_port() -> int:
-    """A free TCP port outside the kernel's ephemeral range, for a server a test closes
-    while the driver reconnects: a connect() to a closed ephemeral port can be given that
-    same port as its source (a TCP self-connect, about 1 in 28 000 attempts), which "answers"
-    the driver and keeps the port from the server reopened there."""
-    with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
-        lo, hi = map(int, f.read().split())
-    outside = [p for p in range(10_000, 65_536) if not lo <= p <= hi]
-    for port in random.sample(outside, min(200, len(outside))):
-        with socket.socket() as s:
-            try:
-                s.bind(("127.0.0.1", port))
-            except OSError:
-                continue
-            return port
-    pytest.fail(f"no free port outside the ephemeral range {lo}-{hi}")
 
 
 class Lockstep:
