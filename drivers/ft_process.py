@@ -36,7 +36,7 @@ from multiprocessing import shared_memory
 from typing import Any, Callable, Optional
 
 from rig_runtime import seqlock
-from rig_runtime.clock import as_background_thread, sched_other
+from rig_runtime.clock import as_background_process, as_background_thread
 from rig_runtime.config import FTBus
 
 from rig_runtime.errors import DeviceInitError, picklable
@@ -154,7 +154,7 @@ class ProcessPoller(Poller):
         finally:
             there.close()                   # the child has its own copy: EOF here once it is gone
         self.process = proc
-        sched_other(proc.pid)              # as early as possible; the child repeats it
+        as_background_process(proc.pid)    # as early as possible; the child repeats it
         budget = _START_GRACE_S + sum(
             self._cfg.timeout_s * (1 + 2 * len(link.sensors) * 3) for link in self.core.links)
         ready = multiprocessing.connection.wait([here, proc.sentinel], budget)

@@ -124,7 +124,7 @@ def helper_cpus(rt: Realtime) -> tuple[int, ...] | None:
     return tuple(others) or None
 
 
-def sched_other(pid: int, cpus=None) -> None:
+def as_background_process(pid: int, cpus=None) -> None:
     """Move process ``pid`` (a helper process this one started) to SCHED_OTHER: a child
     inherits the runtime's SCHED_FIFO and must not compete with the loop; given ``cpus``
     (:func:`helper_cpus`), also off the loop's CPU. Best effort."""

@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import Mapping, Sequence
 
 from . import ring
-from .clock import sched_other
+from .clock import as_background_process
 from .errors import DeviceInitError
 from .logfile import (EVENT_FIELDS, EVENT_NUM_FIELDS, EVENT_STR_FIELDS, LOG_FORMAT, LOG_FORMAT_VERSION,  # noqa: F401 - re-exported
                       MIN_FREE_BYTES, RESERVED_ATTRS, check_attrs, check_columns)
@@ -209,7 +209,7 @@ class Recorder:
                     pass_fds=(there.fileno(),), stdin=subprocess.DEVNULL, env=_child_env())
             finally:
                 there.close()               # the child has its own copy: EOF for it once we are gone
-            sched_other(proc.pid, self.cpus)    # before the spec: the child has no thread yet
+            as_background_process(proc.pid, self.cpus)    # before the spec: the child has no thread yet
             conn.send(spec)
             msg = None
             deadline = time.monotonic() + _START_GRACE_S
