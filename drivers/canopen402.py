@@ -59,6 +59,7 @@ class WheelReading(NamedTuple):
     nmt_state: int | None
     t: float
     health: Health
+    syncs_unanswered: int = 0    # SYNCs this runtime sent since the latest valid TPDO1 arrived
 
     @property
     def enabled(self) -> bool:
@@ -101,7 +102,7 @@ class _Node:
         "hb_timeout_s", "max_permille", "rpdo_msg", "rpdo_data",
         "sw", "state", "vel_raw", "tq_raw", "omega", "current", "tpdo_t", "saturated",
         "frozen_n", "cmd_changes", "cmd_ref", "last_cmd", "bad_t", "bad_dlc", "timed_out", "frozen_flag",
-        "hb_t", "nmt", "emcy_code", "emcy_reg", "stepping", "last_cw", "bad_frames", "timeouts", "errors",
+        "unanswered", "hb_t", "nmt", "emcy_code", "emcy_reg", "stepping", "last_cw", "bad_frames", "timeouts", "errors",
         "counters", "health",
     )
 
@@ -126,6 +127,7 @@ class _Node:
         self.vel_raw = self.tq_raw = 0
         self.omega = self.current = math.nan
         self.tpdo_t: float | None = None
+        self.unanswered = 0             # SYNCs sent since the latest valid TPDO1
         self.saturated = False
         self.frozen_n = 0
         self.cmd_changes = self.cmd_ref = 0
@@ -463,14 +465,20 @@ class DriveBus(Driver):
             self._hb_next = nxt if nxt > now else now + self._hb_period_s
         send_many = self._send_many
         if send_many is None:
-            for msg in out:
+            sent = self._send(out[0], now)     # the SYNC
+            for msg in out[1:]:
                 self._send(msg, now)
-            return
-        try:
-            send_many(out)
-        except Exception as exc:  # noqa: BLE001 - CanError, OSError of a vanished adapter
-            self._bus_counters["send_errors"] += 1
-            self._bus_error(now, f"send of SYNC + {len(out) - 1} frames failed: {exc}")
+        else:
+            try:
+                send_many(out)
+                sent = True
+            except Exception as exc:  # noqa: BLE001 - CanError, OSError of a vanished adapter
+                sent = False
+                self._bus_counters["send_errors"] += 1
+                self._bus_error(now, f"send of SYNC + {len(out) - 1} frames failed: {exc}")
+        if sent:                        # a SYNC on the wire asks every drive for a TPDO1
+            for d in self._nodes:
+                d.unanswered += 1
 
     def _command(self, d: _Node, x: float | None) -> tuple[int, int]:
         """(controlword, torque per mille) for one drive this period."""
@@ -637,6 +645,7 @@ class DriveBus(Driver):
             d.omega = vel * d.velocity_factor
         d.current = tq * d.A_per_permille
         d.tpdo_t = now
+        d.unanswered = 0
         d.counters["tpdo"] += 1
 
     def _on_heartbeat(self, d: _Node, data: bytearray, now: float) -> None:
@@ -691,10 +700,10 @@ class DriveBus(Driver):
         if is_stale:
             stale.append(f"no TPDO received yet ({self._periods(now - self._t_ref)} periods)")
         else:
-            n = self._periods(now - d.tpdo_t)
+            n = d.unanswered            # judged against the SYNCs sent, not the wall clock
             if n >= self.cfg.tpdo_timeout_periods:
                 is_stale = True
-                stale.append(f"TPDO missing for {n} periods")
+                stale.append(f"TPDO missing for {n} SYNCs sent")
                 if not d.timed_out:
                     d.timed_out = True
                     d.timeouts += 1
@@ -725,7 +734,8 @@ class DriveBus(Driver):
             t = d.tpdo_t
             sw = d.sw
             wheels[d.wheel] = WheelReading(d.wheel, d.node_id, d.omega, d.current, sw if sw > 0 else 0,
-                                           d.state, d.nmt, nan if t is None else t, d.health)
+                                           d.state, d.nmt, nan if t is None else t, d.health,
+                                           d.unanswered)
             if enabled and (state is not Freshness.FRESH or d.state != OPERATION_ENABLED):
                 enabled = False
         self._enabled = enabled

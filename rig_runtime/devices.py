@@ -152,7 +152,7 @@ class RigDevices:
         ok, cause = True, ""
         wheels = []
         for r in rd.wheels.values():        # WHEELS order (DriveBus sorts its drives so)
-            wheels.append(Sample(r.omega, r.t, r.health))
+            wheels.append(Sample(r.omega, r.t, r.health, r.syncs_unanswered))
             if ok and r.health.state is Freshness.INVALID:
                 ok, cause = False, f"drive {r.wheel} (node {r.node_id}): {r.health.cause}"
         if ok and rd.bus.state is Freshness.INVALID:

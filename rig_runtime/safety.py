@@ -52,10 +52,13 @@ class Fault:
 
 
 class Sample(NamedTuple):
-    """One channel's reading in a cycle: value, the time it arrived (NaN: never), health."""
+    """One channel's reading in a cycle: value, the time it arrived (NaN: never), health,
+    and for a device that answers the runtime's requests (a SYNC-triggered TPDO) how many
+    requests are unanswered (-1: a free-running device, judged by the age of its value)."""
     value: float
     t: float
     health: Health
+    unanswered: int = -1
 
 
 class Converters(NamedTuple):
@@ -78,7 +81,7 @@ class Channel:
     in place every cycle by :meth:`Supervisor.cycle`)."""
 
     __slots__ = ("name", "kind", "value", "t", "state", "cause", "lo", "hi", "stale_s",
-                 "step_max", "stuck_check", "same", "delta", "bad", "bad_run")
+                 "step_max", "stuck_check", "same", "delta", "bad", "bad_run", "unanswered")
 
     def __init__(self, name: str, kind: str, lo: float, hi: float, stale_s: float,
                  step_max: float = math.inf, stuck_check: bool = False):
@@ -93,6 +96,7 @@ class Channel:
         self.delta = 0.0
         self.bad = 0            # the driver's cumulative count of garbled frames / bytes
         self.bad_run = 0        # consecutive cycles with new garbled data
+        self.unanswered = -1    # requests unanswered (-1: free-running, judged by age)
 
     def observe(self, s: Sample) -> None:
         """This cycle's sample, and the history the rules look at."""
@@ -104,6 +108,7 @@ class Channel:
         self.t = s.t if s.t == s.t else -math.inf
         self.state = h.state
         self.cause = h.cause
+        self.unanswered = s.unanswered
         if self.stuck_check:
             self.same = self.same + 1 if v == prev else 0
         b = h.bad_frames
@@ -128,7 +133,15 @@ def invalid(chs: Sequence[Channel], t: float, lim: Limits) -> Breach:
 
 
 def stale(chs: Sequence[Channel], t: float, lim: Limits) -> Breach:
+    """A free-running device by the age of its latest value; a device that answers the
+    runtime's requests by the requests it left unanswered (the runtime's own lateness is
+    not the device's fault)."""
+    n = lim.stale_periods
     for c in chs:
+        if c.unanswered >= 0:
+            if c.state is Freshness.STALE or c.unanswered >= n:
+                return c, ("stale", c.unanswered, n, c.cause or f"{c.unanswered} requests unanswered")
+            continue
         age = t - c.t
         if c.state is Freshness.STALE or age > c.stale_s:
             return c, ("stale", age, c.stale_s, c.cause or f"sample {age * 1e3:.1f} ms old")
