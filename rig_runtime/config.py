@@ -143,15 +143,21 @@ class Limits:
 
     u_max: float = check(positive)                  # |Δu| and |current on the wire|, A
     psi_max: float = check(positive)                # |ψ|, rad
+    psi_ref_max: Optional[float] = check(positive, default=None)    # |ψ_ref| the outer PI may ask for, rad (None: unclipped)
     y_max: float = check(positive)                  # |y|, m
     psi_rate_max: Optional[float] = check(positive, default=None)   # |ψ̇|, rad/s
     du_max: float = check(positive, default=200.0)  # command rate limit, A/s
-    stale_periods: int = check(positive, default=4)     # sample older than this many h -> stale
+    stale_periods: int = check(positive, default=4)     # laser: no valid value for this many h; drive: this many SYNCs unanswered -> stale
+    ft_stale_s: float = check(positive, default=0.5)    # F/T: no sample for this long -> stale (they poll at their own rate)
     overrun_burst: int = check(positive, default=5)     # consecutive deadline misses -> fault
     stop_ramp_s: float = check(nonneg, default=0.5)     # STOPPING ramp to zero
     stuck_periods: Optional[int] = check(positive, default=200)  # bit-identical samples -> stuck
     laser_step_max: Optional[float] = check(positive, default=0.002)  # m per period -> implausible jump
     corrupt_cycles: Optional[int] = check(positive, default=20)   # garbled frames in this many cycles in a row -> link fault
+
+    def __post_init__(self) -> None:
+        if self.psi_ref_max is not None and self.psi_ref_max > self.psi_max:
+            raise ConfigError(None, "psi_ref_max", f"at most psi_max ({self.psi_max:g} rad)", self.psi_ref_max)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -23,13 +23,15 @@ FT_COMPONENTS = ("fx", "fy", "fz", "mx", "my", "mz")
 FT_RANGE = (300.0, 30.0)    # FT 300 class: ±300 N, ±30 N m (rated range)
 
 
-class CycleInput(NamedTuple):
-    """Everything one poll brought, immutable: a :class:`Sample` per supervisor channel
-    (lasers in LASER_ROLES order, wheels in WHEELS order, F/T sensors), the F/T wrench
-    components (``extra``, ``RigDevices.extra_columns`` order) and the converters."""
+class Reading(NamedTuple):
+    """Everything one poll brought, immutable and addressed by name: a :class:`Sample` per
+    supervisor channel (lasers by role, wheels by wheel, F/T sensors by name), each
+    channel's latest value by the same name (what the geometry reads), the F/T wrench
+    components (``RigDevices.extra_columns`` order, the log's columns) and the converters."""
     t: float
-    samples: tuple[Sample, ...]
-    extra: tuple[float, ...]
+    samples: Mapping[str, Sample]
+    values: Mapping[str, float]
+    wrench: tuple[float, ...]
     converters: Converters
 
 
@@ -85,7 +87,7 @@ class RigDevices:
         self._configured: list = []
 
     def channels(self) -> list[Channel]:
-        """The supervisor's channels, in :class:`CycleInput` sample order, with each
+        """The supervisor's channels, named as :meth:`poll` names its samples, with each
         device's plausible range."""
         cfg = self.cfg
         by_role = {l.role: l for l in cfg.devices.lasers}
@@ -100,7 +102,7 @@ class RigDevices:
         for w in WHEELS:
             out.append(Channel(w, "wheel", -w_max, w_max, self._stale, stuck_check=True))
         for n in self.ft_names:
-            out.append(Channel(n, "ft", -FT_RANGE[0], FT_RANGE[0], cfg.devices.ft.stale_s))
+            out.append(Channel(n, "ft", -FT_RANGE[0], FT_RANGE[0], cfg.limits.ft_stale_s))
         return out
 
     # ------------------------------------------------------------------ lifecycle
@@ -145,31 +147,37 @@ class RigDevices:
         self._configured.clear()
 
     # ------------------------------------------------------------------ cycle
-    def poll(self, now: float) -> CycleInput:
-        """Every device's latest samples: the drives and the F/T hand-off first, the
+    def poll(self, now: float) -> Reading:
+        """Every device's latest samples by name: the drives and the F/T hand-off first, the
         lasers last (freshest)."""
+        samples: dict[str, Sample] = {}
+        values: dict[str, float] = {}
         rd = self.drives.poll(now)
         ok, cause = True, ""
-        wheels = []
-        for r in rd.wheels.values():        # WHEELS order (DriveBus sorts its drives so)
-            wheels.append(Sample(r.omega, r.t, r.health, r.syncs_unanswered))
+        for w, r in rd.wheels.items():
+            samples[w] = Sample(r.omega, r.t, r.health, r.syncs_unanswered)
+            values[w] = r.omega
             if ok and r.health.state is Freshness.INVALID:
                 ok, cause = False, f"drive {r.wheel} (node {r.node_id}): {r.health.cause}"
         if ok and rd.bus.state is Freshness.INVALID:
             ok, cause = False, f"CAN bus: {rd.bus.cause}"
-        ft = []
         extra: list[float] = []
         if self.ft is not None:
             fr = self.ft.poll(now)
             for n in self.ft_names:
                 r = fr[n]
                 w = r.wrench
-                ft.append(Sample(math.nan if w is None else w.fy, r.t, r.health))
+                samples[n] = Sample(math.nan if w is None else w.fy, r.t, r.health)
+                values[n] = samples[n].value
                 extra.extend(self._no_wrench if w is None else (w.fx, w.fy, w.fz, w.mx, w.my, w.mz))
-        lasers = [Sample(r.value_m, r.t, r.health) for r in (d.poll(now) for d in self.lasers)]
-        return CycleInput(now, (*lasers, *wheels, *ft), tuple(extra), Converters(ok, cause, rd.enabled))
+        for d in self.lasers:
+            r = d.poll(now)
+            samples[r.role] = Sample(r.value_m, r.t, r.health)
+            values[r.role] = r.value_m
+        return Reading(now, samples, values, tuple(extra), Converters(ok, cause, rd.enabled))
 
-    def write(self, currents: Sequence[float], now: float) -> None:
+    def write(self, currents: Mapping[str, float], now: float) -> None:
+        """Each wheel's current (A) by wheel name."""
         self.drives.write(currents, now)
 
     def counters(self) -> dict[str, dict[str, int]]:

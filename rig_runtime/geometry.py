@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Mapping, NamedTuple
 
 from .config import Geometry
 
@@ -34,6 +34,15 @@ class Measurement(NamedTuple):
     psi_r: float    # ψ_ar + ψ_m: rear carrier to rail
     dw_f: float     # ω_fl − ω_fr
     dw_r: float     # ω_rl − ω_rr
+
+    def carrier(self, name: str) -> tuple[float, float, float]:
+        """(y, ψ, Δω) of the ``front`` or ``rear`` carrier: ψ is the carrier's angle to the
+        frame (ψ_af, ψ_ar), the angle its yaw lasers measure and the PI-PD law controls."""
+        if name == "rear":
+            return self.y_r, self.psi_ar, self.dw_r
+        if name == "front":
+            return self.y_f, self.psi_af, self.dw_f
+        raise KeyError(name)
 
 
 @dataclass(frozen=True, slots=True)
@@ -58,16 +67,18 @@ class Readings:
     s_rr: float
 
 
-def measure(b_f: float, b_r: float, s_fl: float, s_fr: float, s_rl: float, s_rr: float,
-            w_fl: float, w_fr: float, w_rl: float, w_rr: float, geo: Geometry) -> Measurement:
-    """Sec. 2 geometry. Scalar math only: this runs every cycle."""
+def measure(v: Mapping[str, float], geo: Geometry) -> Measurement:
+    """Sec. 2 geometry from the latest values by name: the lasers by role (``b_f`` … ``s_rr``,
+    m) and the wheel speeds by wheel (``fl`` … ``rr``, rad/s). Scalar math only: this runs
+    every cycle."""
+    b_f, b_r, s_fl, s_fr, s_rl, s_rr = v["b_f"], v["b_r"], v["s_fl"], v["s_fr"], v["s_rl"], v["s_rr"]
     y_m = 0.5 * (b_f + b_r) - geo.b0
     psi_m = math.atan((b_f - b_r) / geo.l_L)
     lat = geo.l0 * math.sin(psi_m)
     psi_af = math.atan((s_fl - s_fr) / geo.d0)
     psi_ar = math.atan((s_rl - s_rr) / geo.d0)
     return Measurement(y_m, psi_m, y_m + lat, y_m - lat, psi_af, psi_ar,
-                       psi_af + psi_m, psi_ar + psi_m, w_fl - w_fr, w_rl - w_rr)
+                       psi_af + psi_m, psi_ar + psi_m, v["fl"] - v["fr"], v["rl"] - v["rr"])
 
 
 def ideal_readings(pose: Pose, geo: Geometry, s0: float = 0.0375) -> Readings:

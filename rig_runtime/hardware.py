@@ -25,9 +25,9 @@ from __future__ import annotations
 import abc
 import enum
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
-__all__ = ["Freshness", "Health", "health", "Lifecycle", "Driver"]
+__all__ = ["Freshness", "Health", "health", "Lifecycle", "Hardware", "Driver"]
 
 
 class Freshness(enum.Enum):
@@ -70,6 +70,20 @@ class Lifecycle(enum.Enum):
     UNCONFIGURED = "unconfigured"
     CONFIGURED = "configured"     # transports open, device configured, no power
     ACTIVE = "active"             # power stages enabled (or being enabled)
+
+
+class Hardware(Protocol):
+    """The one lifecycle (module docstring): a driver implements it, the rig's device set
+    (``devices.RigDevices``) implements it over its drivers, the supervisor switches the
+    power stages through it and the loop polls and writes through it."""
+
+    def configure(self) -> None: ...
+    def activate(self, now: float) -> None: ...
+    def poll(self, now: float) -> Any: ...
+    def write(self, command: Any, now: float) -> None: ...
+    def deactivate(self, now: float) -> None: ...
+    def resume(self, now: float) -> None: ...
+    def close(self) -> None: ...
 
 
 class Driver(abc.ABC):

@@ -1,16 +1,18 @@
-"""The control loop: one fixed period, read → geometry → supervisor → controller → limit
-→ write → record, with one timestamp per cycle.
+"""The control loop: one fixed period, the stages of ``docs/architecture.md`` in order —
+operator command, read, geometry, supervisor, control (per lane), limit, write, record —
+with one timestamp per cycle.
 
 The loop owns time (a ``Clock``), never blocks on I/O (drivers drain OS buffers), freezes
 and disables the garbage collector while running, times every cycle and skips missed
 periods instead of catching up. It asks the supervisor what to do (the supervisor owns
-every state transition and switches the power stages) and does it.
+every state transition, every rule and the power stages) and does it. Everything that is
+per carrier lives in a :class:`~rig_runtime.lanes.Lane`.
 
-Operator commands (``rig ctl``) arrive through an optional :class:`~rig_runtime.mailbox.Mailbox`
-(``loop.mailbox``), looked at once at the start of every cycle: ``stop`` is the same request
-as a stop signal; ``set`` applies an already checked gain change (``tuning.check``) to every
-controller before this cycle's step and records an operator event; ``reset-fault`` resets a
-latched fault when the run holds on faults (``run(hold_on_fault=True)``) and arms again.
+Operator commands (``rig ctl``) arrive through an optional :class:`~rig_runtime.mailbox.Mailbox`,
+looked at once at the start of every cycle: ``stop`` is the same request as a stop signal;
+``set`` applies an already checked gain change (``tuning.check``) to every controller
+before this cycle's step and records an operator event; ``reset-fault`` resets a latched
+fault when the run holds on faults (``run(hold_on_fault=True)``) and arms again.
 """
 
 from __future__ import annotations
@@ -20,30 +22,19 @@ import math
 import time
 from dataclasses import dataclass, field
 from operator import attrgetter
-from typing import Callable, Iterable, Optional, Protocol, Sequence
+from typing import Callable, Iterable, Optional, Sequence
 
 from . import tuning
 from .clock import Clock
-from .config import LASER_ROLES, WHEELS, RigConfig
-from .control import make_controller
+from .config import WHEELS, RigConfig
+from .control import PIPDInternals
 from .geometry import Measurement, measure
+from .hardware import Hardware
+from .lanes import Lane, make_lanes, wheel_currents
 from .mailbox import Command
 from .safety import Channel, State, Supervisor
 from .stats import CycleStats
 from .tuning import TuningError
-
-
-class DeviceSet(Protocol):
-    """What the loop needs from the devices (``devices.RigDevices``)."""
-
-    extra_columns: Sequence[str]     # e.g. F/T wrench components
-
-    def channels(self) -> list[Channel]: ...
-    def activate(self, now: float) -> None: ...
-    def poll(self, now: float): ...          # -> devices.CycleInput
-    def write(self, currents: Sequence[float], now: float) -> None: ...
-    def deactivate(self, now: float) -> None: ...
-    def resume(self, now: float) -> None: ...
 
 
 @dataclass
@@ -53,86 +44,100 @@ class RunResult:
     cycles: int
     max_abs_current_A: float
     timing: dict
-    t_start: float = math.nan           # when RUNNING began (scenario time origin)
+    t_start: Optional[float] = None     # when RUNNING began (scenario time origin); None: never
     wall_time_s: float = 0.0
     arm_blockers: list = field(default_factory=list)
 
 
-CARRIER_INDEX = {"front": 0, "rear": 1}
 CYCLE_FIELDS = ("t", "t_run", "lateness", "work", "state", "y_ref")
 MEASUREMENT_FIELDS = Measurement._fields
-CONTROLLER_FIELDS = ("e_y", "x_I", "psi_ref", "e_psi", "de_psi", "u_unsat")
+CONTROLLER_FIELDS = tuple(f for f in PIPDInternals.__dataclass_fields__ if f != "u")
+LANE_FIELDS = ("u_cmd", "u_lim")
+LOGGED_KINDS = ("laser", "wheel")       # channels whose value and age are logged
+
+
+def _channel_column(c: Channel) -> str:
+    return c.name if c.kind == "laser" else f"omega_{c.name}"
+
+
+def log_columns(cfg: RigConfig, channels: Sequence[Channel], extra_columns: Sequence[str]) -> list[str]:
+    """The log's columns for this config and device set, in row order (:meth:`ControlLoop.row`
+    builds its rows from the same lists)."""
+    cols = list(CYCLE_FIELDS)
+    for c in channels:
+        if c.kind in LOGGED_KINDS:
+            n = _channel_column(c)
+            cols += (n, f"{n}_age")
+    cols += extra_columns
+    cols += MEASUREMENT_FIELDS
+    for carrier in cfg.controlled:
+        cols += (f"{carrier}_{f}" for f in CONTROLLER_FIELDS + LANE_FIELDS)
+    cols += (f"i_{w}" for w in WHEELS)
+    return cols
 
 
 class Cycle:
     """The values of the cycle being recorded (one object, updated in place)."""
 
-    __slots__ = CYCLE_FIELDS + ("m", "extra", "u_out", "currents")
+    __slots__ = CYCLE_FIELDS + ("m", "wrench", "currents")
 
     def __init__(self) -> None:
-        for f in CYCLE_FIELDS:
-            setattr(self, f, math.nan)
+        self.t = self.t_run = self.lateness = self.work = self.state = self.y_ref = 0.0
         self.m: Measurement | None = None
-        self.extra: tuple[float, ...] = ()
-        self.u_out = [0.0, 0.0]          # controller output per carrier index
-        self.currents = [0.0, 0.0, 0.0, 0.0]
+        self.wrench: tuple[float, ...] = ()
+        self.currents = dict.fromkeys(WHEELS, 0.0)      # A per wheel, by name
 
 
 Getter = Callable[[Cycle], Iterable[float]]
 
 
-def row_spec(channels: Sequence[Channel], extra_columns: Sequence[str], controlled: Sequence[str],
-             controllers: Sequence) -> list[tuple[tuple[str, ...], Getter]]:
-    """The log's columns: (names, getter) groups, each group's names made from the same
-    field list its getter reads, so the header and a row cannot disagree."""
-    spec: list[tuple[tuple[str, ...], Getter]] = [(CYCLE_FIELDS, attrgetter(*CYCLE_FIELDS))]
-    for c in channels[:len(LASER_ROLES) + len(WHEELS)]:
-        name = c.name if c.kind == "laser" else f"omega_{c.name}"
-        spec.append(((name, f"{name}_age"), lambda cy, c=c: (c.value, cy.t - c.t)))
-    spec.append((tuple(extra_columns), attrgetter("extra")))
-    spec.append((MEASUREMENT_FIELDS, attrgetter("m")))
-    for carrier, ctrl in zip(controlled, controllers):
-        i = CARRIER_INDEX[carrier]
-        st = attrgetter(*CONTROLLER_FIELDS)
-        spec.append((tuple(f"{carrier}_{f}" for f in CONTROLLER_FIELDS) + (f"{carrier}_u_cmd", f"{carrier}_u_lim"),
-                     lambda cy, ctrl=ctrl, i=i, st=st: (*st(ctrl.st), cy.u_out[i], 2.0 * cy.currents[2 * i])))
-    spec.append((tuple(f"i_{w}" for w in WHEELS), attrgetter("currents")))
-    return spec
-
-
 class ControlLoop:
-    """Runs the cycle against a device set with a clock, a supervisor and a recorder."""
+    """Runs the cycle against a device set with a clock, a supervisor and a recorder; its
+    collaborators are given here, at construction."""
 
-    def __init__(self, cfg: RigConfig, devices: DeviceSet, clock: Clock, *,
+    def __init__(self, cfg: RigConfig, devices: Hardware, clock: Clock, *,
                  reference: Callable[[float], float] = lambda t: 0.0,
                  open_loop: Optional[tuple[str, Callable[[float], float]]] = None,
-                 recorder=None, on_event: Callable | None = None):
+                 recorder=None, mailbox=None, on_event: Callable | None = None):
         self.cfg = cfg
         self.h = cfg.controller.h
         self.dev = devices
         self.clock = clock
-        self.reference = reference
-        self.open_loop = open_loop
-        self.recorder = recorder
+        self.recorder = recorder        # a recorder.Recorder (or anything with append/event/healthy/error)
+        self.mailbox = mailbox          # a mailbox.Mailbox: operator commands (rig ctl), taken once per cycle
         self._events = on_event
         self.channels = devices.channels()
-        self.supervisor = Supervisor(cfg.limits, self.h, self.channels, cfg.controlled, devices,
+        self.lanes: list[Lane] = make_lanes(cfg, reference, open_loop)
+        self.controllers = [l.controller for l in self.lanes if l.controlled]
+        self.supervisor = Supervisor(cfg.limits, self.h, self.channels, [l.carrier for l in self.lanes], devices,
                                      on_event=self._event)
-        self.carriers = [CARRIER_INDEX[c] for c in cfg.controlled]
-        psi_ref_max = cfg.limits.psi_max * 0.8
-        self.controllers = [make_controller(cfg.controller, cfg.limits.u_max, psi_ref_max) for _ in self.carriers]
         self.stats = CycleStats()
         self.stop_requested = False
         self.stop_reason = "stop requested (signal)"
-        self.mailbox = None             # a mailbox.Mailbox: operator commands (rig ctl), taken once per cycle
-        self.t_start = math.nan
+        self.t_start: float | None = None
         self.max_abs_current = 0.0
         self.cycle = Cycle()
-        self.spec = row_spec(self.channels, devices.extra_columns, cfg.controlled, self.controllers)
-        self.columns = [n for names, _ in self.spec for n in names]
+        self.columns = log_columns(cfg, self.channels, devices.extra_columns)
+        self._getters = self._row_getters()
+
+    def _row_getters(self) -> list[Getter]:
+        """One getter per group of :func:`log_columns`, in the same order."""
+        get: list[Getter] = [attrgetter(*CYCLE_FIELDS)]
+        for c in self.channels:
+            if c.kind in LOGGED_KINDS:
+                get.append(lambda cy, c=c: (c.value, cy.t - c.t))
+        get.append(attrgetter("wrench"))
+        get.append(attrgetter("m"))
+        st = attrgetter(*CONTROLLER_FIELDS)
+        for lane in self.lanes:
+            if lane.controlled:
+                get.append(lambda cy, l=lane, st=st: (*st(l.controller.st), l.u_cmd, l.u))
+        get.append(lambda cy: [cy.currents[w] for w in WHEELS])
+        return get
 
     @property
-    def currents(self) -> list[float]:
+    def currents(self) -> dict[str, float]:
+        """The current of each wheel (A, by wheel name) sent in the latest cycle."""
         return self.cycle.currents
 
     @property
@@ -203,7 +208,7 @@ class ControlLoop:
         """This cycle's log row, in ``columns`` order."""
         row: list[float] = []
         cy = self.cycle
-        for _, get in self.spec:
+        for get in self._getters:
             row.extend(get(cy))
         return row
 
@@ -219,19 +224,9 @@ class ControlLoop:
         keeps cycling in FAULT (zero current, power stages off, recording) until a stop
         request, or an operator ``reset-fault`` (IDLE, arm again; a new RUNNING restarts
         the reference and the duration)."""
-        h, clock, dev, sup = self.h, self.clock, self.dev, self.supervisor
-        geo = self.cfg.geometry
-        rec = self.recorder
-        ctrls = self.controllers
-        carriers = self.carriers
-        ref = self.reference
-        ol = self.open_loop
-        ol_idx = CARRIER_INDEX[ol[0]] if ol else -1
-        cy = self.cycle
-        mb = self.mailbox
-        currents = cy.currents
-        u_out = cy.u_out
-        stats = self.stats
+        h, clock, sup, cy, stats = self.h, self.clock, self.supervisor, self.cycle, self.stats
+        self._duration, self._hold, self._arm_timeout = duration_s, hold_on_fault, arm_timeout_s
+        self._t_end = self._t_fault_end = math.inf
         wall0 = time.perf_counter()
         gc.collect()            # before t0: a collection can take tens of ms
         gc.freeze()
@@ -239,90 +234,32 @@ class ControlLoop:
         gc.disable()
         t0 = clock.now() + h
         k = 0
-        sup.request_arm(t0 + arm_timeout_s)
-        t_end = math.inf
-        t_fault_end = math.inf
         next_status = 0.0
+        sup.request_arm(t0 + arm_timeout_s)
         try:
             while True:
                 t_k = t0 + k * h
-                t = clock.wait_until(t_k)
-                cy.t = t
+                t = cy.t = clock.wait_until(t_k)
                 cy.lateness = t - t_k
-                # ---- operator commands (rig ctl): at the cycle boundary, before anything uses the gains
-                if mb is not None:
-                    cmd = mb.take()
-                    if cmd is not None and self._operator(cmd, t, hold_on_fault, arm_timeout_s):
-                        t_fault_end = t_end = math.inf      # a fault was reset: the next RUNNING starts afresh
-                # ---- read
-                inp = dev.poll(t)
-                s = inp.samples
-                m = cy.m = measure(s[0].value, s[1].value, s[2].value, s[3].value, s[4].value, s[5].value,
-                                   s[6].value, s[7].value, s[8].value, s[9].value, geo)
-                cy.extra = inp.extra
-                ys = (m.y_f, m.y_r)
-                psis = (m.psi_af, m.psi_ar)
-                # ---- supervisor: requests, transitions, checks
-                if self.stop_requested:
-                    sup.request_stop(t, self.stop_reason)
-                elif t >= t_end:
-                    sup.request_stop(t, "duration reached")
-                # periods lost so far: the misses before this cycle and this release's lateness
-                # (a stalled loop is the root cause of what it finds on waking, e.g. a drive watchdog)
-                misses = stats.overrun_periods + int(cy.lateness / h)
-                sup.cycle(t, s, inp.converters, [(ys[i], psis[i]) for i in carriers], misses,
-                          rec.healthy if rec is not None else True, rec.error if rec is not None else "")
-                if sup.started:
-                    self.t_start = t
-                    t_end = t + duration_s
-                    y_ref0 = ref(0.0)
-                    for c, i in zip(ctrls, carriers):
-                        c.start(y_ref0, ys[i], psis[i])
-                # ---- control
-                tr = cy.t_run = t - self.t_start if self.t_start == self.t_start else 0.0
-                y_ref = cy.y_ref = ref(tr)
-                running = sup.state is State.RUNNING
-                u_out[0] = u_out[1] = 0.0
-                for c, i in zip(ctrls, carriers):
-                    u_out[i] = c.step(y_ref, ys[i], psis[i]) if running and i != ol_idx else 0.0
-                if ol is not None and running:
-                    u_out[ol_idx] = ol[1](tr)
-                # ---- limit
-                for i in (0, 1):
-                    u_lim = sup.limit(u_out[i], t, i)
-                    half = 0.5 * u_lim
-                    currents[2 * i] = half
-                    currents[2 * i + 1] = -half
-                    for c, ci in zip(ctrls, carriers):
-                        if ci == i:
-                            c.limit_feedback(u_lim)
-                    a = abs(u_lim)
-                    if a > self.max_abs_current:
-                        self.max_abs_current = a
-                sup.end_cycle(t)
-                cy.state = float(sup.state)
-                # ---- write
-                dev.write(currents, t)
-                if sup.new_fault:
-                    t_fault_end = t + settle_after_fault_s
-                # ---- record
+                self._operator_command(t)
+                reading = self.dev.poll(t)
+                self._measure(reading)
+                step = self._supervise(t, reading)
+                if step.started:
+                    self._start(t)
+                self._control(t, step.state is State.RUNNING)
+                fault = self._limit(t)
+                self.dev.write(cy.currents, t)
+                if fault is not None:
+                    self._t_fault_end = t + settle_after_fault_s
                 cy.work = clock.now() - t
-                if rec is not None:
-                    rec.append(self.row())
+                if self.recorder is not None:
+                    self.recorder.append(self.row())
                 if status is not None and t >= next_status:
                     next_status = t + status_period_s
                     status(self)
-                # ---- timing: skip missed periods, do not catch up
-                t_done = clock.now()
-                work = t_done - t
-                missed = t_done > t_k + h
-                k_next = int((t_done - t0) / h) + 1 if missed else k + 1  # next release still ahead
-                stats.update(cy.lateness, work, missed, k_next - k - 1)
-                k = k_next
-                st = sup.state
-                if st is State.FAULT and (self.stop_requested if hold_on_fault else t >= t_fault_end):
-                    break
-                if st is State.IDLE and not sup.arming and (sup.ever_armed or sup.arm_failed or self.stop_requested):
+                k = self._account(t0, k, t, clock.now())
+                if self._finished(t):
                     break
         except BaseException:
             # anything unexpected inside the loop: zero current and power stages off before leaving
@@ -338,13 +275,86 @@ class ControlLoop:
         return RunResult(final_state=sup.state.name, faults=[f.as_dict() for f in sup.faults],
                          cycles=summary.pop("cycles"), max_abs_current_A=self.max_abs_current,
                          timing=summary, t_start=self.t_start, wall_time_s=time.perf_counter() - wall0,
-                         arm_blockers=sup.arm_blockers if sup.arm_failed or math.isnan(self.t_start) else [])
+                         arm_blockers=sup.arm_blockers if sup.arm_failed or self.t_start is None else [])
+
+    # ---- the stages, in cycle order
+    def _operator_command(self, t: float) -> None:
+        """At the cycle boundary, before anything uses the gains."""
+        if self.mailbox is not None:
+            cmd = self.mailbox.take()
+            if cmd is not None and self._operator(cmd, t, self._hold, self._arm_timeout):
+                self._t_fault_end = self._t_end = math.inf     # a fault was reset: the next RUNNING starts afresh
+
+    def _measure(self, reading) -> None:
+        """Sec. 2 geometry from the reading by name; each lane takes its carrier's part."""
+        m = self.cycle.m = measure(reading.values, self.cfg.geometry)
+        self.cycle.wrench = reading.wrench
+        for lane in self.lanes:
+            lane.sense(m)
+
+    def _supervise(self, t: float, reading):
+        """Requests (stop, duration), then the supervisor's transitions and rules."""
+        sup, rec = self.supervisor, self.recorder
+        if self.stop_requested:
+            sup.request_stop(t, self.stop_reason)
+        elif t >= self._t_end:
+            sup.request_stop(t, "duration reached")
+        # periods lost so far: the misses before this cycle and this release's lateness
+        # (a stalled loop is the root cause of what it finds on waking, e.g. a drive watchdog)
+        misses = self.stats.overrun_periods + int(self.cycle.lateness / self.h)
+        poses = [(l.carrier, l.y, l.psi) for l in self.lanes if l.controlled]
+        return sup.cycle(t, reading.samples, reading.converters, poses, misses,
+                         rec.healthy if rec is not None else True, rec.error if rec is not None else "")
+
+    def _start(self, t: float) -> None:
+        """RUNNING began: the scenario's time origin, the duration, bumpless controllers."""
+        self.t_start = t
+        self._t_end = t + self._duration
+        for lane in self.lanes:
+            lane.start()
+
+    def _control(self, t: float, running: bool) -> None:
+        cy = self.cycle
+        tr = cy.t_run = t - self.t_start if self.t_start is not None else 0.0
+        for lane in self.lanes:
+            lane.control(tr, running)
+        cy.y_ref = self.lanes[0].y_ref if self.lanes else 0.0
+
+    def _limit(self, t: float):
+        """Each lane's output through the supervisor, onto its wheels; returns the fault
+        latched in this cycle (None: none)."""
+        sup, cy = self.supervisor, self.cycle
+        for lane in self.lanes:
+            u = sup.limit(lane.carrier, lane.u_cmd, t)
+            lane.apply(u)
+            if abs(u) > self.max_abs_current:
+                self.max_abs_current = abs(u)
+        fault = sup.end_cycle(t)
+        cy.state = float(sup.state)
+        wheel_currents(self.lanes, cy.currents)
+        return fault
+
+    def _account(self, t0: float, k: int, t: float, t_done: float) -> int:
+        """Time this cycle; the next release index (missed periods are skipped, not caught up)."""
+        h = self.h
+        missed = t_done > t0 + (k + 1) * h
+        k_next = int((t_done - t0) / h) + 1 if missed else k + 1  # next release still ahead
+        self.stats.update(self.cycle.lateness, t_done - t, missed, k_next - k - 1)
+        return k_next
+
+    def _finished(self, t: float) -> bool:
+        sup = self.supervisor
+        st = sup.state
+        if st is State.FAULT:
+            return self.stop_requested if self._hold else t >= self._t_fault_end
+        return st is State.IDLE and not sup.arming and (sup.ever_armed or sup.arm_failed or self.stop_requested)
 
     def _safe_off(self) -> None:
         """Zero current on the wire and power stages off; never raises."""
         t = self.clock.now()
-        for i in range(4):
-            self.cycle.currents[i] = 0.0
+        currents = self.cycle.currents
+        for w in currents:
+            currents[w] = 0.0
         try:
             self.dev.write(self.cycle.currents, t)
         except Exception:

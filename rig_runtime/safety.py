@@ -19,10 +19,10 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass
-from typing import Callable, NamedTuple, Optional, Protocol, Sequence
+from typing import Callable, Mapping, NamedTuple, Optional, Sequence
 
 from .config import Limits
-from .hardware import Freshness, Health
+from .hardware import Freshness, Hardware, Health
 
 _NEVER = 1 << 62         # a count limit that is switched off
 
@@ -67,13 +67,6 @@ class Converters(NamedTuple):
     ok: bool
     cause: str
     enabled: bool
-
-
-class Hardware(Protocol):
-    """What the supervisor switches: the power stages of the device set."""
-    def activate(self, now: float) -> None: ...
-    def deactivate(self, now: float) -> None: ...
-    def resume(self, now: float) -> None: ...
 
 
 class Channel:
@@ -202,9 +195,12 @@ class Pose(NamedTuple):
     psi_rate: float
 
 
+_finite = math.isfinite
+
+
 def pose_not_finite(p: Pose, lim: Limits) -> Finding:
-    if p.psi != p.psi or p.y != p.y:
-        return "nan", math.nan, math.nan, f"{p.carrier} carrier: y or psi is not finite"
+    if not (_finite(p.psi) and _finite(p.y)):
+        return "nan", math.nan, math.nan, f"{p.carrier} carrier: y or psi is not finite ({p.y!r}, {p.psi!r})"
     return None
 
 
@@ -229,12 +225,31 @@ def psi_rate_limit(p: Pose, lim: Limits) -> Finding:
 POSE_RULES = (pose_not_finite, psi_limit, y_limit, psi_rate_limit)
 
 
+# ---------------------------------------------------------------------- output rules
+def output_not_finite(carrier: str, u: float, lim: Limits) -> Finding:
+    if not _finite(u):
+        return "nan", u, math.nan, f"{carrier} carrier: controller output is not finite"
+    return None
+
+
+OUTPUT_RULES = (output_not_finite,)
+
+
+class Step(NamedTuple):
+    """What :meth:`Supervisor.cycle` decided: the state after this cycle's transitions and
+    checks, and whether RUNNING began in this cycle."""
+    state: "State"
+    started: bool
+
+
 class Supervisor:
     """Owns the states and checks every cycle. ``on_event(t, kind, fault_or_None, text)``
     receives state changes, faults and operator actions (the recorder's event table).
 
-    Per cycle the loop calls :meth:`cycle` (observe, transitions, checks), then
-    :meth:`limit` per carrier, then :meth:`end_cycle`."""
+    Per cycle the loop calls :meth:`cycle` (observe, transitions, checks; returns a
+    :class:`Step`), then :meth:`limit` for each carrier it drives, then :meth:`end_cycle`
+    (returns the fault latched in this cycle, if any). ``carriers``: the carriers whose
+    output :meth:`limit` shapes (the lanes')."""
 
     def __init__(self, limits: Limits, h: float, channels: Sequence[Channel], carriers: Sequence[str],
                  hardware: Hardware, on_event: Callable | None = None, activate_timeout_s: float = 0.5):
@@ -247,18 +262,18 @@ class Supervisor:
         self.state = State.IDLE
         self.fault: Fault | None = None
         self.faults: list[Fault] = []
-        self.new_fault = False          # set in the cycle a fault latched
-        self.started = False            # set in the cycle RUNNING began
         self.arm_blockers: list[str] = []
         self.arm_failed = False         # the arm deadline passed with blockers left
         self.ever_armed = False
-        self._arm_deadline = math.nan   # NaN: no arm request pending
-        self._armed_t = math.nan
+        self._arm_deadline: float | None = None     # an arm request is pending until then
+        self._armed_t = 0.0
         self._stop_reason: str | None = None
-        self._u_prev = [0.0, 0.0]       # per carrier index (front 0, rear 1)
+        self._u_prev = dict.fromkeys(self.carriers, 0.0)
         self._du = limits.du_max * h
         self._ramp = limits.u_max * h / limits.stop_ramp_s if limits.stop_ramp_s > 0 else math.inf
-        self._psi_prev = [math.nan] * len(self.carriers)
+        self._psi_prev: dict[str, float] = {}      # the carrier's ψ of the last cycle it was measured
+        self._latched: Fault | None = None          # the fault latched in the cycle under way
+        self._started = False
         self._on_event = on_event or (lambda *a: None)
 
     @property
@@ -277,7 +292,7 @@ class Supervisor:
         """A clean stop: ARMED/RUNNING ramp down (STOPPING, at the next cycle), IDLE stops arming."""
         if self.state in (State.ARMED, State.RUNNING) and self._stop_reason is None:
             self._stop_reason = reason
-        self._arm_deadline = math.nan
+        self._arm_deadline = None
 
     def reset(self, t: float) -> None:
         """Explicit operator reset of a latched fault."""
@@ -285,14 +300,14 @@ class Supervisor:
             self._on_event(t, "operator", None, "fault reset")
             self.fault = None
             self._stop_reason = None
-            self._u_prev = [0.0, 0.0]
+            self._u_prev = dict.fromkeys(self.carriers, 0.0)
             self._to(State.IDLE, t)
             self.hw.resume(t)                   # communication on, power off: ready to arm again
 
     @property
     def arming(self) -> bool:
         """An arm request is pending (IDLE, waiting for every channel to be fit)."""
-        return self._arm_deadline == self._arm_deadline
+        return self._arm_deadline is not None
 
     @property
     def active(self) -> bool:
@@ -309,7 +324,7 @@ class Supervisor:
             self._armed_t = t
             self.hw.activate(t)                 # power stages on: here and nowhere else
         elif new is State.RUNNING:
-            self.started = True
+            self._started = True
         elif new is State.FAULT or (new is State.IDLE and old is State.STOPPING):
             self.hw.deactivate(t)
 
@@ -320,7 +335,7 @@ class Supervisor:
         f = Fault(t, device, check, float(value), float(limit), message)
         self.fault = f
         self.faults.append(f)
-        self.new_fault = True
+        self._latched = f
         self._on_event(t, "fault", f, message)
         self._to(State.FAULT, t, f"{device} {check}")
 
@@ -342,13 +357,13 @@ class Supervisor:
     def _transitions(self, t: float, conv: Converters, misses: int) -> None:
         st = self.state
         if st is State.IDLE:
-            if self._arm_deadline == self._arm_deadline:      # an arm request is pending
+            if self._arm_deadline is not None:      # an arm request is pending
                 self.arm_blockers = self._blockers(t, conv, misses)
                 if not self.arm_blockers:
-                    self._arm_deadline = math.nan
+                    self._arm_deadline = None
                     self._to(State.ARMED, t)
                 elif t >= self._arm_deadline:
-                    self._arm_deadline = math.nan
+                    self._arm_deadline = None
                     self.arm_failed = True
         elif self._stop_reason is not None and st in (State.ARMED, State.RUNNING):
             reason, self._stop_reason = self._stop_reason, None
@@ -362,25 +377,26 @@ class Supervisor:
                           "power stages not OPERATION ENABLED in time" + (f" ({conv.cause})" if conv.cause else ""))
 
     # ------------------------------------------------------------------ per cycle
-    def cycle(self, t: float, samples: Sequence[Sample], conv: Converters, poses: Sequence[tuple[float, float]],
-              consecutive_misses: int, recorder_ok: bool, recorder_cause: str) -> None:
-        """Observe this cycle's samples, make the transitions that are due, and (while
-        ARMED/RUNNING/STOPPING) apply every rule in order. ``poses``: (y, ψ) of each
-        controlled carrier, in ``carriers`` order."""
-        self.new_fault = False
-        self.started = False
-        for c, s in zip(self.channels, samples):
-            c.observe(s)
+    def cycle(self, t: float, samples: Mapping[str, Sample], conv: Converters, poses: Sequence[tuple[str, float, float]],
+              consecutive_misses: int, recorder_ok: bool, recorder_cause: str) -> Step:
+        """Observe this cycle's samples (by channel name), make the transitions that are due,
+        and (while ARMED/RUNNING/STOPPING) apply every rule in order. ``poses``: (carrier,
+        y, ψ) of each controlled carrier."""
+        self._latched = None
+        self._started = False
+        for c in self.channels:
+            c.observe(samples[c.name])
         h = self.h
         pp = self._psi_prev
         pose_list = []
-        for i, (y, psi) in enumerate(poses):
-            p = pp[i]
-            pose_list.append(Pose(self.carriers[i], y, psi, (psi - p) / h if p == p else 0.0))
-            pp[i] = psi
+        for carrier, y, psi in poses:
+            p = pp.get(carrier)
+            pose_list.append(Pose(carrier, y, psi, 0.0 if p is None else (psi - p) / h))
+            pp[carrier] = psi
         self._transitions(t, conv, consecutive_misses)
         if self.active:
             self._check(t, conv, pose_list, consecutive_misses, recorder_ok, recorder_cause)
+        return Step(self.state, self._started)
 
     def _check(self, t: float, conv: Converters, poses: Sequence[Pose], misses: int,
                recorder_ok: bool, recorder_cause: str) -> None:
@@ -408,29 +424,34 @@ class Supervisor:
                     return self.trip(t, "geometry", *f)
 
     # ------------------------------------------------------------------ output limit
-    def limit(self, u: float, t: float, i: int = 0) -> float:
-        """The current actually sent for carrier ``i``: 0 unless RUNNING/STOPPING;
-        saturated at ±u_max and rate limited while RUNNING; ramped to zero while STOPPING
-        (``end_cycle`` then moves to IDLE once every output is zero)."""
+    def limit(self, carrier: str, u: float, t: float) -> float:
+        """The current actually sent for ``carrier``: 0 unless RUNNING/STOPPING; checked by
+        the output rules, saturated at ±u_max and rate limited while RUNNING; ramped to zero
+        while STOPPING (``end_cycle`` then moves to IDLE once every output is zero)."""
         st = self.state
         if st is State.RUNNING:
-            if u != u:
-                self.trip(t, "controller", "nan", u, math.nan, "controller output is not finite")
-                self._u_prev[i] = 0.0
-                return 0.0
-            m = self.limits.u_max
+            lim = self.limits
+            for rule in OUTPUT_RULES:
+                f = rule(carrier, u, lim)
+                if f is not None:
+                    self.trip(t, "controller", *f)
+                    self._u_prev[carrier] = 0.0
+                    return 0.0
+            m = lim.u_max
             u = m if u > m else (-m if u < -m else u)
-            p, d = self._u_prev[i], self._du
+            p, d = self._u_prev[carrier], self._du
             u = p + d if u > p + d else (p - d if u < p - d else u)
         elif st is State.STOPPING:
-            p, r = self._u_prev[i], self._ramp
+            p, r = self._u_prev[carrier], self._ramp
             u = p - r if p > r else (p + r if p < -r else 0.0)
         else:
             u = 0.0
-        self._u_prev[i] = u
+        self._u_prev[carrier] = u
         return u
 
-    def end_cycle(self, t: float) -> None:
-        """STOPPING ends (→ IDLE, power stages off) once every output has ramped to zero."""
-        if self.state is State.STOPPING and self._u_prev[0] == 0.0 and self._u_prev[1] == 0.0:
+    def end_cycle(self, t: float) -> Fault | None:
+        """STOPPING ends (→ IDLE, power stages off) once every output has ramped to zero.
+        Returns the fault latched in this cycle (None: none)."""
+        if self.state is State.STOPPING and not any(self._u_prev.values()):
             self._to(State.IDLE, t, "stopped")
+        return self._latched

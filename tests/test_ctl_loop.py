@@ -11,7 +11,7 @@ import pytest
 
 from rig_runtime.clock import LockstepClock
 from rig_runtime.config import LASER_ROLES, WHEELS
-from rig_runtime.devices import CycleInput, RigDevices
+from rig_runtime.devices import Reading, RigDevices
 from rig_runtime.hardware import Freshness, Health
 from rig_runtime.loop import ControlLoop
 from rig_runtime.mailbox import SIZE, Mailbox
@@ -52,9 +52,9 @@ def run_loop(cfg, scenario_name, duration_s, script, hold_on_fault=False, **run_
         clock = LockstepClock(advance=advance)
         devices = RigDevices(cfg, laser_ports=sim.laser_ports, can_bus=sim.runtime_bus(),
                              ft_endpoints=sim.ft_endpoints)
-        loop = holder["loop"] = ControlLoop(cfg, devices, clock, reference=Reference(sc.reference))
-        rec = loop.recorder = MemRecorder()
-        loop.mailbox = Mailbox(memoryview(buf))
+        rec = MemRecorder()
+        loop = holder["loop"] = ControlLoop(cfg, devices, clock, reference=Reference(sc.reference), recorder=rec,
+                                            mailbox=Mailbox(memoryview(buf)))
         try:
             devices.configure()
             result = loop.run(duration_s, hold_on_fault=hold_on_fault, **run_kw)
@@ -80,7 +80,7 @@ class Script:
             if r is not None:
                 self.answers.append((what, r))
                 self.pending.remove((seq, what))
-        if self.plan and not math.isnan(loop.t_start) and t - loop.t_start >= self.plan[0][0]:
+        if self.plan and loop.t_start is not None and t - loop.t_start >= self.plan[0][0]:
             _, kind, name, value = what = self.plan.pop(0)
             self.pending.append((server.submit(kind, name, value), what))
 
@@ -171,12 +171,13 @@ class FakeDevices:
         if not self.drop:
             self._b_f_t = now
         b0 = self.geo.b0
-        lasers = [Sample(b0, self._b_f_t, ok)] + [Sample(b0, now, ok)] + [Sample(0.0375, now, ok)] * 4
-        wheels = [Sample(0.0, now, ok)] * 4
-        return CycleInput(now, (*lasers, *wheels), (), Converters(True, "", self.active))
+        samples = {"b_f": Sample(b0, self._b_f_t, ok), "b_r": Sample(b0, now, ok)}
+        samples.update((r, Sample(0.0375, now, ok)) for r in ("s_fl", "s_fr", "s_rl", "s_rr"))
+        samples.update((w, Sample(0.0, now, ok)) for w in WHEELS)
+        return Reading(now, samples, {n: s.value for n, s in samples.items()}, (), Converters(True, "", self.active))
 
     def write(self, currents, now):
-        self.writes.append((now, self.active, tuple(currents)))
+        self.writes.append((now, self.active, tuple(currents[w] for w in WHEELS)))
 
 
 def test_hold_on_fault_until_reset_then_a_new_run(cfg):
@@ -194,7 +195,7 @@ def test_hold_on_fault_until_reset_then_a_new_run(cfg):
             if r is not None:
                 answers.append((what, r))
                 pending.remove((seq, what))
-        sup, tr = loop.supervisor, t - loop.t_start
+        sup, tr = loop.supervisor, (t - loop.t_start if loop.t_start is not None else math.nan)
         if sup.state is State.RUNNING and math.isnan(clock_t["fault"]) and tr >= 1.5:
             dev.drop = True                     # b_f falls silent: stale after 20 ms -> FAULT
         if sup.state is State.FAULT and math.isnan(clock_t["fault"]):
@@ -206,9 +207,9 @@ def test_hold_on_fault_until_reset_then_a_new_run(cfg):
             pending.append((server.submit("stop"), "stop"))
 
     clock = LockstepClock(advance=advance)
-    loop = holder["loop"] = ControlLoop(cfg, dev, clock, reference=lambda tr: 0.001 if tr >= 0.2 else 0.0)
-    rec = loop.recorder = MemRecorder()
-    loop.mailbox = Mailbox(memoryview(buf))
+    rec = MemRecorder()
+    loop = holder["loop"] = ControlLoop(cfg, dev, clock, reference=lambda tr: 0.001 if tr >= 0.2 else 0.0,
+                                        recorder=rec, mailbox=Mailbox(memoryview(buf)))
     result = loop.run(2.0, hold_on_fault=True)     # the reset comes after the first run's 2 s were over
     c = {n: np.array([r[i] for r in rec.rows]) for i, n in enumerate(loop.columns)}
 

@@ -21,7 +21,7 @@ from rig_runtime import schema
 from rig_runtime.app import cli
 from rig_runtime.app.ctl_server import CtlError, CtlServer, default_ctl_path, request
 from rig_runtime.clock import LockstepClock
-from rig_runtime.loop import ControlLoop
+from rig_runtime.loop import ControlLoop, log_columns
 from rig_runtime.mailbox import SIZE, Mailbox
 from rig_runtime.safety import State
 
@@ -57,11 +57,13 @@ def live(cfg, tmp_path):
     buf = bytearray(SIZE)
     # lockstep time, paced by a short sleep per cycle: the loop runs beside the server's
     # thread without deadline misses, whatever the machine's load
-    loop = ControlLoop(cfg, FakeDevices(cfg), LockstepClock(advance=lambda t: time.sleep(0.0005)))
-    info = Info(str(tmp_path / "run.h5"), tuple(loop.columns), {"config": json.dumps(schema.to_dict(cfg))})
+    dev = FakeDevices(cfg)
+    columns = log_columns(cfg, dev.channels(), dev.extra_columns)
+    info = Info(str(tmp_path / "run.h5"), tuple(columns), {"config": json.dumps(schema.to_dict(cfg))})
     server = CtlServer(info, tmp_path / "ctl" / "ctl.sock", Mailbox(memoryview(buf)), timeout_s=5.0)
-    loop.recorder = rec = Forward(server)
-    loop.mailbox = Mailbox(memoryview(buf))
+    rec = Forward(server)
+    loop = ControlLoop(cfg, dev, LockstepClock(advance=lambda t: time.sleep(0.0005)), recorder=rec,
+                       mailbox=Mailbox(memoryview(buf)))
 
     def status(lp):
         server.status({"state": lp.supervisor.state.name, "t_run": None, "controlled": list(cfg.controlled),

@@ -10,10 +10,26 @@ from rig_runtime.config import Geometry
 from rig_runtime.geometry import Pose, ideal_readings, measure, pose_from_carriers
 
 GEO = Geometry(b0=0.1, l_L=1.0, l0=0.5, d0=0.2)
+NAMES = ("b_f", "b_r", "s_fl", "s_fr", "s_rl", "s_rr", "fl", "fr", "rl", "rr")
+
+
+def named(*values):
+    """The readings by name, as ``devices.poll`` hands them to the geometry."""
+    return dict(zip(NAMES, values))
+
+
+def test_a_reading_is_taken_by_name_not_by_position():
+    v = named(0.11, 0.10, 0.05, 0.03, 0.03, 0.05, 10.0, 9.0, 8.0, 8.5)
+    shuffled = dict(reversed(list(v.items())))
+    assert measure(shuffled, GEO) == measure(v, GEO)
+    m = measure(v, GEO)
+    assert m.carrier("front") == (m.y_f, m.psi_af, m.dw_f) and m.carrier("rear") == (m.y_r, m.psi_ar, m.dw_r)
+    with pytest.raises(KeyError):
+        measure({k: x for k, x in v.items() if k != "s_rr"}, GEO)
 
 
 def test_hand_computed_values():
-    m = measure(0.11, 0.10, 0.05, 0.03, 0.03, 0.05, 10.0, 9.0, 8.0, 8.5, GEO)
+    m = measure(named(0.11, 0.10, 0.05, 0.03, 0.03, 0.05, 10.0, 9.0, 8.0, 8.5), GEO)
     # y_m = (0.11 + 0.10)/2 − 0.1 = 0.005
     assert m.y_m == pytest.approx(0.005, abs=1e-15)
     # ψ_m = atan(0.01/1.0) = 0.00999966668666…
@@ -33,7 +49,7 @@ def test_signs():
     """Nose left (ψ > 0) and displacement left (y > 0) as in docs/conventions.md."""
     r = ideal_readings(Pose(y_m=0.002, psi_m=0.01, psi_af=0.02, psi_ar=-0.03), GEO)
     assert r.b_f > r.b_r and r.s_fl > r.s_fr and r.s_rl < r.s_rr
-    m = measure(r.b_f, r.b_r, r.s_fl, r.s_fr, r.s_rl, r.s_rr, 0, 0, 0, 0, GEO)
+    m = measure(named(r.b_f, r.b_r, r.s_fl, r.s_fr, r.s_rl, r.s_rr, 0, 0, 0, 0), GEO)
     assert m.y_m > 0 and m.psi_m > 0 and m.psi_af > 0 and m.psi_ar < 0 and m.y_f > m.y_r
 
 
@@ -49,7 +65,7 @@ def test_round_trip_pose_readings_geometry(y_f, y_r, psi_af, psi_ar, geo):
     """physical pose → ideal readings → geometry → the same pose, over the working range."""
     pose = pose_from_carriers(y_f, y_r, psi_af, psi_ar, geo)
     r = ideal_readings(pose, geo)
-    m = measure(r.b_f, r.b_r, r.s_fl, r.s_fr, r.s_rl, r.s_rr, 0, 0, 0, 0, geo)
+    m = measure(named(r.b_f, r.b_r, r.s_fl, r.s_fr, r.s_rl, r.s_rr, 0, 0, 0, 0), geo)
     assert m.y_f == pytest.approx(y_f, abs=1e-12)
     assert m.y_r == pytest.approx(y_r, abs=1e-12)
     assert m.psi_af == pytest.approx(psi_af, abs=1e-12)
@@ -61,7 +77,7 @@ def test_round_trip_pose_readings_geometry(y_f, y_r, psi_af, psi_ar, geo):
 def test_paper_small_angle_form_differs_only_at_third_order():
     """The paper's ψ ≈ ratio (written tan/sin) agrees with atan to x³/3 at the 0.05 rad limit."""
     x = math.tan(0.05)
-    m = measure(0.1 + x / 2, 0.1 - x / 2, 0.0, 0.0, 0.0, 0.0, 0, 0, 0, 0, GEO)
+    m = measure(named(0.1 + x / 2, 0.1 - x / 2, 0.0, 0.0, 0.0, 0.0, 0, 0, 0, 0), GEO)
     assert m.psi_m == pytest.approx(0.05, abs=1e-15)
     assert abs(x - 0.05) == pytest.approx(0.05 ** 3 / 3, rel=0.02)
 

@@ -44,18 +44,20 @@ NOMINAL = {"b_f": 0.07, "rl": 13.0}
 def samples(t, cs, **over):
     """A fresh, nominal sample per channel at ``t``; ``over[name]`` replaces fields of one
     (``value``, ``t``, ``health``)."""
-    out = []
+    out = {}
     for c in cs:
         s = Sample(NOMINAL.get(c.name, 0.0), t, FRESH)
         if c.name in over:
             s = s._replace(**over[c.name])
-        out.append(s)
+        out[c.name] = s
     return out
 
 
 def step(s, t, conv=OK, poses=None, misses=0, recorder_ok=True, recorder_cause="", **over):
-    s.cycle(t, samples(t, s.channels, **over), conv, poses if poses is not None else [(0.0, 0.0)] * len(s.carriers),
-            misses, recorder_ok, recorder_cause)
+    """One cycle; ``poses``: (y, ψ) per carrier in ``s.carriers`` order. Returns the Step."""
+    poses = poses if poses is not None else [(0.0, 0.0)] * len(s.carriers)
+    return s.cycle(t, samples(t, s.channels, **over), conv, [(c, y, p) for c, (y, p) in zip(s.carriers, poses)],
+                   misses, recorder_ok, recorder_cause)
 
 
 def supervisor(cfg, carriers=("rear",), limits=None, cs=None):
@@ -72,8 +74,8 @@ def running(cfg, t=0.0, carriers=("rear",), limits=None, cs=None):
     s.request_arm(t + 1.0)
     step(s, t, conv=NOT_ENABLED)
     assert s.state is State.ARMED and s.arm_blockers == []
-    step(s, t + H)
-    assert s.state is State.RUNNING and s.started
+    assert step(s, t + H).started
+    assert s.state is State.RUNNING
     return s, events, hw
 
 
@@ -131,14 +133,16 @@ def test_channel_checks_latch(cfg, over, check, value, limit):
     s, events, hw = running(cfg)
     step(s, 0.1, **over)
     f = s.fault
-    assert s.state is State.FAULT and f.check == check and f.device == "b_f" and s.new_fault
+    assert s.state is State.FAULT and f.check == check and f.device == "b_f"
     assert f.t == 0.1
     assert f.value == pytest.approx(value, nan_ok=True) and f.limit == pytest.approx(limit, nan_ok=True)
-    assert s.limit(3.0, 0.1) == 0.0                 # zero in the detecting cycle
+    assert s.limit("rear", 3.0, 0.1) == 0.0                 # zero in the detecting cycle
+    assert s.end_cycle(0.1) is f                    # the cycle's outcome names the new fault
     assert hw.calls[-1] == ("deactivate", 0.1)
     step(s, 0.2)                                    # healthy again: still latched
-    assert s.state is State.FAULT and s.fault is f and not s.new_fault
-    assert s.limit(3.0, 0.2) == 0.0
+    assert s.state is State.FAULT and s.fault is f
+    assert s.limit("rear", 3.0, 0.2) == 0.0
+    assert s.end_cycle(0.2) is None                 # latched before: not new in this cycle
     assert [e for e in events if e[1] == "fault"] == [(0.1, "fault", f, f.message)]
     s.reset(0.3)
     assert s.state is State.IDLE and s.fault is None and s.faults == [f]
@@ -235,28 +239,43 @@ def test_output_saturation_and_rate_limit(cfg):
     s, _, _ = running(cfg)
     lim = cfg.limits
     step_a = lim.du_max * H
-    seq = [s.limit(100.0, 0.0) for _ in range(200)]
+    seq = [s.limit("rear", 100.0, 0.0) for _ in range(200)]
     assert max(seq) == lim.u_max
     assert all(abs(b - a) <= step_a + 1e-12 for a, b in zip([0.0] + seq, seq))
-    seq = [s.limit(-100.0, 0.0) for _ in range(200)]
+    seq = [s.limit("rear", -100.0, 0.0) for _ in range(200)]
     assert min(seq) == -lim.u_max
     assert all(abs(b - a) <= step_a + 1e-12 for a, b in zip([lim.u_max] + seq, seq))
-    assert s.limit(math.nan, 1.0) == 0.0 and s.state is State.FAULT
+    assert s.limit("rear", math.nan, 1.0) == 0.0 and s.state is State.FAULT
     assert (s.fault.device, s.fault.check) == ("controller", "nan")
+    assert s.end_cycle(1.0) is s.fault
+
+
+@pytest.mark.parametrize("u", [math.inf, -math.inf, math.nan])
+def test_a_non_finite_output_trips_and_sends_zero(cfg, u):
+    s, _, _ = running(cfg)
+    assert s.limit("rear", u, 1.0) == 0.0 and s.state is State.FAULT
+    assert (s.fault.device, s.fault.check) == ("controller", "nan") and "rear carrier" in s.fault.message
+
+
+@pytest.mark.parametrize("pose", [(math.inf, 0.0), (0.0, -math.inf), (math.nan, 0.0)])
+def test_a_non_finite_pose_trips(cfg, pose):
+    s, _, _ = running(cfg)
+    step(s, 0.010, poses=[pose])
+    assert (s.fault.device, s.fault.check) == ("geometry", "nan") and "rear carrier" in s.fault.message
 
 
 def test_output_is_zero_unless_running_or_stopping(cfg):
     s, _, _ = supervisor(cfg)
-    assert s.limit(2.0, 0.0) == 0.0 and s.limit(2.0, 0.0, 1) == 0.0          # IDLE
+    assert s.limit("rear", 2.0, 0.0) == 0.0 and s.limit("rear", 2.0, 0.0) == 0.0          # IDLE
     s.request_arm(1.0)
     step(s, 0.0, conv=NOT_ENABLED)
-    assert s.state is State.ARMED and s.limit(2.0, 0.0) == 0.0               # ARMED: no torque yet
+    assert s.state is State.ARMED and s.limit("rear", 2.0, 0.0) == 0.0               # ARMED: no torque yet
 
 
 def test_stopping_ramps_to_zero_then_idle(cfg):
     s, events, hw = running(cfg)
     for _ in range(100):
-        s.limit(2.0, 0.0, 1)
+        s.limit("rear", 2.0, 0.0)
     s.request_stop(0.5)
     step(s, 0.5)                            # the transition is made in the next cycle
     assert s.state is State.STOPPING
@@ -266,7 +285,7 @@ def test_stopping_ramps_to_zero_then_idle(cfg):
         t = 0.5 + n * H
         if n:
             step(s, t)
-        u_new = s.limit(2.0, t, 1)
+        u_new = s.limit("rear", 2.0, t)
         assert abs(u_new) <= abs(u)
         u = u_new
         assert hw.calls[-1][0] == "activate"            # still on while ramping
@@ -327,14 +346,14 @@ def test_corrupt_link(cfg):
 def test_only_the_front_carrier_beyond_psi_max(cfg):
     s, _, _ = running(cfg, carriers=("front", "rear"))
     for _ in range(3):                      # both carriers have current
-        u_f, u_r = s.limit(1.5, 0.010, 0), s.limit(-1.5, 0.010, 1)
+        u_f, u_r = s.limit("front", 1.5, 0.010), s.limit("rear", -1.5, 0.010)
         s.end_cycle(0.010)
     assert u_f == 1.5 and u_r == -1.5
     t, psi = 0.015, 0.0
     while s.state is State.RUNNING:         # the front carrier yaws at 0.8 rad/s, the rear not
         psi += 0.004
         step(s, t, poses=[(0.0, psi), (0.0, 0.0)])
-        u_f, u_r = s.limit(1.5, t, 0), s.limit(-1.5, t, 1)
+        u_f, u_r = s.limit("front", 1.5, t), s.limit("rear", -1.5, t)
         s.end_cycle(t)
         t += H
     f = s.fault
@@ -344,7 +363,7 @@ def test_only_the_front_carrier_beyond_psi_max(cfg):
     assert u_f == 0.0 and u_r == 0.0        # both zero in the detecting cycle
     for k in range(5):                      # and from then on
         step(s, t + k * H, poses=[(0.0, 0.0), (0.0, 0.0)])
-        assert s.limit(1.5, t + k * H, 0) == 0.0 and s.limit(-1.5, t + k * H, 1) == 0.0
+        assert s.limit("front", 1.5, t + k * H) == 0.0 and s.limit("rear", -1.5, t + k * H) == 0.0
 
 
 def test_only_the_rear_carrier_beyond_y_max(cfg):
@@ -368,14 +387,14 @@ def test_hardware_is_switched_only_at_arm_fault_and_end_of_stop(cfg):
     assert s.state is State.RUNNING and hw.calls == [("activate", 0.005)]
     for k in range(11, 30):
         step(s, k * H)
-        s.limit(1.0, k * H)
+        s.limit("rear", 1.0, k * H)
         s.end_cycle(k * H)
     assert hw.calls == [("activate", 0.005)]
     s.request_stop(0.150)
     t = 0.150
     while s.state is not State.IDLE:
         step(s, t)
-        s.limit(1.0, t)
+        s.limit("rear", 1.0, t)
         assert len(hw.calls) == 1
         s.end_cycle(t)
         t += H
@@ -405,7 +424,7 @@ def test_arm_again_after_a_completed_stop(cfg):
     t = 0.010
     while s.state is not State.IDLE:
         step(s, t)
-        s.limit(1.0, t)
+        s.limit("rear", 1.0, t)
         s.end_cycle(t)
         t += H
     s.request_arm(t + 1.0)
@@ -477,8 +496,8 @@ def test_the_first_rule_in_order_trips(cfg, spec, counts_on):
             expected.append((_ORDER.index(check), k, check))
     s = Supervisor(lim, H, cs, ("rear",), FakeHardware())
     s.state = State.RUNNING
-    s.cycle(t, ss, OK, [(0.0, 0.0)], 0, True, "")
-    assert s.new_fault == bool(expected)
+    s.cycle(t, {c.name: x for c, x in zip(cs, ss)}, OK, [("rear", 0.0, 0.0)], 0, True, "")
+    assert (s.end_cycle(t) is not None) == bool(expected)
     if expected:
         _, k, check = min(expected)
         assert (s.fault.device, s.fault.check) == (f"c{k}", check)

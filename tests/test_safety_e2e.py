@@ -37,10 +37,10 @@ def test_state_limits(tmp_path, limits, check):
 
 
 def test_yaw_limit(tmp_path):
-    """The PI-PD law keeps ψ_ref within 0.8·psi_max, so the yaw limit is provoked open loop."""
+    """The PI-PD law keeps ψ_ref within limits.psi_ref_max, so the yaw limit is provoked open loop."""
     sc = load_scenario("open-loop-steps")
     sc = dataclasses.replace(sc, duration_s=6.0, open_loop=dataclasses.replace(sc.open_loop, steps=((0.0, 0.0), (1.0, 1.0))))
-    r = run(tmp_path, sc, cfg=with_limits(psi_max=0.003))
+    r = run(tmp_path, sc, cfg=with_limits(psi_max=0.003, psi_ref_max=0.0024))
     assert_safe_stop(r, "geometry", "psi_limit")
 
 
@@ -60,9 +60,8 @@ def test_nan_sample(tmp_path):
         def bad_poll(now):
             inp = poll(now)
             if now > 2.0:
-                s = list(inp.samples)
-                s[3] = Sample(math.nan, now, Health(Freshness.FRESH))
-                inp = inp._replace(samples=tuple(s))
+                bad = Sample(math.nan, now, Health(Freshness.FRESH))
+                inp = inp._replace(samples={**inp.samples, "s_fr": bad}, values={**inp.values, "s_fr": math.nan})
             return inp
         devices.poll = bad_poll
     r = run(tmp_path, STEP, duration_s=4.0, prepare=prepare)

@@ -27,7 +27,7 @@ def snapshot(loop: ControlLoop, duration_s: float) -> dict:
     st = loop.stats
     t = loop.cycle.t
     t0 = loop.t_start
-    started = t0 == t0
+    started = t0 is not None
     rec = loop.recorder
     return {
         "t": t,

@@ -20,7 +20,8 @@ from .. import __version__, analysis, schema
 from ..clock import Clock, helper_cpus
 from ..config import RigConfig
 from ..errors import DeviceInitError
-from ..loop import ControlLoop
+from ..lanes import split
+from ..loop import ControlLoop, log_columns
 from ..recorder import Recorder
 from ..scenario import Reference, Scenario, open_loop_input
 from .live import StatusPublisher
@@ -42,13 +43,11 @@ class StatusLine:
         self.stream = stream
 
     def __call__(self, loop: ControlLoop) -> None:
-        m = loop.last_measurement
         st = loop.stats
         lat = st.lateness.last * 1e6
-        y = m.y_r * 1e3 if m else math.nan
-        psi = m.psi_ar * 1e3 if m else math.nan
-        self.stream.write(f"\r{loop.supervisor.state.name:<8} y={y:+7.3f} mm  psi={psi:+7.3f} mrad  "
-                          f"u={2 * loop.currents[2]:+6.3f} A  faults={len(loop.supervisor.faults)}  "
+        lanes = " ".join(f"{l.carrier}: y={l.y * 1e3:+7.3f} mm psi={l.psi * 1e3:+7.3f} mrad u={l.u:+6.3f} A"
+                         for l in loop.lanes)
+        self.stream.write(f"\r{loop.supervisor.state.name:<8} {lanes}  faults={len(loop.supervisor.faults)}  "
                           f"late={lat:6.1f} us  misses={st.deadline_misses}   ")
         self.stream.flush()
 
@@ -77,10 +76,9 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     if log_path is not None:
         log_path = Path(log_path)
         log_path.parent.mkdir(parents=True, exist_ok=True)
-    loop = ControlLoop(cfg, devices, clock, reference=reference, open_loop=open_loop)
-    stops.on_stop(lambda: setattr(loop, "stop_requested", True))
     rec = None
     result = None
+    loop = None
     phase = "before the log was opened"
     try:
         if not stops.requested and log_path is not None:
@@ -91,12 +89,15 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
                      "experiment": (scenario.experiment or "") if scenario else "",
                      "duration_s": float(duration), "controlled": list(cfg.controlled)}
             attrs.update(extra_attrs or {})
-            rec = Recorder(log_path, loop.columns, attrs=attrs, buffer_cycles=cfg.recorder.buffer_cycles,
+            columns = log_columns(cfg, devices.channels(), devices.extra_columns)
+            rec = Recorder(log_path, columns, attrs=attrs, buffer_cycles=cfg.recorder.buffer_cycles,
                            flush_s=cfg.recorder.flush_s, outputs=outputs, when_full=recorder_when_full,
                            cpus=helper_cpus(cfg.realtime))
             rec.open()
-            loop.recorder = rec
-            loop.mailbox = rec.mailbox      # operator commands, if an output (rig ctl's server) sends any
+        # the mailbox carries operator commands, if an output (rig ctl's server) sends any
+        loop = ControlLoop(cfg, devices, clock, reference=reference, open_loop=open_loop, recorder=rec,
+                           mailbox=rec.mailbox if rec is not None else None)
+        stops.on_stop(lambda: setattr(loop, "stop_requested", True))
         if not stops.requested:
             phase = "while configuring the devices"
         if not stops.requested:
@@ -117,10 +118,10 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
                 log_path.unlink(missing_ok=True)    # the loop never ran: no empty log left behind
         if status and not outputs:
             sys.stderr.write("\n")
-    operator_stop = not stops.requested and loop.stop_requested      # rig ctl stop
-    if result is None or (math.isnan(result.t_start) and not result.faults and not operator_stop):
+    operator_stop = loop is not None and not stops.requested and loop.stop_requested      # rig ctl stop
+    if result is None or (result.t_start is None and not result.faults and not operator_stop):
         if stops.requested:
-            what = "power stages disabled" if loop.supervisor.ever_armed else "power stages never enabled"
+            what = "power stages disabled" if loop is not None and loop.supervisor.ever_armed else "power stages never enabled"
             if result is not None:
                 phase = "while arming" if loop.supervisor.ever_armed else "during warm-up"
             raise stops.interrupted(f"before RUNNING ({phase}): {what}"
@@ -132,12 +133,12 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
         "faults": result.faults,
         "cycles": result.cycles,
         "max_abs_current_A": result.max_abs_current_A,
-        "max_abs_wire_current_A": 0.5 * result.max_abs_current_A,
+        "max_abs_wire_current_A": max(map(abs, split(result.max_abs_current_A))),
         "timing": result.timing,
         "log": str(log_path) if log_path is not None else None,
         "recorder": ({"rows": rec.rows_written, "healthy": rec.healthy, "error": rec.error} if rec is not None
                      else {"rows": 0, "healthy": True, "error": "not recording"}),
-        "run_started_t": result.t_start,
+        "run_started_t": result.t_start if result.t_start is not None else math.nan,
         "wall_time_s": result.wall_time_s,
     }
     if stops.requested:

@@ -1,0 +1,101 @@
+"""Lanes: the per-carrier part of the cycle.
+
+A lane is one wheel carrier the runtime drives: its measurement (y, ψ, Δω from the
+geometry), its reference, its controller (or an open-loop input), the differential current
+the supervisor let through, and the two wheels that current goes to. A second carrier, a
+per-carrier reference or a new stage (an estimator) is one more lane or one more step of a
+lane, never new indices.
+
+``split`` is the one place that turns a carrier's differential current u = i_left − i_right
+into its wheels' currents (±u/2); the loop, the log and the summaries use it.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, MutableMapping, Optional, Sequence
+
+from .config import WHEELS, RigConfig
+from .control import make_controller
+from .geometry import Measurement
+
+CARRIER_WHEELS: dict[str, tuple[str, str]] = {"front": ("fl", "fr"), "rear": ("rl", "rr")}   # (left, right)
+
+
+def split(u: float) -> tuple[float, float]:
+    """A carrier's differential current ``u`` (A) as the currents of its (left, right) wheels."""
+    half = 0.5 * u
+    return half, -half
+
+
+def wheel_currents(lanes: Sequence["Lane"], out: MutableMapping[str, float]) -> MutableMapping[str, float]:
+    """Every wheel's current from the lanes' limited outputs (in place; a wheel no lane owns
+    gets 0 A)."""
+    for w in WHEELS:
+        out[w] = 0.0
+    for lane in lanes:
+        left, right = lane.wheels
+        out[left], out[right] = split(lane.u)
+    return out
+
+
+class Lane:
+    """One carrier the runtime drives (see the module docstring). Per cycle: ``sense`` →
+    (``start`` when RUNNING begins) → ``control`` → ``apply``."""
+
+    __slots__ = ("carrier", "wheels", "controller", "reference", "open_loop", "controlled",
+                 "y", "psi", "dw", "y_ref", "u_cmd", "u")
+
+    def __init__(self, carrier: str, controller, reference: Callable[[float], float],
+                 open_loop: Optional[Callable[[float], float]] = None):
+        self.carrier = carrier
+        self.wheels = CARRIER_WHEELS[carrier]
+        self.controller = controller            # None: the lane only plays an open-loop input
+        self.controlled = controller is not None
+        self.reference = reference
+        self.open_loop = open_loop
+        self.y = self.psi = self.dw = 0.0
+        self.y_ref = 0.0
+        self.u_cmd = 0.0                        # what the controller / input asked for
+        self.u = 0.0                            # what the supervisor let through
+
+    def sense(self, m: Measurement) -> None:
+        """This cycle's measurement of the carrier."""
+        self.y, self.psi, self.dw = m.carrier(self.carrier)
+
+    def start(self) -> None:
+        """RUNNING began: the controller starts bumplessly on the reference's first value."""
+        if self.controller is not None:
+            self.controller.start(self.reference(0.0), self.y, self.psi)
+
+    def control(self, t_run: float, running: bool) -> float:
+        """The reference at run time ``t_run`` and the command of this cycle (0 unless RUNNING)."""
+        self.y_ref = y_ref = self.reference(t_run)
+        if not running:
+            u = 0.0
+        elif self.open_loop is not None:
+            u = self.open_loop(t_run)
+        else:
+            u = self.controller.step(y_ref, self.y, self.psi)
+        self.u_cmd = u
+        return u
+
+    def apply(self, u: float) -> None:
+        """The current the supervisor let through; the controller learns it (anti-windup)."""
+        self.u = u
+        if self.controller is not None:
+            self.controller.limit_feedback(u)
+
+
+def make_lanes(cfg: RigConfig, reference: Callable[[float], float],
+               open_loop: Optional[tuple[str, Callable[[float], float]]] = None) -> list[Lane]:
+    """A lane per controlled carrier (PI-PD or P with the configured gains and limits), plus
+    one for an open-loop input on a carrier that is not controlled (in that order)."""
+    lim = cfg.limits
+    ol_carrier, ol_input = open_loop if open_loop is not None else (None, None)
+    carriers = list(cfg.controlled) + ([ol_carrier] if ol_carrier and ol_carrier not in cfg.controlled else [])
+    lanes = []
+    for carrier in carriers:
+        controlled = carrier in cfg.controlled
+        ctrl = make_controller(cfg.controller, lim.u_max, lim.psi_ref_max) if controlled else None
+        lanes.append(Lane(carrier, ctrl, reference, ol_input if carrier == ol_carrier else None))
+    return lanes
