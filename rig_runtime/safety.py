@@ -74,7 +74,7 @@ class Channel:
     in place every cycle by :meth:`Supervisor.cycle`)."""
 
     __slots__ = ("name", "kind", "value", "t", "state", "cause", "lo", "hi", "stale_s",
-                 "step_max", "stuck_check", "same", "delta", "bad", "bad_run", "unanswered")
+                 "step_max", "stuck_check", "same", "delta", "bad", "bad_run", "unanswered", "bad_at_value")
 
     def __init__(self, name: str, kind: str, lo: float, hi: float, stale_s: float,
                  step_max: float = math.inf, stuck_check: bool = False):
@@ -90,6 +90,7 @@ class Channel:
         self.bad = 0            # the driver's cumulative count of garbled frames / bytes
         self.bad_run = 0        # consecutive cycles with new garbled data
         self.unanswered = -1    # requests unanswered (-1: free-running, judged by age)
+        self.bad_at_value = 0   # the garbled count when the latest valid value arrived
 
     def observe(self, s: Sample) -> None:
         """This cycle's sample, and the history the rules look at."""
@@ -98,7 +99,10 @@ class Channel:
         prev = self.value
         self.delta = v - prev
         self.value = v
-        self.t = s.t if s.t == s.t else -math.inf
+        t = s.t if s.t == s.t else -math.inf
+        if t != self.t:
+            self.bad_at_value = h.bad_frames      # a new valid value: garbled frames counted from here
+        self.t = t
         self.state = h.state
         self.cause = h.cause
         self.unanswered = s.unanswered
@@ -125,19 +129,31 @@ def invalid(chs: Sequence[Channel], t: float, lim: Limits) -> Breach:
     return None
 
 
+def _garbled(c: Channel) -> str:
+    n = c.bad - c.bad_at_value
+    return f": {n} garbled frames in that time" if n > 0 else ""
+
+
 def stale(chs: Sequence[Channel], t: float, lim: Limits) -> Breach:
-    """A free-running device by the age of its latest value; a device that answers the
-    runtime's requests by the requests it left unanswered (the runtime's own lateness is
-    not the device's fault)."""
+    """No valid value in time. A free-running device is judged by the age of its latest
+    valid value; a device that answers the runtime's requests (a SYNC-triggered TPDO) by
+    the requests it left unanswered — the runtime's own lateness is not the device's fault.
+    The finding names what was observed instead: garbled frames in that time make it a
+    corrupted link (``corrupt``), not a silent device."""
     n = lim.stale_periods
     for c in chs:
         if c.unanswered >= 0:
-            if c.state is Freshness.STALE or c.unanswered >= n:
-                return c, ("stale", c.unanswered, n, c.cause or f"{c.unanswered} requests unanswered")
+            if c.unanswered >= n or c.t == -math.inf:
+                what = "no valid value yet" if c.t == -math.inf else "no valid value"
+                g = _garbled(c)
+                return c, ("corrupt" if g else "stale", c.unanswered, n,
+                           f"{what} for {c.unanswered} requests sent{g}")
             continue
         age = t - c.t
-        if c.state is Freshness.STALE or age > c.stale_s:
-            return c, ("stale", age, c.stale_s, c.cause or f"sample {age * 1e3:.1f} ms old")
+        if age > c.stale_s:
+            g = _garbled(c)
+            what = "no valid value yet" if c.t == -math.inf else f"no valid value for {age * 1e3:.0f} ms"
+            return c, ("corrupt" if g else "stale", age, c.stale_s, what + g)
     return None
 
 

@@ -84,11 +84,20 @@ def test_u_max_ceiling_follows_the_lowest_configured_rated_current(tmp_path):
     assert ei.value.key_path == "limits.u_max" and "at most 3 A" in str(ei.value)
 
 
-@pytest.mark.parametrize("key, value", [("u_max", 16.0), ("u_max", 1.0), ("y_max", 0.012), ("psi_max", 0.01),
+@pytest.mark.parametrize("key, value", [("u_max", 16.0), ("u_max", 1.0), ("y_max", 0.012), ("psi_max", 0.045),
                                         ("du_max", 100.0), ("stale_periods", 10), ("stop_ramp_s", 0.0)])
 def test_a_tightened_or_equal_limit_is_accepted(tmp_path, key, value):
     main, _ = _variant(tmp_path, "controller.yaml", _set("limits", key, value))
     assert getattr(config.load(main).limits, key) == value
+
+
+def test_psi_ref_max_may_not_exceed_psi_max(tmp_path):
+    """The outer loop's yaw reference stays inside the yaw limit: a psi_max tightened below the
+    configured psi_ref_max is refused, naming psi_ref_max."""
+    main, _ = _variant(tmp_path, "controller.yaml", _set("limits", "psi_max", 0.01))
+    with pytest.raises(ConfigError) as ei:
+        config.load(main)
+    assert ei.value.key_path == "limits.psi_ref_max" and "at most psi_max (0.01 rad)" in str(ei.value)
 
 
 def test_ceiling_in_seconds_follows_the_sample_time(tmp_path):
