@@ -68,7 +68,7 @@ class RigDevices:
                 raise ConfigError(cfg.source, f"devices.lasers[{i}].port",
                                   "a serial port ('sim' is only valid with the simulated plant: rig dry-run)")
             cls = driver_class("laser", lc.driver, f"devices.lasers[{i}].driver")
-            self.lasers.append(cls(lc, port=port, stale_after_s=stale))
+            self.lasers.append(cls(lc, port=port))
         cls = driver_class("can", dcfg.can.driver, "devices.can.driver")
         self.drives = cls(dcfg.can, bus=can_bus, period_s=h)
         self.ft = None
