@@ -192,6 +192,8 @@ class Drive:
 
 @dataclass(frozen=True, kw_only=True)
 class CanBus:
+    REMOVED_KEYS = {"tpdo_timeout_periods": "a drive's TPDO is judged now by limits.stale_periods, "
+                    "as SYNCs left unanswered"}
     driver: str = "cia402"                          # rig_runtime.registry name
     interface: str = "virtual"                      # python-can interface name
     channel: str = "rig"
@@ -199,7 +201,6 @@ class CanBus:
     eds: str = "irdw-drive.eds"                     # relative to configs/
     heartbeat_ms: int = check(positive, default=100)  # runtime's own producer time
     heartbeat_timeout_factor: float = check(positive, default=2.5)
-    tpdo_timeout_periods: int = check(positive, default=4)
     watchdog_ms: int = check(positive, default=50)  # drive cuts current without SYNC/RPDO
     drives: tuple[Drive, ...] = ()
 

@@ -155,8 +155,8 @@ class RigDevices:
             wheels.append(Sample(r.omega, r.t, r.health, r.syncs_unanswered))
             if ok and r.health.state is Freshness.INVALID:
                 ok, cause = False, f"drive {r.wheel} (node {r.node_id}): {r.health.cause}"
-        if ok and rd.bus.state is Freshness.INVALID:
-            ok, cause = False, f"CAN bus: {rd.bus.cause}"
+        if ok and (rd.bus.state is Freshness.INVALID or now - rd.bus_error_t <= self._stale):
+            ok, cause = False, f"CAN bus: {rd.bus.cause}"   # interim: a recent bus error, until the supervisor judges bus_error_t
         ft = []
         extra: list[float] = []
         if self.ft is not None:
