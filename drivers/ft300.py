@@ -111,25 +111,25 @@ class FTSensorSet(Driver):
         """Latest sample of every sensor with its age and health; never waits (the inline
         poller does its non-blocking I/O here)."""
         out = {}
+        dead = self._poller.failure()       # once per poll (a system call in process mode)
         for v, p in zip(self._views, self._poller.latest(now)):
             if p is not v.pub:
                 v.saturation = p.wrench.saturation if p.wrench is not None else ""
                 v.pub = p
             age = now - p.t if p.wrench is not None else math.inf
-            state, cause = self._classify(p, v.saturation)
+            state, cause = self._classify(p, v.saturation, dead)
             h = v.health = health(v.health, state, cause, p.bad_frames, p.timeouts, p.errors)
             out[v.name] = FTReading(p.wrench, p.t, age, h)
         return out
 
-    def _classify(self, p: Published, saturation: str) -> tuple[Freshness, str]:
+    def _classify(self, p: Published, saturation: str, dead: str) -> tuple[Freshness, str]:
         """State and cause of one sensor, from what the sensor and the link said: INVALID
-        while the latest reply is a Modbus exception, the poll process is dead, the link is
+        while the latest reply is a Modbus exception, the poll process is dead (``dead``: why), the link is
         down (lost, or the reconnect failed) or the latest sample has an axis at an INT16
         limit (``saturation``: not a measurement); else FRESH, with the latest outcome as a
         note (a timeout, a garbled reply: counted, and judged by the supervisor with the age)."""
         if p.exc_code is not None:
             return _INVALID, p.cause
-        dead = self._poller.failure()
         if dead:
             return _INVALID, dead + (f" ({p.cause})" if p.cause else "")
         if p.link_down:
