@@ -82,7 +82,7 @@ def main() -> int:
     for i, lc in enumerate(cfg.devices.lasers):
         vl = VirtualLaser(lc, noise_std_m=1e-6, seed=i, output_rate_hz=4000.0)
         lasers.append(vl)
-        drivers.append(LaserDriver(lc, port=vl.port_name, stale_after_s=4 * h))
+        drivers.append(LaserDriver(lc, port=vl.port_name))
     chan = f"bench-{os.getpid()}"
     new_bus = (lambda: LockstepBus(channel=chan)) if args.can == "lockstep" else \
         (lambda: can.Bus(interface="virtual", channel=chan))

@@ -41,13 +41,19 @@ log = logging.getLogger(__name__)
 class WheelReading(NamedTuple):
     """One drive after a poll.
 
+    What the driver observed; whether it is recent enough is the supervisor's rule
+    (``limits.stale_periods`` against ``syncs_unanswered``).
+
     ``omega`` (rad/s, 0x606C) and ``current_A`` (torque actual 0x6077 in A) are from the
     latest valid TPDO1; ``t`` is the ``now`` of the poll in which it arrived (NaN before
     the first). When the TPDO stops or is garbled the last values and their ``t`` are kept
-    (STALE); a velocity at the INT32 limit is reported as NaN. ``statusword``/``state``
-    are from the latest TPDO1 (or the start-up SDO read), ``nmt_state`` from the latest
-    heartbeat (None before the first). ``health`` is an immutable value (the same object
-    poll after poll while nothing changes); decide on ``health.state``, not on NaN checks.
+    and ``syncs_unanswered`` counts on; a velocity at the INT32 limit is reported as NaN.
+    ``statusword``/``state`` are from the latest TPDO1 (or the start-up SDO read),
+    ``nmt_state`` from the latest heartbeat (None before the first). ``health`` is an
+    immutable value (the same object poll after poll while nothing changes): INVALID only
+    for what the drive says (EMCY, a fault state, NMT not operational, a saturated
+    velocity) or for its heartbeat missing past the consumer time; ``health.bad_frames``
+    counts the frames of this drive discarded as garbled (wrong DLC) since configure.
     """
 
     wheel: str
@@ -60,6 +66,7 @@ class WheelReading(NamedTuple):
     t: float
     health: Health
     syncs_unanswered: int = 0    # SYNCs this runtime sent since the latest valid TPDO1 arrived
+                                 # (0 again with each valid TPDO1)
 
     @property
     def enabled(self) -> bool:
@@ -70,14 +77,19 @@ class WheelReading(NamedTuple):
 class DriveReadings:
     """All drives of one bus after a poll: ``readings["fl"].omega``; iteration in wheel order.
 
-    ``bus`` is the health of the bus itself (send failures, error frames);
-    ``enabled``: the driver is active and every drive OPERATION ENABLED with a FRESH reading.
+    ``bus`` is the health of the bus itself: INVALID only while the driver is not
+    configured; ``errors`` counts send failures, receive failures and error frames since
+    configure, ``cause`` describes the latest of them ("" if none); ``bus_error_t`` is the
+    ``now`` of the poll/write in which the latest happened (-inf: never) — how recent a
+    bus error must be to stop the rig is the supervisor's rule. ``enabled``: the driver is
+    active and every drive OPERATION ENABLED and not INVALID.
     """
 
     t: float
     wheels: dict[str, WheelReading]
     bus: Health
     enabled: bool
+    bus_error_t: float = -math.inf
 
     def __getitem__(self, wheel: str) -> WheelReading:
         return self.wheels[wheel]
@@ -100,8 +112,7 @@ class _Node:
     __slots__ = (
         "cfg", "wheel", "node_id", "A_per_permille", "rated_A", "velocity_factor",
         "hb_timeout_s", "max_permille", "rpdo_msg", "rpdo_data",
-        "sw", "state", "vel_raw", "tq_raw", "omega", "current", "tpdo_t", "saturated",
-        "frozen_n", "cmd_changes", "cmd_ref", "last_cmd", "bad_t", "bad_dlc", "timed_out", "frozen_flag",
+        "sw", "state", "omega", "current", "tpdo_t", "saturated", "bad_dlc", "hb_lost",
         "unanswered", "hb_t", "nmt", "emcy_code", "emcy_reg", "stepping", "last_cw", "bad_frames", "timeouts", "errors",
         "counters", "health",
     )
@@ -124,18 +135,12 @@ class _Node:
         """Forget everything received (each open starts a session)."""
         self.sw = -1
         self.state = UNKNOWN
-        self.vel_raw = self.tq_raw = 0
         self.omega = self.current = math.nan
         self.tpdo_t: float | None = None
         self.unanswered = 0             # SYNCs sent since the latest valid TPDO1
         self.saturated = False
-        self.frozen_n = 0
-        self.cmd_changes = self.cmd_ref = 0
-        self.last_cmd = 0
-        self.bad_t = -math.inf
-        self.bad_dlc = 0
-        self.timed_out = False
-        self.frozen_flag = False
+        self.bad_dlc = 0                # DLC of the latest TPDO1 if it was garbled, else 0
+        self.hb_lost = False            # in a heartbeat-missing episode (counted once in timeouts)
         self.hb_t: float | None = None
         self.nmt: int | None = None
         self.emcy_code = 0
@@ -143,7 +148,7 @@ class _Node:
         self.stepping = False
         self.last_cw = CW_DISABLE_VOLTAGE
         self.bad_frames = self.timeouts = self.errors = 0
-        self.counters = {"tpdo": 0, "heartbeat": 0, "emcy": 0, "frozen": 0, "saturated": 0}
+        self.counters = {"tpdo": 0, "heartbeat": 0, "emcy": 0, "saturated": 0}
         self.health = Health(Freshness.INVALID, "not configured")    # the latest value handed out
 
 
@@ -158,8 +163,8 @@ class DriveBus(Driver):
     are there); ``deactivate()`` is the safe stop. Every period: ``write(currents, now)`` sends SYNC, one RPDO1 per drive and, every
     ``cfg.heartbeat_ms``, the runtime's heartbeat; ``poll(now)`` drains the bus and returns
     :class:`DriveReadings`. Neither blocks nor raises for bus trouble: send failures and
-    error frames are counted (``send_errors``, ``error_frames``) and make every drive
-    INVALID ("bus error: …") for ``tpdo_timeout_periods`` periods.
+    error frames are counted (``send_errors``, ``error_frames``) and reported with the
+    time of the latest (``DriveReadings.bus_error_t``) — judged by the supervisor.
 
     Times (``now``) are the loop's clock (simulated in lockstep); received frames are
     stamped with the ``now`` of the poll that drains them.
@@ -168,16 +173,16 @@ class DriveBus(Driver):
     itself (fault, heartbeat or RPDO timeout) it is held disabled (controlword 0) until
     deactivated and activated again — nothing re-enables it silently.
 
-    ``frozen_periods``: a TPDO1 payload repeated bit for bit this many times while the torque
-    command changed is reported STALE ("frozen"); 0 switches the check off.
+    The driver judges no freshness: a drive's TPDO1 is reported with its arrival time and
+    the SYNCs left unanswered since; missing, frozen or garbled TPDOs are the supervisor's
+    rules (stale, stuck, corrupt). Only the heartbeat has a timeout here (see ``_classify``).
     """
 
     DISABLE_SEND_TIMEOUT_S = 0.002      # per frame, only in deactivate() (see there)
 
     def __init__(self, cfg: CanBus, bus: can.BusABC | None = None, period_s: float = 0.005, *,
                  eds_path: str | Path | None = None, runtime_node_id: int = RUNTIME_NODE_ID,
-                 sdo_timeout_s: float = 0.3, enable_timeout_s: float = 1.0,
-                 frozen_periods: int = 20) -> None:
+                 sdo_timeout_s: float = 0.3, enable_timeout_s: float = 1.0) -> None:
         super().__init__()
         if not cfg.drives:
             raise ConfigError(None, "devices.can.drives", "at least one drive")
@@ -190,9 +195,6 @@ class DriveBus(Driver):
         self.runtime_node_id = runtime_node_id
         self.sdo_timeout_s = sdo_timeout_s
         self.enable_timeout_s = enable_timeout_s
-        self.frozen_periods = frozen_periods
-        self._tpdo_timeout = cfg.tpdo_timeout_periods
-        self._hold = cfg.tpdo_timeout_periods * period_s     # how long a bus/frame event is reported
         self.consumer_time_ms = round(cfg.heartbeat_ms * cfg.heartbeat_timeout_factor)
         if not cfg.heartbeat_ms < self.consumer_time_ms <= 0xFFFF:
             raise ConfigError(None, "devices.can.heartbeat_timeout_factor",
@@ -239,7 +241,7 @@ class DriveBus(Driver):
 
     @property
     def enabled(self) -> bool:
-        """Active, and every drive OPERATION ENABLED and FRESH at the latest poll."""
+        """Active, and every drive OPERATION ENABLED and not INVALID at the latest poll."""
         return self._enabled
 
     @property
@@ -503,9 +505,6 @@ class DriveBus(Driver):
         if tq > m or tq < -m:
             c["clipped_commands"] += 1
             tq = m if tq > 0 else -m
-        if tq != d.last_cmd:
-            d.cmd_changes += 1
-            d.last_cmd = tq
         return CW_ENABLE_OPERATION, tq
 
     @staticmethod
@@ -624,16 +623,11 @@ class DriveBus(Driver):
     def _on_tpdo(self, d: _Node, data: bytearray, now: float) -> None:
         if len(data) != 8:
             d.bad_frames += 1
-            d.bad_t = now
             d.bad_dlc = len(data)
             return
         sw, vel, tq = TPDO1.unpack_from(data)
-        if sw == d.sw and vel == d.vel_raw and tq == d.tq_raw:
-            d.frozen_n += 1
-        else:
-            d.frozen_n = 0
-            d.cmd_ref = d.cmd_changes
-        d.sw, d.vel_raw, d.tq_raw = sw, vel, tq
+        d.bad_dlc = 0
+        d.sw = sw
         d.state = state_of(sw)
         if vel == INT32_MAX or vel == INT32_MIN:
             if not d.saturated:
@@ -669,56 +663,38 @@ class DriveBus(Driver):
         d.emcy_code, d.emcy_reg = code, reg
 
     # ------------------------------------------------------------------ health
-    def _periods(self, age: float) -> int:
-        return int(age / self.period_s + 0.5)
-
     def _classify(self, d: _Node, now: float) -> tuple[Freshness, str]:
-        """Freshness and cause of one drive: INVALID causes first, then STALE ones, every
-        cause spelled out."""
-        hold = self._hold                       # how long an event is reported
-        fp = self.frozen_periods
-        frozen = fp > 0 and d.frozen_n >= fp and d.cmd_changes != d.cmd_ref
-        if frozen and not d.frozen_flag:
-            d.counters["frozen"] += 1
-        d.frozen_flag = frozen
+        """INVALID for what the drive says about itself, every cause spelled out; else FRESH,
+        with a note of what was observed (no TPDO yet, a garbled latest TPDO)."""
         invalid: list[str] = []
-        if now - self._bus_err_t <= hold:
-            invalid.append(f"bus error: {self._bus_err_desc}")
         if d.emcy_code:
             invalid.append(f"EMCY 0x{d.emcy_code:04X} {emcy_text(d.emcy_code)} (register 0x{d.emcy_reg:02X})")
         if d.state in FAULT_STATES:
             invalid.append(f"drive in {d.state}")
+        # The heartbeat is CANopen's error control (CiA 301 heartbeat consumer): a producer
+        # silent past its consumer time *is* the protocol's "node lost" event, with the time
+        # configured per drive (heartbeat_ms x heartbeat_timeout_factor, the same time the
+        # drives use for the runtime) — not a freshness rule of this runtime's, so it stays here.
         hb_age = now - (d.hb_t if d.hb_t is not None else self._t_ref)
         if hb_age > d.hb_timeout_s:
             invalid.append(f"heartbeat missing for {hb_age * 1e3:.0f} ms")
-        elif d.nmt is not None and d.nmt != NMT_OPERATIONAL:
-            invalid.append(f"NMT state {NMT_STATE_NAMES.get(d.nmt, hex(d.nmt))}")
+            if not d.hb_lost:
+                d.hb_lost = True
+                d.timeouts += 1
+        else:
+            d.hb_lost = False
+            if d.nmt is not None and d.nmt != NMT_OPERATIONAL:
+                invalid.append(f"NMT state {NMT_STATE_NAMES.get(d.nmt, hex(d.nmt))}")
         if d.saturated:
             invalid.append("velocity at the INT32 limit (saturated, not a measurement)")
-        stale: list[str] = []
-        is_stale = d.tpdo_t is None
-        if is_stale:
-            stale.append(f"no TPDO received yet ({self._periods(now - self._t_ref)} periods)")
-        else:
-            n = d.unanswered            # judged against the SYNCs sent, not the wall clock
-            if n >= self.cfg.tpdo_timeout_periods:
-                is_stale = True
-                stale.append(f"TPDO missing for {n} SYNCs sent")
-                if not d.timed_out:
-                    d.timed_out = True
-                    d.timeouts += 1
-            else:
-                d.timed_out = False
-        if now - d.bad_t <= hold:   # noted; stale only once the TPDO is missing for too long
-            stale.append(f"garbled TPDO discarded (DLC {d.bad_dlc} != 8, {d.bad_frames} since open)")
-        if frozen:
-            is_stale = True
-            stale.append(f"TPDO values frozen for {d.frozen_n} periods while the torque command changed")
+        notes: list[str] = []
+        if d.tpdo_t is None:
+            notes.append("no TPDO received yet")
+        if d.bad_dlc:
+            notes.append(f"garbled TPDO discarded (DLC {d.bad_dlc} != 8, {d.bad_frames} since open)")
         if invalid:
-            return Freshness.INVALID, "; ".join(invalid + stale)
-        if is_stale:
-            return Freshness.STALE, "; ".join(stale)
-        return Freshness.FRESH, "; ".join(stale)    # a garbled frame alone: still fresh, noted
+            return Freshness.INVALID, "; ".join(invalid + notes)
+        return Freshness.FRESH, "; ".join(notes)
 
     def _readings(self, now: float) -> DriveReadings:
         wheels: dict[str, WheelReading] = {}
@@ -736,14 +712,12 @@ class DriveBus(Driver):
             wheels[d.wheel] = WheelReading(d.wheel, d.node_id, d.omega, d.current, sw if sw > 0 else 0,
                                            d.state, d.nmt, nan if t is None else t, d.health,
                                            d.unanswered)
-            if enabled and (state is not Freshness.FRESH or d.state != OPERATION_ENABLED):
+            if enabled and (state is Freshness.INVALID or d.state != OPERATION_ENABLED):
                 enabled = False
         self._enabled = enabled
-        if now - self._bus_err_t <= self._hold:
-            state, cause = Freshness.INVALID, f"bus error: {self._bus_err_desc}"
-        elif self._bus is None:
-            state, cause = Freshness.INVALID, "driver not configured"
+        if is_open:
+            state, cause = Freshness.FRESH, self._bus_err_desc and f"bus error: {self._bus_err_desc}"
         else:
-            state, cause = Freshness.FRESH, ""
+            state, cause = Freshness.INVALID, "driver not configured"
         self._bus_health = health(self._bus_health, state, cause, 0, 0, self._bus_errors)
-        return DriveReadings(now, wheels, self._bus_health, enabled)
+        return DriveReadings(now, wheels, self._bus_health, enabled, self._bus_err_t)

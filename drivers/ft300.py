@@ -11,6 +11,8 @@ Modules by job (no one imports one that imports it back):
   ``inline``) — where the polling runs, chosen by ``devices.ft.poller``;
 * this module — the driver: starts the poller, and turns what it published into one
   :class:`FTReading` (wrench, t, age, health) per sensor in ``poll(now)``, never waiting.
+  It reports what the sensor and the link said; how old a sample may be is the supervisor's
+  rule (``limits.ft_stale_s``), judged from ``t``.
 
 Written against pymodbus 3.16 for RTU (``device_id=`` keyword, ``trace_packet`` hook).
 """
@@ -33,18 +35,20 @@ from .ft_process import ProcessPoller
 __all__ = ["Wrench", "FTReading", "FTSensorSet", "POLLERS"]
 
 POLLERS: dict[str, type[Poller]] = {"process": ProcessPoller, "thread": ThreadPoller, "inline": InlinePoller}
-_FRESH, _STALE, _INVALID = Freshness.FRESH, Freshness.STALE, Freshness.INVALID
+_FRESH, _INVALID = Freshness.FRESH, Freshness.INVALID
 
 
 class FTReading(NamedTuple):
     """What :meth:`FTSensorSet.poll` reports for one sensor (a new object per call; its
-    ``health`` is the same object between calls while nothing changed)."""
+    ``health`` is the same object between calls while nothing changed). ``health.timeouts``
+    and ``health.bad_frames`` count unanswered and garbled transactions, ``errors`` the
+    exception responses and saturated samples, all since configure."""
 
-    wrench: Optional[Wrench]    # latest sample (kept while STALE/INVALID; a saturated one is
+    wrench: Optional[Wrench]    # latest sample (kept after failures; a saturated one is
                                 # passed on with health INVALID); None before the first
     t: float                    # time the sample was received (nan if none; -inf: read at open by
                                 # the inline poller, before any time was given)
-    age: float                  # now - t (inf if none)
+    age: float                  # now - t (inf if none): an observation, judged by the supervisor
     health: Health
 
 
@@ -78,7 +82,6 @@ class FTSensorSet(Driver):
                                                  cpus=None if poller_cpus is None else tuple(poller_cpus))
         else:
             self._poller = POLLERS[cfg.poller](cfg, endpoints, reconnect_s)
-        self._stale_s = cfg.stale_s
         self._views = tuple(_View(n) for n in self._poller.names)
 
     @property
@@ -108,29 +111,31 @@ class FTSensorSet(Driver):
         """Latest sample of every sensor with its age and health; never waits (the inline
         poller does its non-blocking I/O here)."""
         out = {}
+        dead = self._poller.failure()       # once per poll (a system call in process mode)
         for v, p in zip(self._views, self._poller.latest(now)):
             if p is not v.pub:
                 v.saturation = p.wrench.saturation if p.wrench is not None else ""
                 v.pub = p
             age = now - p.t if p.wrench is not None else math.inf
-            state, cause = self._classify(p, age, v.saturation)
+            state, cause = self._classify(p, v.saturation, dead)
             h = v.health = health(v.health, state, cause, p.bad_frames, p.timeouts, p.errors)
             out[v.name] = FTReading(p.wrench, p.t, age, h)
         return out
 
-    def _classify(self, p: Published, age: float, saturation: str) -> tuple[Freshness, str]:
-        """State and cause of one sensor: INVALID while the latest reply is a Modbus exception;
-        while the latest sample is at most ``stale_s`` old, FRESH — or INVALID if an axis of
-        it sits at an INT16 limit (``saturation``: the sensor is saturated, the value is not
-        a measurement); else STALE, with why."""
+    def _classify(self, p: Published, saturation: str, dead: str) -> tuple[Freshness, str]:
+        """State and cause of one sensor, from what the sensor and the link said: INVALID
+        while the latest reply is a Modbus exception, the poll process is dead (``dead``: why), the link is
+        down (lost, or the reconnect failed) or the latest sample has an axis at an INT16
+        limit (``saturation``: not a measurement); else FRESH, with the latest outcome as a
+        note (a timeout, a garbled reply: counted, and judged by the supervisor with the age)."""
         if p.exc_code is not None:
             return _INVALID, p.cause
-        if age <= self._stale_s:
-            return (_INVALID, saturation) if saturation else (_FRESH, "")
-        why = self._poller.failure() or p.cause
+        if dead:
+            return _INVALID, dead + (f" ({p.cause})" if p.cause else "")
+        if p.link_down:
+            return _INVALID, p.cause
         if p.wrench is None:
-            return _STALE, f"no sample yet ({why})"
-        return _STALE, f"no sample for more than {self._stale_s:g} s" + (f" ({why})" if why else "")
-
-
-
+            return _FRESH, f"no sample yet ({p.cause})"
+        if saturation:
+            return _INVALID, saturation
+        return _FRESH, p.cause

@@ -62,6 +62,7 @@ class Published:
     errors: int                 # exception responses and saturated samples
     bad_frames: int
     counters: tuple[tuple[str, int], ...]
+    link_down: bool = False     # the latest outcome was a lost connection or a failed connect
 
 
 NOT_POLLED = Published(None, math.nan, "not polled yet", None, 0, 0, 0, ())
@@ -82,9 +83,9 @@ class Sensor:
         self.pub = NOT_POLLED
         self.sink: Optional[Callable[[Published], None]] = None
 
-    def publish(self, cause: str, exc_code: Optional[int] = None) -> None:
+    def publish(self, cause: str, exc_code: Optional[int] = None, link_down: bool = False) -> None:
         self.pub = p = Published(self.wrench, self.t, cause, exc_code, self.timeouts, self.errors,
-                                 self.bad_frames, tuple(self.counters.items()))
+                                 self.bad_frames, tuple(self.counters.items()), link_down)
         if self.sink is not None:
             self.sink(p)
 
@@ -377,7 +378,7 @@ class PollCore:
         link.retry_at = self.clock() + self.reconnect_s
         for s in link.sensors:
             s.counters["connect_failures"] += 1
-            s.publish(f"cannot connect: {exc}")
+            s.publish(f"cannot connect: {exc}", link_down=True)
 
     def _collect(self, inflight: list[TcpLink]) -> None:
         """Wait for the replies of requests just sent (at most ``timeout_s``), classify each."""
@@ -513,7 +514,7 @@ class PollCore:
         link.close()
         for s in link.sensors:
             s.counters["disconnects"] += 1
-            s.publish(cause)
+            s.publish(cause, link_down=True)
 
 
 def _flush(link: Link) -> None:
@@ -546,7 +547,7 @@ class Poller(abc.ABC):
         return tuple(s.pub for s in self.core.sensors)
 
     def failure(self) -> str:
-        """"" while the poller works; otherwise why samples stopped (asked while STALE)."""
+        """"" while the poller works; otherwise why samples stopped (asked every poll)."""
         return ""
 
     @abc.abstractmethod

@@ -41,7 +41,7 @@ class InlinePoller(Poller):
 
     ``start()`` is the same blocking open as the other pollers (connect, read every sensor
     once: DeviceInitError if one does not answer); those reads have no time on the caller's
-    clock yet, so they are stamped ``-inf`` (STALE until the first reply that ``latest``
+    clock yet, so they are stamped ``-inf`` (infinitely old until the first reply that ``latest``
     collects). Per connection one request is in flight; a reply not complete
     ``timeout_s`` after its request (by the ``now`` values given) is a timeout, and the
     connection is reopened with a non-blocking connect to the address resolved at open.

@@ -47,8 +47,8 @@ __all__ = ["ProcessPoller", "SlotWriter", "SlotReader", "SLOT_SIZE", "CAUSE_BYTE
 
 CAUSE_BYTES = 240
 # t, fx..mz | has_wrench, timeouts, errors, bad_frames, samples, connects, connect_failures,
-# disconnects | exception code (-1: none), cause length | cause (UTF-8, truncated)
-_PAYLOAD = struct.Struct(f"<7d8QiH2x{CAUSE_BYTES}s")
+# disconnects | exception code (-1: none), cause length, link down | cause (UTF-8, truncated)
+_PAYLOAD = struct.Struct(f"<7d8QiH?x{CAUSE_BYTES}s")
 SLOT_SIZE = seqlock.HEADER_BYTES + _PAYLOAD.size   # a multiple of 8: every slot's lock is aligned
 _START_GRACE_S = 30.0                       # interpreter start + imports on a loaded machine
 _WATCH_S = 0.2                              # how often the child looks at its parent
@@ -68,7 +68,7 @@ class SlotWriter:
         payload = _PAYLOAD.pack(p.t, *vals, w is not None, p.timeouts, p.errors, p.bad_frames,
                                 counters.get("samples", 0), counters.get("connects", 0),
                                 counters.get("connect_failures", 0), counters.get("disconnects", 0),
-                                -1 if p.exc_code is None else p.exc_code, len(cause), cause)
+                                -1 if p.exc_code is None else p.exc_code, len(cause), p.link_down, cause)
         seqlock.write(self._buf, k * SLOT_SIZE, payload)
 
 
@@ -98,12 +98,12 @@ class SlotReader:
             return
         s1, payload = r
         (t, fx, fy, fz, mx, my, mz, has_w, timeouts, errors, bad_frames, samples, connects,
-         connect_failures, disconnects, exc, n, cause) = _PAYLOAD.unpack(payload)
+         connect_failures, disconnects, exc, n, link_down, cause) = _PAYLOAD.unpack(payload)
         self._sensors[k].pub = self._make(
             (fx, fy, fz, mx, my, mz) if has_w else None, t, cause[:n].decode("utf-8", "ignore"),
             None if exc < 0 else exc, timeouts, errors, bad_frames,
             (("samples", samples), ("connects", connects), ("connect_failures", connect_failures),
-             ("disconnects", disconnects)))
+             ("disconnects", disconnects)), link_down)
         self._last[k] = s1
 
 

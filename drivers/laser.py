@@ -27,21 +27,29 @@ _READ_CHUNK = 65536
 _os_read = os.read              # module-level so a test can make the port fail
 _HUP = select.POLLHUP | select.POLLERR | select.POLLNVAL
 _NO_VALUES = Decoded(b"", [])
+_NO_DATA = "no data yet"        # FRESH's note before the first valid value (t is NaN)
 
 
 # --------------------------------------------------------------------------- driver
 class LaserReading(NamedTuple):
     """One laser channel after a poll.
 
+    What the driver observed, not a judgement of it: how old ``t`` may be and how many
+    garbled bytes are too many is the supervisor's decision (``limits:``).
+
     ``value_m`` is the physical distance ``offset_mm + d_mm`` in metres of the latest valid
     value (or this cycle's mean with ``average``); NaN if the latest value was an error
     code, the port failed, or nothing valid has arrived yet. ``t`` is the ``now`` of the
-    poll in which the latest valid value arrived (NaN before the first) — it is kept when
-    ``value_m`` is NaN, so its age still tells how long the channel has been without a
-    measurement; decide on ``health.state``, not on NaN checks. ``n_values`` counts the
-    valid distance values decoded in this poll; ``raw_x`` is the latest value received
-    (incl. error codes), -1 before the first. ``health`` is an immutable value (the same
-    object poll after poll while nothing changes).
+    poll in which the latest valid value arrived (NaN before the first); it stays there
+    while nothing new arrives, so its age tells how long the channel has been without a
+    measurement. ``n_values`` counts the valid distance values decoded in this poll,
+    ``values_total`` those since the port was opened; ``health.bad_frames`` counts the
+    bytes discarded as garbled since then (so garbled data between two valid values is the
+    difference of two readings' counts). ``raw_x`` is the latest value received (incl.
+    error codes), -1 before the first. ``health`` is an immutable value (the same object
+    poll after poll while nothing changes): INVALID only for what the device or the port
+    said (an error code as the latest value, a read error, a hang-up), else FRESH — also
+    when nothing arrived in this poll.
     """
 
     role: str
@@ -50,24 +58,24 @@ class LaserReading(NamedTuple):
     health: Health
     n_values: int
     raw_x: int
+    values_total: int
 
 
 class LaserDriver(Driver):
     """One optoNCDT 1420 on a serial port (pyserial, non-blocking).
 
     ``port`` overrides ``cfg.port`` (the simulated backend passes a pty path). Health:
-    FRESH while the latest value is a distance and some value arrived within
-    ``stale_after_s``; INVALID when the latest value is an error code (cause names it) or
-    the read failed; STALE when nothing arrived for longer than ``stale_after_s`` (or
-    nothing yet). ``poll`` never raises. ``last_values`` holds the raw values (distances
-    and error codes) decoded by the latest poll, for a recorder that wants every sample.
+    INVALID when the latest value is an error code (cause names it) or the read failed
+    (a hang-up included); FRESH otherwise, whatever the age of the latest value — the
+    supervisor judges the age from ``t`` (one rule, one setting). ``poll`` never raises.
+    ``last_values`` holds the raw values (distances and error codes) decoded by the latest
+    poll, for a recorder that wants every sample.
     """
 
-    def __init__(self, cfg: LaserDevice, port: str | None = None, stale_after_s: float = 0.02):
+    def __init__(self, cfg: LaserDevice, port: str | None = None):
         super().__init__()
         self.cfg = cfg
         self.port = port if port is not None else cfg.port
-        self.stale_after_s = stale_after_s
         self.name = f"laser {cfg.role}"
         self._role = cfg.role
         # value_m = _gain·x + _bias  ==  (offset_mm + distance_mm_from_x(x, MR)) / 1000
@@ -85,12 +93,10 @@ class LaserDriver(Driver):
         self._last = _NO_VALUES                 # what the latest poll decoded
         self._counters = {"values": 0, "error_frames": 0, "read_errors": 0, "bytes": 0}
         self._errors = 0                # error codes received and read errors
-        self._health = Health(Freshness.STALE, "no data yet")   # the latest value handed out
+        self._health = Health(Freshness.FRESH, _NO_DATA)   # the latest value handed out
         self._value = math.nan          # latest valid value (or cycle mean), m; reported only
                                         # while the latest value is not an error code
         self._value_t = math.nan        # poll time at which it arrived
-        self._last_rx_t: float | None = None   # poll time of the latest value of any kind
-        self._first_poll_t: float | None = None
         self._latest_error: str | None = None  # reason if the latest value was an error code
         self._raw_x = -1
 
@@ -140,8 +146,6 @@ class LaserDriver(Driver):
     # ------------------------------------------------------------------ cycle
     def poll(self, now: float) -> LaserReading:
         """Drain the port, decode, and report the latest value with its health."""
-        if self._first_poll_t is None:
-            self._first_poll_t = now
         ser = self._ser
         if ser is None:
             return self._reading(Freshness.INVALID, "port not configured", math.nan, 0)
@@ -160,10 +164,10 @@ class LaserDriver(Driver):
             return self._reading(Freshness.INVALID, f"read error: {type(exc).__name__}: {exc}", math.nan, 0)
         if not data:
             self._last = _NO_VALUES
-            return self._classify(now, 0)
+            return self._classify(0)
         self._counters["bytes"] += len(data)
         decoded = self._last = self._decoder.decode(data)
-        return self._classify(now, self._take(decoded, now) if len(decoded) else 0)
+        return self._classify(self._take(decoded, now) if len(decoded) else 0)
 
     @property
     def last_values(self) -> list[int]:
@@ -174,7 +178,6 @@ class LaserDriver(Driver):
         """Update the latest value/error from this cycle's values; return how many are valid."""
         last = decoded.last()
         self._raw_x = last
-        self._last_rx_t = now
         if decoded.all_distances():             # the usual case
             n_valid = len(decoded)
             valid = decoded.values() if self._average else None
@@ -194,22 +197,14 @@ class LaserDriver(Driver):
             self._value_t = now
         return n_valid
 
-    def _classify(self, now: float, n_valid: int) -> LaserReading:
-        """Freshness from the age of the latest value and whether it was an error code."""
-        ref = self._last_rx_t if self._last_rx_t is not None else self._first_poll_t
-        age = now - ref
-        if age > self.stale_after_s:
-            return self._reading(Freshness.STALE, f"no data for {age * 1e3:.0f} ms", self._current(), n_valid)
-        if self._last_rx_t is None:
-            return self._reading(Freshness.STALE, "no data yet", math.nan, n_valid)
+    def _classify(self, n_valid: int) -> LaserReading:
+        """INVALID while the latest value is an error code, else FRESH (age is not judged here)."""
         if self._latest_error is not None:
             return self._reading(Freshness.INVALID, self._latest_error, math.nan, n_valid)
-        return self._reading(Freshness.FRESH, "", self._value, n_valid)
-
-    def _current(self) -> float:
-        """The latest value if the latest frame was a distance, else NaN."""
-        return math.nan if self._latest_error is not None else self._value
+        return self._reading(Freshness.FRESH, "" if self._counters["values"] else _NO_DATA,
+                             self._value, n_valid)
 
     def _reading(self, state: Freshness, cause: str, value: float, n_valid: int) -> LaserReading:
         h = self._health = health(self._health, state, cause, self._decoder.discarded, 0, self._errors)
-        return LaserReading(self._role, value, self._value_t, h, n_valid, self._raw_x)
+        return LaserReading(self._role, value, self._value_t, h, n_valid, self._raw_x,
+                            self._counters["values"])

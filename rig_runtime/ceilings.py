@@ -91,8 +91,6 @@ def bounds(cfg: Any) -> Iterator[Bound]:
     per = f"periods of h = {_fmt(h)} s"
     yield Bound("limits.stale_periods", lim.stale_periods, periods(c.stale_s), per,
                 f"{hk}stale_s = {_fmt(c.stale_s)} s / h")
-    yield Bound("devices.can.tpdo_timeout_periods", can.tpdo_timeout_periods, periods(c.stale_s), per,
-                f"{hk}stale_s = {_fmt(c.stale_s)} s / h")
     yield Bound("limits.overrun_burst", lim.overrun_burst, periods(c.overrun_s), per,
                 f"{hk}overrun_s = {_fmt(c.overrun_s)} s / h")
     yield Bound("limits.stop_ramp_s", lim.stop_ramp_s, c.stop_ramp_s, "s", hk + "stop_ramp_s")

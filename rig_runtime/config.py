@@ -198,6 +198,8 @@ class Drive:
 
 @dataclass(frozen=True, kw_only=True)
 class CanBus:
+    REMOVED_KEYS = {"tpdo_timeout_periods": "a drive's TPDO is judged now by limits.stale_periods, "
+                    "as SYNCs left unanswered"}
     driver: str = "cia402"                          # rig_runtime.registry name
     interface: str = "virtual"                      # python-can interface name
     channel: str = "rig"
@@ -205,7 +207,6 @@ class CanBus:
     eds: str = "irdw-drive.eds"                     # relative to configs/
     heartbeat_ms: int = check(positive, default=100)  # runtime's own producer time
     heartbeat_timeout_factor: float = check(positive, default=2.5)
-    tpdo_timeout_periods: int = check(positive, default=4)
     watchdog_ms: int = check(positive, default=50)  # drive cuts current without SYNC/RPDO
     drives: tuple[Drive, ...] = ()
 
@@ -226,11 +227,11 @@ FT_POLLERS = ("process", "thread", "inline")       # where the F/T driver polls 
 
 @dataclass(frozen=True, kw_only=True)
 class FTBus:
+    REMOVED_KEYS = {"stale_s": "the supervisor judges an F/T sample's age by limits.ft_stale_s"}
     driver: str = "robotiq_ft300"                   # rig_runtime.registry name
     poller: str = "process"                         # one of FT_POLLERS
     poll_hz: float = check(positive, default=50.0)
     timeout_s: float = check(positive, default=0.1)
-    stale_s: float = check(positive, default=0.5)
     sensors: tuple[FTSensor, ...] = ()
 
     def __post_init__(self) -> None:

@@ -70,7 +70,7 @@ class RigDevices:
                 raise ConfigError(cfg.source, f"devices.lasers[{i}].port",
                                   "a serial port ('sim' is only valid with the simulated plant: rig dry-run)")
             cls = driver_class("laser", lc.driver, f"devices.lasers[{i}].driver")
-            self.lasers.append(cls(lc, port=port, stale_after_s=stale))
+            self.lasers.append(cls(lc, port=port))
         cls = driver_class("can", dcfg.can.driver, "devices.can.driver")
         self.drives = cls(dcfg.can, bus=can_bus, period_s=h)
         self.ft = None
@@ -174,7 +174,8 @@ class RigDevices:
             r = d.poll(now)
             samples[r.role] = Sample(r.value_m, r.t, r.health)
             values[r.role] = r.value_m
-        return Reading(now, samples, values, tuple(extra), Converters(ok, cause, rd.enabled))
+        return Reading(now, samples, values, tuple(extra),
+                       Converters(ok, cause, rd.enabled, rd.bus_error_t, rd.bus.cause))
 
     def write(self, currents: Mapping[str, float], now: float) -> None:
         """Each wheel's current (A) by wheel name."""

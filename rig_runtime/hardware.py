@@ -31,22 +31,30 @@ __all__ = ["Freshness", "Health", "health", "Lifecycle", "Hardware", "Driver"]
 
 
 class Freshness(enum.Enum):
-    FRESH = "fresh"      # a valid sample arrived within the staleness bound
-    STALE = "stale"      # the latest valid sample is too old, or none has arrived yet
-    INVALID = "invalid"  # the device reports that its value is not a measurement (error code, fault)
+    """A channel's state. Drivers report FRESH or INVALID — what the device or transport
+    said, never a judgement of age; STALE is the supervisor's judgement (``safety``), from
+    the reading's arrival time or unanswered requests against ``limits:``."""
+    FRESH = "fresh"      # driver: the device said nothing against its latest value (however old)
+    STALE = "stale"      # supervisor: the latest valid value is too old, or none has arrived yet
+    INVALID = "invalid"  # the device/transport says the value is not a measurement (error code,
+                         # exception, fault, saturation, link gone)
 
 
 @dataclass(frozen=True, slots=True)
 class Health:
-    """Health of one device channel: an immutable value, built when something changes.
+    """Health of one device channel as its driver observed it: an immutable value, built
+    when something changes.
 
-    ``bad_frames``, ``timeouts`` and ``errors`` only ever increase while the driver is
-    configured. Statistics that change every poll (frames, bytes, …) are not part of it:
-    :meth:`Driver.counters` returns them on demand.
+    ``state`` is FRESH or INVALID from a driver (see :class:`Freshness`); ``cause`` says
+    why it is INVALID, or notes an observation while FRESH ("no data yet"). ``bad_frames``,
+    ``timeouts`` and ``errors`` are cumulative counts that only ever increase while the
+    driver is configured; judging them (corruption, a link going quiet) is the
+    supervisor's. Statistics that change every poll (frames, bytes, …) are not part of
+    it: :meth:`Driver.counters` returns them on demand.
     """
 
     state: Freshness = Freshness.STALE
-    cause: str = ""                 # why it is not fresh ("no peak", "TPDO missing", …)
+    cause: str = ""                 # why it is INVALID ("no peak", "EMCY 0x…", …), or a note
     bad_frames: int = 0             # frames/bytes discarded as garbled
     timeouts: int = 0
     errors: int = 0                 # device-reported errors (error codes, exceptions, EMCY)

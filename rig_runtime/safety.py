@@ -63,10 +63,22 @@ class Sample(NamedTuple):
 
 class Converters(NamedTuple):
     """The converters as a cycle sees them: ``ok`` (no drive or bus INVALID, else ``cause``),
-    ``enabled`` (every power stage OPERATION ENABLED)."""
+    ``enabled`` (every power stage OPERATION ENABLED), when the bus last reported an error
+    (send or receive failure, error frame; -inf: never) and what it was."""
     ok: bool
     cause: str
     enabled: bool
+    bus_error_t: float = -math.inf
+    bus_cause: str = ""
+
+
+def bus_error(conv: Converters, t: float, lim: Limits, h: float) -> Finding:
+    """A bus error within the staleness window: frames may have been lost in it."""
+    window = lim.stale_periods * h
+    if t - conv.bus_error_t <= window:
+        return ("converter", t - conv.bus_error_t, window,
+                f"CAN bus: {conv.bus_cause} ({(t - conv.bus_error_t) * 1e3:.0f} ms ago)")
+    return None
 
 
 class Channel:
@@ -368,6 +380,8 @@ class Supervisor:
                     break
         if not conv.ok:
             why.append(f"converters: {conv.cause}")
+        elif (f := bus_error(conv, t, lim, self.h)) is not None:
+            why.append(f"converters: {f[3]}")
         return why
 
     def _transitions(self, t: float, conv: Converters, misses: int) -> None:
@@ -425,6 +439,9 @@ class Supervisor:
             return self.trip(t, "recorder", "recorder", math.nan, math.nan, recorder_cause)
         if not conv.ok:
             return self.trip(t, "converters", "converter", math.nan, math.nan, conv.cause)
+        f = bus_error(conv, t, lim, self.h)
+        if f is not None:
+            return self.trip(t, "converters", *f)
         if self.state is State.RUNNING and not conv.enabled:
             return self.trip(t, "converters", "disabled", math.nan, math.nan,
                              "a power stage left OPERATION ENABLED while running")

@@ -2,7 +2,8 @@
 
 Each dataclass field may carry a constraint in ``field(metadata={"check": ...})``;
 ``positive``, ``nonneg``, ``nonzero``, ``unit_interval`` and ``probability`` are provided.
-Errors name the file, the key path (``controller.gains.K_P_psi``) and what was expected.
+Errors name the file, the key path (``controller.gains.K_P_psi``) and what was expected;
+a dataclass's ``REMOVED_KEYS`` (key -> what replaced it) names a key of older configs as removed.
 """
 
 from __future__ import annotations
@@ -116,6 +117,10 @@ def build(cls: type, data: Any, path: str = "", file: str | None = None) -> Any:
     hints = get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(data) - set(fields))
+    removed = getattr(cls, "REMOVED_KEYS", {})     # key -> what replaced it, for old configs
+    for k in unknown:
+        if k in removed:
+            raise ConfigError(file, f"{path}.{k}" if path else str(k), f"no such key (removed: {removed[k]})")
     if unknown:
         p = f"{path}.{unknown[0]}" if path else str(unknown[0])
         raise ConfigError(file, p, "no such key (known: " + ", ".join(sorted(fields)) + ")", None)

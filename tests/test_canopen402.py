@@ -12,7 +12,7 @@ import can
 import canopen
 import pytest
 from canopen.profiles.p402 import State402
-from hypothesis import given
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from drivers import cia402 as c4
@@ -368,47 +368,69 @@ def test_drive_stops_when_runtime_heartbeat_stops(rig, buses):
     assert all(rig.vds.drives[w].error_code == c4.EMCY_HEARTBEAT for w in WHEELS)
 
 
+N_FAULT = 40        # cycles (= SYNCs sent) with the fault injected
+
+# what the driver reports of each fault: the drive's own word (INVALID) or an observation
+# (FRESH, with its counts) that the supervisor's rules judge (stale, stuck, corrupt)
 FAULT_CASES = [
-    ("dropout", {}, Freshness.STALE, "TPDO missing"),
+    ("dropout", {}, Freshness.FRESH, ""),
     ("no_heartbeat", {}, Freshness.INVALID, "heartbeat missing"),
-    ("bus_error", {"fraction": 1.0}, Freshness.INVALID, "bus error"),
+    ("bus_error", {"fraction": 1.0}, Freshness.INVALID, "heartbeat missing"),
     ("out_of_range", {}, Freshness.INVALID, "EMCY 0x2310"),
     ("out_of_range", {"mode": "saturate"}, Freshness.INVALID, "INT32 limit"),
-    ("stuck", {}, Freshness.STALE, "frozen"),
-    ("corrupt", {}, Freshness.STALE, "garbled TPDO discarded (DLC 5 != 8"),
-    ("corrupt", {"fraction": 0.5, "dlc": 3}, Freshness.FRESH, "garbled TPDO discarded (DLC 3 != 8"),
+    ("stuck", {}, Freshness.FRESH, ""),
+    ("corrupt", {}, Freshness.FRESH, f"garbled TPDO discarded (DLC 5 != 8, {N_FAULT} since open)"),
+    ("corrupt", {"fraction": 0.5, "dlc": 3}, Freshness.FRESH, ""),
     ("offset", {"omega_rad_s": 1.0}, Freshness.FRESH, ""),
 ]
 
 
 @pytest.mark.parametrize("kind, params, freshness, cause", FAULT_CASES, ids=lambda v: str(v)[:20])
 def test_fault_kinds_are_reported_and_never_invent_values(rig, kind, params, freshness, cause):
-    def varying(t):                                  # a changing command (needed to tell "stuck")
+    def varying(t):                                  # a changing command
         return {w: 1.0 + 0.5 * math.sin(20 * t) for w in WHEELS}
 
     r0 = rig.cycle(varying, n=10)
-    assert r0.enabled
+    assert r0.enabled and r0["rl"].syncs_unanswered == 0
     t_inject = rig.t
+    tpdo0 = rig.drv.counters()["rl.tpdo"]
     rig.vds.inject(kind, "rl", **params)
-    r = rig.cycle(varying, n=40)
+    r = rig.cycle(varying, n=N_FAULT)
     x = r["rl"]
     assert x.health.state is freshness, x.health.cause
     assert cause in x.health.cause
+    valid = rig.drv.counters()["rl.tpdo"] - tpdo0
     offset = params.get("omega_rad_s", 0.0)
-    if kind == "dropout" or kind == "corrupt" and not params:     # last real value, with its time
-        assert x.t <= t_inject
+    if kind in ("dropout", "bus_error") or kind == "corrupt" and not params:
+        # no valid TPDO1 since the injection: every SYNC sent since is unanswered, the last
+        # real value is kept with its time
+        assert valid == 0 and x.syncs_unanswered == N_FAULT and x.t <= t_inject
+    else:
+        # the garbled answers since the latest valid one (each SYNC gets one frame)
+        assert x.syncs_unanswered <= x.health.bad_frames if kind == "corrupt" else x.syncs_unanswered == 0
     if kind == "out_of_range" and params.get("mode") == "saturate":
         assert math.isnan(x.omega)
     else:
         assert rig.measured("rl", x.omega, offset), (x.omega, kind)
     if kind == "out_of_range" and not params:
         assert x.state == c4.FAULT and rig.vds.current_A("rl") == 0.0
-    if kind == "corrupt":
-        assert x.health.bad_frames >= (30 if "fraction" not in params else 5)
-    if kind == "bus_error":
-        assert rig.drv.error_frames > 0 and all(y.health.state is Freshness.INVALID for y in r)
+    if kind == "stuck":                              # the same payload over and over: judged by `stuck`
+        assert valid == N_FAULT and x.omega == r0["rl"].omega and x.current_A == r0["rl"].current_A
+    if kind == "corrupt":                            # each SYNC answered by one frame, valid or garbled
+        assert x.health.bad_frames + valid == N_FAULT and x.health.bad_frames >= 5
+        # a note while the latest TPDO1 was garbled, which is exactly when a SYNC is unanswered
+        assert ("DLC 3 != 8" in x.health.cause or "DLC 5 != 8" in x.health.cause) == (x.syncs_unanswered > 0)
     else:
-        assert all(r[w].health.fresh for w in ("fl", "fr", "rr")), [r[w].health.cause for w in WHEELS]
+        assert x.health.bad_frames == 0
+    if kind == "bus_error":                          # counted and stamped; the other drives are fine
+        assert rig.drv.error_frames > 0 and r.bus.errors == rig.drv.error_frames
+        assert r.bus.state is Freshness.FRESH and r.bus.cause == "bus error: error frame on the bus"
+        assert r.bus_error_t == rig.t                # the final poll drained the latest error frame
+    else:
+        assert r.bus.errors == 0 and r.bus_error_t == -math.inf and r.bus.cause == ""
+    assert all(r[w].health.fresh and r[w].syncs_unanswered == 0 for w in ("fl", "fr", "rr")), \
+        [r[w].health.cause for w in WHEELS]
+    assert r.enabled is (freshness is Freshness.FRESH)
     # clear the fault, deactivate and activate again (the supervisor's FAULT, reset and ARM;
     # fault reset where needed): everything comes back
     rig.vds.clear(kind)
@@ -448,8 +470,10 @@ def test_send_failures_are_counted_not_raised(rig, buses, monkeypatch):
     rig.drv.write({w: 1.0 for w in WHEELS}, rig.t)
     r = rig.drv.poll(rig.t)
     assert rig.drv.send_errors == 5 and "Transmit buffer full" in rig.drv.last_bus_error
-    assert r.bus.state is Freshness.INVALID and not r.enabled
-    assert all("bus error" in x.health.cause for x in r)
+    # reported, not judged: a count, the latest cause and its time (the supervisor decides)
+    assert r.bus.state is Freshness.FRESH and r.bus.errors == 5 and r.bus_error_t == rig.t
+    assert r.bus.cause == "bus error: send of 0x%03X failed: Transmit buffer full" % (0x200 + 4)
+    assert all(x.health.fresh and "bus error" not in x.health.cause for x in r)
 
 
 def test_poll_survives_garbage_frames(rig, buses):
@@ -551,8 +575,9 @@ def test_unconfigured_tpdo_mapping_shows_up_as_garbled(rig):
     node = rig.vds.drives["rr"].node
     node.sdo.download(0x1A00, 0, b"\x01")
     r = rig.cycle({}, n=10)
-    assert r["rr"].health.state is Freshness.STALE
-    assert "DLC 2 != 8" in r["rr"].health.cause and r["fl"].health.fresh
+    assert r["rr"].health.state is Freshness.FRESH and r["rr"].syncs_unanswered == 10
+    assert r["rr"].health.bad_frames == 10
+    assert "DLC 2 != 8" in r["rr"].health.cause and r["fl"].health.fresh and r["fl"].health.cause == ""
 
 
 def _realtime_attempt(channel: str):
@@ -694,7 +719,8 @@ def test_startup_against_canopen_localnode(buses, channel):
                     break
             for x in r:
                 assert x.nmt_state == c4.NMT_OPERATIONAL and counters[f"{x.wheel}.heartbeat"] >= 2
-                assert x.health.state is Freshness.STALE and "no TPDO" in x.health.cause
+                assert x.health.state is Freshness.FRESH and x.health.cause == "no TPDO received yet"
+                assert math.isnan(x.t) and x.syncs_unanswered == 0     # no SYNC sent, none answered
         finally:
             drv.close()
         deadline = time.monotonic() + 5.0          # the peer's notifier thread handles the NMT
@@ -718,3 +744,29 @@ def test_virtual_wheel_speeds_set_together_or_refused(buses, channel):
     part = VirtualDriveSet(can_cfg(channel, ids=(1,)), buses[1])
     with pytest.raises(KeyError, match="no virtual drive for wheel 'fr'"):
         part.set_wheel_speeds([1.0, 2.0, 3.0, 4.0])
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(steps=st.lists(st.sampled_from(("write", "service", "poll")), min_size=1, max_size=25))
+def test_unanswered_counts_the_syncs_sent_not_the_time(configured, steps):
+    """The count is one per SYNC the runtime sent and 0 again with each valid TPDO1 drained;
+    polls that send nothing (a runtime that is late) never raise it, whatever time passes.
+    Model: every SYNC the drives were served is answered by one TPDO1 per drive."""
+    rig = configured
+    rig.drv.poll(rig.t)
+    rig.vds.service(rig.t)
+    base = rig.drv.poll(rig.t)["fl"].syncs_unanswered        # everything served and drained
+    count, syncs_at_drives, tpdos_on_wire = base, 0, 0
+    for step in steps:
+        rig.t += H * 3                                       # time passes; it is not what counts
+        if step == "write":
+            rig.drv.write({}, rig.t)
+            count, syncs_at_drives = count + 1, syncs_at_drives + 1
+        elif step == "service":
+            rig.vds.service(rig.t)
+            tpdos_on_wire, syncs_at_drives = tpdos_on_wire + syncs_at_drives, 0
+        else:
+            r = rig.drv.poll(rig.t)
+            if tpdos_on_wire:
+                count, tpdos_on_wire = 0, 0
+            assert [x.syncs_unanswered for x in r] == [count] * 4, steps

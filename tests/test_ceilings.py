@@ -51,7 +51,6 @@ LOOSENED = [
     ("controller.yaml", _set("limits", "overrun_burst", 11), "limits.overrun_burst", 11, "10"),
     ("controller.yaml", _set("limits", "stop_ramp_s", 60.0), "limits.stop_ramp_s", 60.0, "1"),
     ("sim.yaml", _set("devices", "watchdog_ms", 60000, sub="can"), "devices.can.watchdog_ms", 60000, "100"),
-    ("sim.yaml", _set("devices", "tpdo_timeout_periods", 50, sub="can"), "devices.can.tpdo_timeout_periods", 50, "10"),
     ("sim.yaml", _set("devices", "heartbeat_timeout_factor", 1000.0, sub="can"),
      "devices.can.heartbeat_ms x heartbeat_timeout_factor", 100000.0, "500"),
     ("sim.yaml", _drive(2, "heartbeat_ms", 1000),

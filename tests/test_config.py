@@ -60,6 +60,9 @@ def _write_variant(tmp_path, section_file, mutate):
     ("sim.yaml", lambda d: d["devices"]["can"]["drives"][1].__setitem__("node_id", 200),
      "devices.can.drives[1].node_id", "node id"),
     ("sim.yaml", lambda d: d["devices"]["lasers"][1].__setitem__("role", "b_f"), "devices.lasers", "duplicate"),
+    # a removed key is named as removed, with what judges it now
+    ("sim.yaml", lambda d: d["devices"]["can"].__setitem__("tpdo_timeout_periods", 4),
+     "devices.can.tpdo_timeout_periods", "removed: a drive's TPDO is judged now by limits.stale_periods"),
 ])
 def test_bad_values_name_file_and_key(tmp_path, section_file, mutate, key, expected):
     main, changed = _write_variant(tmp_path, section_file, mutate)

@@ -36,11 +36,10 @@ from rig_runtime.errors import ConfigError, DeviceInitError
 from sim_backend.virtual_ft import VirtualFTServer
 
 TIMEOUT_S = 0.1
-STALE_S = 0.3
 # For the tests that count no timeout or one connect: TIMEOUT_S lets a reply the server's
 # thread sends 0.1 s late (a loaded machine) count as a timeout and reconnect. The short
-# ones stay for the tests of dropouts, staleness and bad frames.
-PATIENT = {"timeout_s": 1.0, "stale_s": 2.0}
+# one stays for the tests of dropouts and bad frames.
+PATIENT = {"timeout_s": 1.0}
 W_LEFT = Wrench(fx=-12.34, fy=0.5, fz=9.81, mx=-0.25, my=-0.5, mz=1.5)
 # the same wrench, encoded by hand: -1234 -> 65536-1234 = 64302, -250 -> 65286, -500 -> 65036
 REGS_LEFT = [64302, 50, 981, 65286, 65036, 1500]
@@ -50,9 +49,9 @@ POLLERS = ("process", "thread", "inline")
 
 
 def bus(*names: str, poll_hz: float = 100.0, timeout_s: float = TIMEOUT_S, poller: str = "process",
-        stale_s: float = STALE_S, **kw) -> FTBus:
+        **kw) -> FTBus:
     sensors = kw.pop("sensors", None) or tuple(FTSensor(name=n) for n in names)
-    return FTBus(poller=poller, poll_hz=poll_hz, timeout_s=timeout_s, stale_s=stale_s, sensors=sensors)
+    return FTBus(poller=poller, poll_hz=poll_hz, timeout_s=timeout_s, sensors=sensors)
 
 
 def wait_for(pred, timeout: float = 5.0, step: float = 0.005):
@@ -109,8 +108,8 @@ def _running(server, poller: str, **kw):
                 raise
             warnings.warn(f"F/T open, attempt {attempt}: the server's thread answered late "
                           f"(a stall of the machine), opening again: {exc}")
-    # inline: the reads at open have no time on the caller's clock (STALE until polled)
-    wait_for(lambda: all(r.health.fresh for r in d.poll(time.monotonic()).values()))
+    # inline: the reads at open have no time on the caller's clock (t = -inf until polled)
+    wait_for(lambda: all(r.health.fresh and r.t > -math.inf for r in d.poll(time.monotonic()).values()))
     return d
 
 
@@ -118,7 +117,7 @@ def _running(server, poller: str, **kw):
 def driver(server, request):
     """The driver polling in real time: in its own process (default), in threads, or inline
     (in the ``poll(time.monotonic())`` calls of the test; the server answers from its thread).
-    Short timeout and staleness (TIMEOUT_S, STALE_S): for dropouts, staleness, bad frames."""
+    Short timeout (TIMEOUT_S): for dropouts and bad frames."""
     d = _running(server, request.param)
     yield d
     d.close()
@@ -126,7 +125,7 @@ def driver(server, request):
 
 @pytest.fixture(params=POLLERS)
 def patient_driver(server, request):
-    """``driver`` with a 1 s timeout and 2 s staleness (PATIENT): for the tests that count
+    """``driver`` with a 1 s timeout (PATIENT): for the tests that count
     no timeout, where a late reply of the server's thread must not count as one."""
     d = _running(server, request.param, **PATIENT)
     yield d
@@ -242,25 +241,26 @@ def test_values_arrive_fresh(server, patient_driver):
     assert r["left"].wrench == W_LEFT
     assert r["right"].wrench == Wrench(fz=100.0)
     for reading in r.values():
-        assert reading.health.state is Freshness.FRESH and reading.age < PATIENT["stale_s"]
+        assert reading.health.state is Freshness.FRESH and reading.health.cause == ""
+        assert math.isfinite(reading.t) and reading.age >= 0.0
     server.set_wrench("left", Wrench(fy=-1.0))
     wait_for(lambda: driver.poll(time.monotonic())["left"].wrench == Wrench(fy=-1.0))
 
 
-def test_dropout_goes_stale_counts_timeouts_and_recovers(server, driver):
+def test_dropout_counts_timeouts_keeps_t_and_recovers(server, driver):
+    """A silent sensor: timeouts counted, the last sample kept with its time (its age is the
+    supervisor's to judge), the state FRESH (the sensor said nothing against it)."""
     server.inject("left", "dropout")
-    r = wait_for(lambda: (x := driver.poll(time.monotonic())["left"]).health.state is Freshness.STALE and x)
-    assert r.age > STALE_S
-    assert r.wrench == W_LEFT                      # last valid sample kept, flagged stale
-    assert "timeout" in r.health.cause
-    assert r.health.timeouts >= 1 and r.health.errors == 0 and r.health.bad_frames == 0
-    wait_for(lambda: driver.poll(time.monotonic())["left"].health.timeouts >= 3)   # keeps counting
-    t_stale = r.t
-    later = wait_for(lambda: (x := driver.poll(time.monotonic())["left"]).age > r.age + 0.05 and x)
-    assert later.t == t_stale                      # age grows, no new sample
-    wait_for(lambda: driver.poll(time.monotonic())["right"].health.state is Freshness.FRESH)   # unaffected
+    r = wait_for(lambda: (x := driver.poll(time.monotonic())["left"]).health.timeouts >= 1 and x)
+    assert r.wrench == W_LEFT                      # last valid sample kept, with its time
+    assert r.health.state is Freshness.FRESH and "timeout" in r.health.cause
+    assert r.health.errors == 0 and r.health.bad_frames == 0
+    later = wait_for(lambda: (x := driver.poll(time.monotonic())["left"]).health.timeouts >= 3 and x)
+    assert later.t == r.t and later.age > r.age    # keeps counting; no new sample, age grows
+    assert later.health.state is Freshness.FRESH and "timeout" in later.health.cause
+    assert driver.poll(time.monotonic())["right"].health.cause == ""       # unaffected
     server.clear("left", "dropout")
-    wait_for(lambda: driver.poll(time.monotonic())["left"].health.fresh)
+    wait_for(lambda: (x := driver.poll(time.monotonic())["left"]).t > r.t and x.health.cause == "")
 
 
 def _value(h):
@@ -269,7 +269,7 @@ def _value(h):
 
 def test_health_is_one_value_until_something_changes(server, driver):
     """A new health is built when state, cause or a count changes, else the same object
-    is handed out again — through samples, an exception, a dropout going stale, recovery."""
+    is handed out again — through samples, an exception, a dropout's timeouts, recovery."""
     wait_for(lambda: driver.poll(time.monotonic())["left"].health.fresh)
     healths = []
 
@@ -290,15 +290,16 @@ def test_health_is_one_value_until_something_changes(server, driver):
     sample(50)
     server.clear("left")
     server.inject("left", "dropout")
-    wait_for(lambda: driver.poll(time.monotonic())["left"].health.state is Freshness.STALE)
+    wait_for(lambda: driver.poll(time.monotonic())["left"].health.timeouts >= 2)
     sample(50)
     server.clear("left")
-    wait_for(lambda: driver.poll(time.monotonic())["left"].health.fresh)
+    wait_for(lambda: driver.poll(time.monotonic())["left"].health.cause == "")
     sample(50)
     same = [a is b for a, b in zip(healths, healths[1:])]
     assert all((a is b) == (_value(a) == _value(b)) for a, b in zip(healths, healths[1:]))
     assert any(same) and not all(same)
-    assert {h.state for h in healths} == {Freshness.FRESH, Freshness.INVALID, Freshness.STALE}
+    assert {h.state for h in healths} == {Freshness.FRESH, Freshness.INVALID}
+    assert any("timeout" in h.cause for h in healths)
 
 
 def test_exception_response_is_invalid_with_code(server, patient_driver):
@@ -318,7 +319,7 @@ def test_saturated_sample_is_invalid_with_axis_and_value_and_recovers(server, pa
     server.set_wrench("right", Wrench(fz=480.0, fy=3.0))       # beyond the range: pinned at +32767
     r = wait_for(lambda: (x := driver.poll(time.monotonic())["right"]).health.state is Freshness.INVALID and x)
     assert r.health.cause == "Fz saturated at +327.67 N (int16 limit)"
-    assert r.wrench == Wrench(fz=327.67, fy=3.0) and r.age < PATIENT["stale_s"]     # passed on, flagged
+    assert r.wrench == Wrench(fz=327.67, fy=3.0)                # passed on, flagged
     assert r.health.errors >= 1 and r.health.timeouts == r.health.bad_frames == 0
     n = driver.counters()["right.samples"]
     wait_for(lambda: driver.poll(time.monotonic())["right"].health.errors >= r.health.errors + 2)
@@ -332,11 +333,15 @@ def test_saturated_sample_is_invalid_with_axis_and_value_and_recovers(server, pa
 @pytest.mark.parametrize("mode", ["garble", "truncate"])
 def test_garbled_frames_are_counted_as_bad_frames(server, driver, mode):
     server.inject("left", "corrupt", mode=mode)
-    h = wait_for(lambda: (x := driver.poll(time.monotonic())["left"].health).bad_frames >= 2 and x)
-    assert h.errors == 0
-    wait_for(lambda: driver.poll(time.monotonic())["left"].health.state is Freshness.STALE)
+    r = wait_for(lambda: (x := driver.poll(time.monotonic())["left"]).health.bad_frames >= 2 and x)
+    assert r.health.errors == 0
+    # counted and noted; the state stays FRESH (corruption is the supervisor's to judge) and
+    # no sample arrives while every reply is garbled
+    assert r.health.state is Freshness.FRESH and ("garbled" in r.health.cause or "truncated" in r.health.cause)
+    later = wait_for(lambda: (x := driver.poll(time.monotonic())["left"]).health.bad_frames >= 4 and x)
+    assert later.t == r.t and later.health.state is Freshness.FRESH
     server.clear("left", "corrupt")
-    wait_for(lambda: driver.poll(time.monotonic())["left"].health.fresh)
+    wait_for(lambda: (x := driver.poll(time.monotonic())["left"]).t > r.t and x.health.cause == "")
 
 
 def test_stuck_and_offset_faults_change_what_arrives(server, patient_driver):
@@ -447,8 +452,8 @@ def test_connection_loss_is_reported_and_reconnected(poller):
     with FTSensorSet(bus("left", poller=poller, timeout_s=1.0), srv.endpoints, reconnect_s=0.02) as d:
         wait_for(lambda: driver_health(d).fresh)
         srv.close()
-        h = wait_for(lambda: (x := driver_health(d)).state is Freshness.STALE and x)
-        assert "cannot connect" in h.cause and "refused" in h.cause
+        h = wait_for(lambda: "cannot connect" in (x := driver_health(d)).cause and x)
+        assert h.state is Freshness.INVALID and "refused" in h.cause       # the link said so
         c = d.counters()
         assert c["left.disconnects"] == 1 and c["left.connect_failures"] >= 1
         srv2 = VirtualFTServer(["left"], ports={"left": endpoint[1]}).start()
@@ -524,28 +529,28 @@ def test_process_poller_reports_the_counters_and_causes_of_the_child(server):
         assert c["right.connects"] == 1 and c["right.samples"] >= 1
         server.clear("right")
         server.inject("left", "corrupt")
-        h = wait_for(lambda: (x := d.poll(time.monotonic())["left"].health).state is Freshness.STALE and x,
-                     timeout=10.0)                # stale after PATIENT["stale_s"]
-        assert "garbled response: byte count 255" in h.cause and h.bad_frames >= 2 and h.errors == 0
+        h = wait_for(lambda: (x := d.poll(time.monotonic())["left"].health).bad_frames >= 2 and x)
+        assert "garbled response: byte count 255" in h.cause and h.errors == 0
+        assert h.state is Freshness.FRESH               # counted and noted, judged by the supervisor
 
 
-def test_killing_the_server_makes_the_process_poller_stale_with_a_cause():
+def test_killing_the_server_makes_the_process_poller_invalid_with_a_cause():
     srv = VirtualFTServer(["left"], ports={"left": quiet_port()}).start()
     srv.set_wrench("left", W_LEFT)
     with FTSensorSet(bus("left", timeout_s=1.0), srv.endpoints, reconnect_s=0.05, ) as d:
         wait_for(lambda: d.poll(time.monotonic())["left"].health.fresh)
         srv.close()
         r = wait_for(lambda: (x := d.poll(time.monotonic())["left"]).health.state is not Freshness.FRESH and x)
-        assert r.health.state is Freshness.STALE and r.wrench == W_LEFT
+        assert r.health.state is Freshness.INVALID and r.wrench == W_LEFT       # the link is down
         assert "cannot connect" in r.health.cause or "connection lost" in r.health.cause
         assert d.poller.process.is_alive()           # the poller itself keeps trying
 
 
-def test_a_dead_poll_process_shows_as_stale_with_its_exit(server):
+def test_a_dead_poll_process_shows_as_invalid_with_its_exit(server):
     with FTSensorSet(bus("left", "right", timeout_s=1.0), server.endpoints, ) as d:
         proc = d.poller.process
         os.kill(proc.pid, signal.SIGKILL)
-        h = wait_for(lambda: (x := d.poll(time.monotonic())["left"].health).state is Freshness.STALE and x)
+        h = wait_for(lambda: (x := d.poll(time.monotonic())["left"].health).state is Freshness.INVALID and x)
         assert "poll process exited with code -9" in h.cause
     assert not multiprocessing.active_children()
 
@@ -629,11 +634,12 @@ def test_seqlock_slot_round_trip_and_rejected_copies():
         reader.refresh()
         assert holders[0].pub is None                     # nothing published yet
         p = Published(W_LEFT, 12.5, "ünïcode " + "x" * 400, 4, 1, 2, 3,
-                       (("samples", 7), ("connects", 2), ("connect_failures", 1), ("disconnects", 1)))
+                       (("samples", 7), ("connects", 2), ("connect_failures", 1), ("disconnects", 1)),
+                       link_down=True)
         writer.write(1, p)
         reader.refresh()
         got = holders[1].pub
-        assert got.wrench == W_LEFT and got.t == 12.5 and got.exc_code == 4
+        assert got.wrench == W_LEFT and got.t == 12.5 and got.exc_code == 4 and got.link_down is True
         assert (got.timeouts, got.errors, got.bad_frames) == (1, 2, 3) and got.counters == p.counters
         assert got.cause == p.cause.encode()[:240].decode("utf-8", "ignore")
         assert holders[0].pub is None
@@ -650,6 +656,7 @@ def test_seqlock_slot_round_trip_and_rejected_copies():
         shm.buf[SLOT_SIZE + 40] ^= 0xFF
         reader.refresh()
         assert holders[1].pub.wrench == Wrench(1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
+        assert holders[1].pub.link_down is False
     finally:
         shm.close()
         shm.unlink()
@@ -759,8 +766,7 @@ def test_a_register_pinned_at_the_int16_limit_of_a_pymodbus_server_is_invalid(po
         d = FTSensorSet(bus("left", poller=poller, **PATIENT), {"left": ("127.0.0.1", peer.port)})
         d.configure()                       # a saturated sensor answers: the open succeeds
         try:
-            r = wait_for(lambda: (x := d.poll(time.monotonic())["left"]).age < PATIENT["stale_s"]
-                         and x.health.errors >= 2 and x)
+            r = wait_for(lambda: (x := d.poll(time.monotonic())["left"]).health.errors >= 2 and x)
             assert r.health.state is Freshness.INVALID
             assert r.health.cause == "Fz saturated at +327.67 N, Mx saturated at -32.768 N·m (int16 limit)"
             assert r.health.timeouts == r.health.bad_frames == 0

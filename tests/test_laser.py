@@ -323,43 +323,78 @@ def test_average_is_the_mean_of_the_cycle(average):
         assert abs(r.value_m - expected) <= STEP_M / 2 + 1e-12
 
 
-def test_arrival_time_and_staleness_bound(rig):
+def test_arrival_time_is_kept_and_age_is_not_judged(rig):
+    """The driver reports when the latest value arrived; how old is too old is the
+    supervisor's rule: a quiet device stays FRESH here, with its old t."""
     vl, drv = rig
     vl.set_distance(0.06)
     r = _cycle(vl, drv, 1)
-    assert r.t == 0.005
+    assert r.t == 0.005 and r.values_total == 20
     # the device goes quiet without a fault: nothing emitted, the driver keeps polling
-    for now, state in [(0.010, Freshness.FRESH), (0.025, Freshness.FRESH), (0.0251, Freshness.STALE)]:
+    for now in (0.010, 0.025, 0.0251, 10.0):
         r = drv.poll(now)
-        assert r.health.state is state
-        assert r.t == 0.005 and r.n_values == 0
-    assert r.health.cause == "no data for 20 ms"
+        assert r.health.state is Freshness.FRESH and r.health.cause == ""
+        assert r.t == 0.005 and r.n_values == 0 and r.values_total == 20
     assert abs(r.value_m - 0.06) <= STEP_M          # the last value is kept, with its old t
 
 
-def test_stale_before_first_data():
+def test_before_first_data():
+    """Nothing arrived yet: no value, t NaN (never), no complaint from the device."""
     cfg = _cfg()
     with VirtualLaser(cfg) as vl, LaserDriver(cfg, port=vl.port_name) as drv:
-        r = drv.poll(1.0)
-        assert r.health.state is Freshness.STALE and r.health.cause == "no data yet"
-        assert math.isnan(r.value_m) and math.isnan(r.t) and r.raw_x == -1
-        r = drv.poll(1.1)
-        assert r.health.state is Freshness.STALE and r.health.cause == "no data for 100 ms"
+        for now in (1.0, 1.1):
+            r = drv.poll(now)
+            assert r.health.state is Freshness.FRESH and r.health.cause == "no data yet"
+            assert math.isnan(r.value_m) and math.isnan(r.t) and r.raw_x == -1
+            assert r.n_values == 0 and r.values_total == 0
 
 
-def test_dropout_goes_stale_and_recovers(rig):
+def test_dropout_keeps_t_and_recovers(rig):
     vl, drv = rig
     vl.set_distance(0.07)
     _cycle(vl, drv, 1)
     vl.inject("dropout")
-    states = [_cycle(vl, drv, k).health for k in range(2, 8)]
-    assert [h.state for h in states[:4]] == [Freshness.FRESH] * 4    # ages 5, 10, 15, 20 ms
-    assert states[-1].state is Freshness.STALE
-    assert states[-1].cause == "no data for 30 ms"
+    rs = [_cycle(vl, drv, k) for k in range(2, 8)]
+    assert [r.t for r in rs] == [1 * H] * 6                          # age grows with the polls
+    assert {r.health for r in rs} == {rs[0].health} and rs[0].health.fresh
+    assert [r.values_total for r in rs] == [20] * 6
     assert vl.frames_suppressed == 6 * 20
     vl.clear("dropout")
     r = _cycle(vl, drv, 8)
-    assert r.health.fresh and r.t == 8 * H and r.n_values == 20
+    assert r.health.fresh and r.t == 8 * H and r.n_values == 20 and r.values_total == 40
+
+
+def _pipe_driver(average: bool = False):
+    """A driver whose port is the read end of a pipe (bytes written are what it polls)."""
+    import os as _os
+    r, w = _os.pipe()
+    _os.set_blocking(r, False)
+    drv = LaserDriver(_cfg(average=average), port="/dev/null")
+    drv._ser = type("Port", (), {"fd": r})()
+    return drv, r, w
+
+
+def test_a_garbled_only_link_is_counted_not_judged():
+    """Only garbage after one valid value: t stays at that value's arrival, the valid count
+    stands still, the garbled byte count grows by exactly the bytes sent (0xC0..0xFF carry
+    the flag bits 11, which no frame byte has), and the state stays FRESH — naming the
+    corruption is the supervisor's rule."""
+    import os as _os
+    drv, r, w = _pipe_driver()
+    try:
+        _os.write(w, encode_value(32760))            # one valid frame, 3 bytes
+        first = drv.poll(1.0)
+        assert first.values_total == 1 and first.t == 1.0 and first.health.bad_frames == 0
+        for k in range(1, 5):
+            _os.write(w, bytes([0xC0, 0xD5, 0xFF, 0xE1, 0xC3, 0xF0, 0xEE]))     # 7 garbage bytes
+            got = drv.poll(1.0 + k * H)
+            assert got.health.bad_frames == 7 * k
+            assert got.t == 1.0 and got.values_total == 1 and got.n_values == 0
+            assert got.health.state is Freshness.FRESH and got.value_m == first.value_m
+        assert drv.counters()["bytes"] == 3 + 4 * 7 and drv.counters()["values"] == 1
+    finally:
+        _os.close(r)
+        _os.close(w)
 
 
 def test_out_of_range_is_invalid_with_reason(rig):
@@ -375,6 +410,7 @@ def test_out_of_range_is_invalid_with_reason(rig):
     assert r.t == 1 * H                              # the last valid value's arrival, still
     r = drv.poll(2 * H + 0.001)                      # no new frames: stays INVALID, not FRESH
     assert r.health.state is Freshness.INVALID and math.isnan(r.value_m)
+    assert r.values_total == 20                      # error codes are not values
     vl.inject("out_of_range", code=262082)
     assert _cycle(vl, drv, 3).health.cause == "laser off (262082)"
     vl.inject("out_of_range", code=100_000)
@@ -639,3 +675,32 @@ def test_last_values_is_always_a_list(rig):
     assert type(drv.last_values) is list and len(drv.last_values) == 20
     drv.poll(1 * H)                                    # no new bytes
     assert type(drv.last_values) is list and drv.last_values == []
+
+
+@settings(max_examples=100, deadline=None)
+@given(polls=st.lists(st.tuples(st.lists(st.integers(0, MAX_DISTANCE_X), max_size=5),
+                                st.integers(0, 6)), min_size=1, max_size=12))
+def test_counts_and_arrival_time_follow_what_was_sent(polls):
+    """Each poll gets whole valid frames, then garbage bytes (flag bits 11): the cumulative
+    valid count, the garbled byte count and t are exactly what was sent and when; the state
+    is FRESH throughout (no error code, no read error)."""
+    import os as _os
+    drv, r, w = _pipe_driver()
+    try:
+        n_valid = n_bad = 0
+        t_last = math.nan
+        for k, (xs, garbage) in enumerate(polls):
+            now = 1.0 + k * H
+            _os.write(w, encode_list(xs) + bytes([0xC0 + (i * 7) % 64 for i in range(garbage)]))
+            got = drv.poll(now)
+            n_valid += len(xs)
+            n_bad += garbage
+            if xs:
+                t_last = now
+            assert got.values_total == n_valid and got.n_values == len(xs)
+            assert got.health.bad_frames == n_bad
+            assert got.t == t_last or (math.isnan(got.t) and math.isnan(t_last))
+            assert got.health.state is Freshness.FRESH
+    finally:
+        _os.close(r)
+        _os.close(w)

@@ -82,8 +82,8 @@ def running(cfg, t=0.0, carriers=("rear",), limits=None, cs=None):
 def test_arming_requires_fresh_in_range_and_converters_ok(cfg):
     s, _, hw = supervisor(cfg)
     s.request_arm(1.0)
-    step(s, 0.0, b_f={"health": Health(Freshness.STALE, "no data for 30 ms")})
-    assert s.state is State.IDLE and s.arm_blockers == ["b_f: no data for 30 ms"]
+    step(s, 0.0, b_f={"t": -0.03})
+    assert s.state is State.IDLE and s.arm_blockers == ["b_f: no valid value for 30 ms"]
     step(s, 0.005, b_f={"value": 0.2})
     assert s.state is State.IDLE and len(s.arm_blockers) == 1
     assert s.arm_blockers[0].startswith("b_f:") and "outside" in s.arm_blockers[0]
@@ -123,12 +123,12 @@ def test_arm_deadline_passes_and_stop_cancels_arming(cfg):
 @pytest.mark.parametrize("over, check, value, limit", [
     ({"b_f": {"health": Health(Freshness.INVALID, "no peak (262076)")}}, "invalid", 0.07, math.nan),
     ({"b_f": {"t": -1.0}}, "stale", 1.1, 0.02),
-    ({"b_f": {"health": Health(Freshness.STALE, "no data for 30 ms"), "t": 0.07}}, "stale", 0.03, 0.02),
+    ({"b_f": {"t": math.nan}}, "stale", math.inf, 0.02),
     ({"b_f": {"value": math.nan}}, "nan", math.nan, math.nan),
     ({"b_f": {"value": -math.inf}}, "nan", -math.inf, math.nan),
     ({"b_f": {"value": 0.2}}, "range", 0.2, 0.095),
     ({"b_f": {"value": 0.01}}, "range", 0.01, 0.045),
-], ids=["invalid", "stale_age", "stale_state", "nan", "inf", "range_hi", "range_lo"])
+], ids=["invalid", "stale_age", "stale_never", "nan", "inf", "range_hi", "range_lo"])
 def test_channel_checks_latch(cfg, over, check, value, limit):
     s, events, hw = running(cfg)
     step(s, 0.1, **over)
@@ -377,7 +377,7 @@ def test_only_the_rear_carrier_beyond_y_max(cfg):
 def test_hardware_is_switched_only_at_arm_fault_and_end_of_stop(cfg):
     s, events, hw = supervisor(cfg)
     s.request_arm(1.0)
-    step(s, 0.0, b_f={"health": Health(Freshness.STALE, "no data yet")})
+    step(s, 0.0, b_f={"t": math.nan})      # no valid value yet
     assert s.state is State.IDLE and hw.calls == []
     step(s, 0.005, conv=NOT_ENABLED)
     assert s.state is State.ARMED and hw.calls == [("activate", 0.005)]
@@ -453,7 +453,7 @@ def test_activation_timeout(cfg):
 # a nominal channel with at most one defect each, so that a whole set is nominal but for one detail
 _DEFECTS = {
     None: ({}, None),
-    "stale_state": ({"state": Freshness.STALE}, "stale"),
+    "never": ({"age": math.inf}, "stale"),
     "invalid": ({"state": Freshness.INVALID}, "invalid"),
     "old": ({"age": 0.03}, "stale"),
     "nan": ({"v": math.nan}, "nan"),
@@ -488,6 +488,7 @@ def test_the_first_rule_in_order_trips(cfg, spec, counts_on):
              "same": 0, "step_max": 0.01, "lo": 0.045, "hi": 0.095, **p}
         c = Channel(f"c{k}", "laser", p["lo"], p["hi"], 0.02, step_max=p["step_max"], stuck_check=True)
         c.value, c.bad, c.bad_run, c.same = p["prev"], 5, p["bad_run"], p["same"]     # the history
+        c.bad_at_value = 5                  # no garbled frames since the latest valid value
         cs.append(c)
         ss.append(Sample(p["v"], t - p["age"], Health(p["state"], "", bad_frames=5 + p["bad_new"])))
         if check in ("stuck", "corrupt") and not counts_on:
