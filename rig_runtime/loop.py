@@ -22,15 +22,14 @@ from dataclasses import dataclass, field
 from operator import attrgetter
 from typing import Callable, Iterable, Optional, Protocol, Sequence
 
-from . import tuning
 from .clock import Clock
 from .config import LASER_ROLES, WHEELS, RigConfig
 from .control import make_controller
+from .gains import TuningError, admissible
 from .geometry import Measurement, measure
 from .mailbox import Command
 from .safety import Channel, State, Supervisor
 from .stats import CycleStats
-from .tuning import TuningError
 
 
 class DeviceSet(Protocol):
@@ -169,7 +168,7 @@ class ControlLoop:
             name = cmd.name
             ctrls = self.controllers
             try:
-                new = tuning.admissible(self.cfg, name, cmd.value)
+                new = admissible(self.cfg, name, cmd.value)
             except TuningError as e:
                 mb.answer(cmd.seq, False, str(e))
                 return False
