@@ -15,7 +15,6 @@ writes nothing more to the failing device. ``error`` then names the first cause.
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import math
 import os
 import shutil
@@ -27,19 +26,8 @@ import numpy as np
 from h5py import h5s
 
 from .errors import DeviceInitError
-
-LOG_FORMAT = "rig-runtime-log"
-LOG_FORMAT_VERSION = 1
-
-EVENT_FIELDS = ("t", "kind", "device", "check", "value", "limit", "message")
-EVENT_STR_FIELDS = ("kind", "device", "check", "message")
-EVENT_NUM_FIELDS = ("t", "value", "limit")
-
-#: root attributes the recorder writes itself (the caller's ``attrs`` must not use them)
-RESERVED_ATTRS = frozenset({
-    "columns", "log_format", "log_format_version", "recorder_opened", "recorder_closed",
-    "rows_written", "rows_dropped", "events_written", "events_dropped", "recorder_error",
-})
+from .logformat import (EVENT_FIELDS, EVENT_STR_FIELDS, LOG_FORMAT, LOG_FORMAT_VERSION, MIN_FREE_BYTES,
+                        check_columns)
 
 _CHUNK_ROWS = 1024         # cycles per HDF5 chunk (8 KiB per column; 5.1 s at 200 Hz)
 _EVENT_CHUNK = 64
@@ -50,64 +38,10 @@ def utc_now_iso() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
 
 
-def check_columns(columns: Sequence[str]) -> tuple[str, ...]:
-    """The row's column names, validated (non-empty, unique, usable as dataset names)."""
-    cols = tuple(columns)
-    if not cols:
-        raise ValueError("recorder: at least one column")
-    for c in cols:
-        if not isinstance(c, str) or not c or "/" in c or c in (".", "..") or c != c.strip():
-            raise ValueError(f"recorder: invalid column name {c!r} (non-empty, no '/', no surrounding blanks)")
-    dup = sorted({c for c in cols if cols.count(c) > 1})
-    if dup:
-        raise ValueError(f"recorder: duplicate column names {dup}")
-    return cols
-
-
-def attr_value(key: str, v: object) -> object:
-    """Convert a caller attribute to something HDF5 stores portably (MATLAB-readable)."""
-    if isinstance(v, str):
-        return v
-    if isinstance(v, (bool, np.bool_)):
-        return np.int8(bool(v))                     # HDF5 has no bool; h5py's enum confuses MATLAB
-    if isinstance(v, (int, np.integer)):
-        return np.int64(v)
-    if isinstance(v, (float, np.floating)):
-        return np.float64(v)
-    if isinstance(v, Path):
-        return str(v)
-    if isinstance(v, (_dt.datetime, _dt.date)):
-        return v.isoformat()
-    if isinstance(v, (list, tuple)) and v:
-        if all(isinstance(x, str) for x in v):
-            return list(v)
-        if all(isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) for x in v):
-            return [float(x) for x in v]
-    try:
-        return json.dumps(v)                        # mappings, None, mixed lists: as JSON text
-    except (TypeError, ValueError) as e:
-        raise TypeError(f"recorder attribute {key!r}: cannot store a {type(v).__name__} ({e})") from None
-
-
-def check_attrs(attrs: Mapping[str, object]) -> dict[str, object]:
-    """The caller's root attributes, converted (picklable: they cross to the sidecar)."""
-    out: dict[str, object] = {}
-    for k, v in attrs.items():
-        if not isinstance(k, str) or not k or "/" in k:
-            raise ValueError(f"recorder: invalid attribute name {k!r}")
-        if k in RESERVED_ATTRS:
-            raise ValueError(f"recorder: attribute name {k!r} is reserved for the recorder")
-        out[k] = attr_value(k, v)
-    return out
-
-
 def _h5_attr(v: object) -> object:
     if isinstance(v, list):
         return np.array(v, dtype=_STR) if v and isinstance(v[0], str) else np.asarray(v, dtype=np.float64)
     return v
-
-
-MIN_FREE_BYTES = 32 * 2**20      # below this much free disk space the writer stops cleanly
 
 
 class LogFile:

@@ -24,17 +24,16 @@ from dataclasses import dataclass, field
 from operator import attrgetter
 from typing import Callable, Iterable, Optional, Sequence
 
-from . import tuning
 from .clock import Clock
 from .config import WHEELS, RigConfig
 from .control import PIPDInternals
+from .gains import TuningError, admissible
 from .geometry import Measurement, measure
 from .hardware import Hardware
 from .lanes import Lane, make_lanes, wheel_currents
 from .mailbox import Command
 from .safety import Channel, State, Supervisor
 from .stats import CycleStats
-from .tuning import TuningError
 
 
 @dataclass
@@ -174,7 +173,7 @@ class ControlLoop:
             name = cmd.name
             ctrls = self.controllers
             try:
-                new = tuning.admissible(self.cfg, name, cmd.value)
+                new = admissible(self.cfg, name, cmd.value)
             except TuningError as e:
                 mb.answer(cmd.seq, False, str(e))
                 return False

@@ -44,8 +44,7 @@ from typing import Mapping, Sequence
 from . import ring
 from .clock import as_background_process
 from .errors import DeviceInitError
-from .logfile import (EVENT_FIELDS, EVENT_NUM_FIELDS, EVENT_STR_FIELDS, LOG_FORMAT, LOG_FORMAT_VERSION,  # noqa: F401 - re-exported
-                      MIN_FREE_BYTES, RESERVED_ATTRS, check_attrs, check_columns)
+from .logformat import MIN_FREE_BYTES, check_attrs, check_columns     # no h5py: the sidecar writes the file
 from .mailbox import Mailbox
 from .sidecar import SidecarSpec, flush_period
 

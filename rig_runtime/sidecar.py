@@ -32,13 +32,16 @@ import signal
 import sys
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from . import ring
 from .clock import as_background_thread
 from .errors import DeviceError, RigError, picklable
-from .logfile import MIN_FREE_BYTES, LogFile
+from .logformat import MIN_FREE_BYTES
 from .stats import Histogram
+
+if TYPE_CHECKING:
+    from .logfile import LogFile
 
 _POLL_S = 0.025            # wake-up period with no live output
 _LIVE_POLL_S = 0.005       # with live outputs: every cycle at 200 Hz
@@ -113,6 +116,7 @@ def main(ring_path: str, spec: SidecarSpec, conn: multiprocessing.connection.Con
     cons = ring.Consumer(mm, layout)
     info = LogInfo(spec.path, tuple(spec.columns), dict(spec.attrs))
     outputs: list[tuple[str, Any]] = []
+    from .logfile import LogFile        # h5py: in the sidecar's process only, never the loop's
     log = LogFile(spec.path, spec.columns, spec.attrs, spec.min_free_bytes)
     try:
         def mailbox():

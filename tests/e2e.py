@@ -9,7 +9,7 @@ import numpy as np
 
 from drivers import cia402 as co
 from rig_runtime import config
-from rig_runtime.export import read_log
+from rig_runtime.app.export import read_log
 from rig_runtime.scenario import load_scenario
 from rig_runtime.app.dryrun import run_lockstep
 

@@ -219,7 +219,7 @@ def test_free_response_scenario_in_a_dry_run_lifts_the_carrier_and_logs_the_kind
     """The simulator's side of ident-free-response: the rear carrier starts at the initial yaw
     angle, swings without roller contact (y_r still, no wheel-speed difference) and the log
     carries the experiment kind."""
-    from rig_runtime.export import read_log
+    from rig_runtime.app.export import read_log
     log = next(p for p in runs["shipped"]["logs"] if "free-response" in Path(p).name)
     d = read_log(log)
     assert d["attrs"]["experiment"] == "free-response"

@@ -18,7 +18,7 @@ from rig_runtime.app import figures, runlog
 from rig_runtime.app.cli import main
 from rig_runtime.app.commands import _print_summary
 from rig_runtime.app.dryrun import run_lockstep
-from rig_runtime.export import column_header, column_unit, state_name
+from rig_runtime.app.export import column_header, column_unit, state_name
 from rig_runtime.safety import State
 from rig_runtime.scenario import load_scenario
 

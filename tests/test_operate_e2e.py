@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from rig_runtime import config
-from rig_runtime.export import read_log
+from rig_runtime.app.export import read_log
 from rig_runtime.safety import State
 
 from .conftest import ROOT

@@ -20,7 +20,7 @@ from rig_runtime import logfile as logmod
 from rig_runtime import sidecar
 from rig_runtime.logfile import LogFile
 from rig_runtime.errors import DeviceInitError
-from rig_runtime.export import events_path_for, read_log, to_csv
+from rig_runtime.app.export import events_path_for, read_log, to_csv
 from rig_runtime.recorder import Recorder
 
 from .conftest import ROOT

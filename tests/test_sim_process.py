@@ -30,7 +30,7 @@ import pytest
 
 from rig_runtime import config, schema
 from rig_runtime.errors import DeviceInitError
-from rig_runtime.export import read_log
+from rig_runtime.app.export import read_log
 from sim_backend.launcher import start_sim_process
 from sim_backend.realtime_sim import RealtimeSim
 from sim_backend.slcan import SlcanAdapter, encode_frame, parse_frame

@@ -7,7 +7,7 @@ import json
 
 from rig_runtime.app.live import STATUS_FAULTS, snapshot
 from rig_runtime.clock import LockstepClock
-from rig_runtime.export import read_log
+from rig_runtime.app.export import read_log
 from rig_runtime.loop import ControlLoop
 from rig_runtime.recorder import Recorder
 from rig_runtime.safety import Fault

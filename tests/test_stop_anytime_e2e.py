@@ -27,7 +27,7 @@ import warnings
 import pytest
 
 from rig_runtime.config import WHEELS
-from rig_runtime.export import read_log
+from rig_runtime.app.export import read_log
 
 from .test_sim_process import SharedSim, _known_runtime_fault, _sim_stats
 

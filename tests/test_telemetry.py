@@ -295,7 +295,7 @@ FIELDS = {("rear", "u"): "rear_u_cmd", ("rear", "y"): "y_r", ("rear", "psi"): "p
                     reason="the recording sidecar (rig_runtime.app.live) is not in this tree yet")
 def test_dry_run_streams_telemetry(tmp_path, receiver):
     """`rig dry-run --telemetry udp://...`: a plain socket receives the run's cycles."""
-    from rig_runtime.export import read_log
+    from rig_runtime.app.export import read_log
 
     port = receiver.getsockname()[1]
     rcvbuf = _large_receive_buffer(receiver, 4 << 20)

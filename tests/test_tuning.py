@@ -7,7 +7,7 @@ import pytest
 
 from rig_runtime import analysis, config, schema, tuning
 from rig_runtime.errors import ConfigError
-from rig_runtime.tuning import GainChange, TuningError
+from rig_runtime.gains import GainChange, TuningError
 
 
 def with_bounds(cfg, **bounds):
@@ -92,7 +92,7 @@ def test_p_law(cfg):
 
 
 def test_shipped_bounds_are_stable_one_gain_at_a_time(cfg):
-    for name in tuning.PIPD_GAINS:
+    for name in config.PIPD_GAINS:
         lo, hi = cfg.controller.tuning[name]
         for v in (lo, hi):
             assert tuning.check(cfg, name, v).new == v

@@ -16,9 +16,10 @@ import numpy as np
 import pytest
 import yaml
 
-from rig_runtime import analysis, config, preflight
+from rig_runtime import analysis, config
+from rig_runtime.app import preflight
+from rig_runtime.app.export import read_log, to_csv
 from rig_runtime.errors import ConfigError, LogError, RigError
-from rig_runtime.export import read_log, to_csv
 from rig_runtime.recorder import Recorder
 from rig_runtime.scenario import FaultInjection, OpenLoop, RefPoint, Scenario, SineInput, load_scenario
 

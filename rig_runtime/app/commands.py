@@ -11,9 +11,9 @@ import logging
 import sys
 from pathlib import Path
 
-from .. import preflight
-from ..metrics import clean
+from . import preflight
 from .command import arg, command
+from .metrics import clean
 from .runner import EXIT_OK, default_log_path, execute
 
 
@@ -133,7 +133,7 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
     preflight.check_run(cfg, scenario, args.duration, log=log, log_is_default=not args.log, report=args.report)
     outputs = _live_outputs(args, realtime=args.realtime)
     if args.realtime:
-        from ..metrics import steps_from_log
+        from .metrics import steps_from_log
         from .realtime_dryrun import run_realtime_dry_run
         summary, code = run_realtime_dry_run(cfg, scenario, log, seed=args.seed, duration_s=args.duration,
                                              status=sys.stderr.isatty() and not args.json, stops=args.stops,

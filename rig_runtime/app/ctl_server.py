@@ -59,7 +59,7 @@ def default_ctl_path() -> Path:
 def _plain(x: Any) -> Any:
     """A value JSON does not know (a numpy scalar, ...): its Python value, else its text."""
     item = getattr(x, "item", None)
-    from ..metrics import clean     # numpy: the server's side only, not the `rig ctl` client's
+    from .metrics import clean      # numpy: the server's side only, not the `rig ctl` client's
     return clean(item()) if callable(item) else str(x)
 
 
@@ -219,7 +219,7 @@ class CtlServer:
 
     @staticmethod
     def _encode(ans: dict) -> bytes:
-        from ..metrics import clean     # numpy: the server's side only, not the `rig ctl` client's
+        from .metrics import clean      # numpy: the server's side only, not the `rig ctl` client's
         return json.dumps(clean(ans), default=_plain).encode() + b"\n"
 
     # ------------------------------------------------------------------ requests

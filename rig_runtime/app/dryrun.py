@@ -15,8 +15,8 @@ from sim_backend.rig import SimulatedRig
 from ..clock import LockstepClock
 from ..config import RigConfig
 from ..devices import RigDevices
-from ..metrics import steps_from_log
 from ..scenario import Scenario
+from .metrics import steps_from_log
 from .runner import execute
 from .signals import StopSignals
 

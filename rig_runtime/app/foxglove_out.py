@@ -181,10 +181,10 @@ class FoxgloveServer:
 
 
 def export_mcap(log_path: str | Path, out_path: str | Path) -> int:
-    """Write a log (``rig_runtime.export.read_log``) as an MCAP file Foxglove opens, with the
+    """Write a log (``rig_runtime.app.export.read_log``) as an MCAP file Foxglove opens, with the
     topics and schemas of the live server (a log has no status snapshots: ``/rig/health``
     stays empty). Refuses to overwrite ``out_path``. Returns the number of rows written."""
-    from ..export import read_log
+    from .export import read_log
 
     fg = _sdk("mcap export")
     out = Path(out_path)

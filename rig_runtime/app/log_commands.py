@@ -14,10 +14,10 @@ import math
 from pathlib import Path
 from typing import Callable
 
-from .. import preflight
 from ..errors import ConfigError
-from ..metrics import clean
+from . import preflight
 from .command import COMMANDS, command
+from .metrics import clean
 
 EXIT_OK = 0
 _ACTIONS: dict[str, tuple[Callable[[argparse.Namespace], int], str, list]] = {}
@@ -175,7 +175,7 @@ def export_csv(log: str, out: str) -> int:
     """``rig log export`` and ``rig export``: the log as CSV with units in the header and state
     names, the events beside it as ``OUT.events.csv``; prints what it wrote."""
     from ..errors import LogError
-    from ..export import events_path_for, to_csv
+    from .export import events_path_for, to_csv
     if not Path(log).exists():
         raise LogError(log, "no such file")
     ev = events_path_for(out)

@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import LogError
-from ..export import read_log, state_name
-from ..metrics import steps_from_log
+from .export import read_log, state_name
+from .metrics import steps_from_log
 
 CARRIERS = ("front", "rear")
 #: per carrier: the wheels (left, right) and the measurement columns of y, ψ (carrier to frame), Δω
@@ -173,7 +173,7 @@ def scenario_of(run: RunLog):
 
 
 def steps(run: RunLog) -> tuple[list[dict], str]:
-    """Step metrics (rig_runtime.metrics) of the reference the run followed; ([], why) when none."""
+    """Step metrics (rig_runtime.app.metrics) of the reference the run followed; ([], why) when none."""
     sc, why = scenario_of(run)
     if sc is None:
         return [], why

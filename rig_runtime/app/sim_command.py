@@ -40,7 +40,8 @@ def _checked(fn):
 
     @functools.wraps(fn)
     def run(args: argparse.Namespace) -> int:
-        from .. import config, preflight
+        from .. import config
+        from . import preflight
         from ..scenario import load_scenario
         preflight.check_duration(args.duration)
         preflight.check_duration(args.status_period, "--status-period")

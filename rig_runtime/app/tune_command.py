@@ -27,7 +27,8 @@ def _fmt_ev(ev) -> str:
 @arg("--design", action="store_true", help="design the PI-PD gains for the configured plant (Sec. 5.2.3)")
 @arg("--write", metavar="CONTROLLER.yaml", help="with --design: write a controller: fragment with the proposal")
 def cmd_tune(args: argparse.Namespace) -> int:
-    from .. import analysis, config, preflight
+    from .. import analysis, config
+    from . import preflight
     cfg = config.load(args.config)
     if args.design or args.write:
         from .design_command import run_design

@@ -50,7 +50,7 @@ def _applied(i: np.ndarray, rated: float) -> np.ndarray:
 
 
 def _from_log(path: Path) -> Experiment:
-    from rig_runtime.export import read_log
+    from rig_runtime.app.export import read_log
     try:
         d = read_log(path)
     except OSError as e:

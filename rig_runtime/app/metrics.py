@@ -71,8 +71,8 @@ def clean(v):
 
 def steps_from_log(log, scenario, h: float) -> list[dict]:
     """``step_info`` for every reference step of ``scenario`` from a recorded run."""
+    from ..scenario import Reference
     from .export import read_log
-    from .scenario import Reference
     if scenario is None:
         return []
     d = read_log(log)["columns"]

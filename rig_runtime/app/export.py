@@ -18,9 +18,9 @@ from typing import Any, Iterator
 import h5py
 import numpy as np
 
-from .errors import ConfigError, LogError
-from .recorder import EVENT_FIELDS, EVENT_STR_FIELDS, LOG_FORMAT
-from .safety import State
+from ..errors import ConfigError, LogError
+from ..logformat import EVENT_FIELDS, EVENT_STR_FIELDS, LOG_FORMAT
+from ..safety import State
 
 _BLOCK = 65536          # rows read per block when exporting
 

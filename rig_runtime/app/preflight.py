@@ -11,16 +11,18 @@ from __future__ import annotations
 
 import math
 import os
+import subprocess
+import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-from . import analysis, ceilings
-from .config import LASER_ROLES, WHEELS, RigConfig
-from .devices import require_complete
-from .errors import ConfigError
-from .scenario import Scenario
+from .. import analysis, ceilings
+from ..config import RigConfig
+from ..devices import require_complete
+from ..errors import ConfigError
+from ..scenario import Scenario
 
 # what a fault injection can do to each kind of device (the simulated devices implement
 # these: sim_backend.virtual_laser/virtual_drive/virtual_ft.FAULT_KINDS; a test keeps them equal)
@@ -133,12 +135,23 @@ def check_output_file(path: str | Path, what: str, *, create_dir: bool = False) 
         raise ConfigError(None, what, f"a path in a writable directory ({why})", str(p))
 
 
-def check_plot_dir(path: str | Path, what: str) -> None:
-    """A directory for PNG plots: matplotlib importable, the path a directory (or creatable)."""
+def _importable(module: str) -> bool:
+    """Whether ``import module`` succeeds in a fresh interpreter like this one (its own
+    session: a stop signal meant for this run does not reach it)."""
     try:
-        import matplotlib  # noqa: F401
-    except ImportError:
-        raise ConfigError(None, what, "matplotlib installed for plots (pip install 'rig-runtime[plot]')") from None
+        r = subprocess.run([sys.executable, "-c", f"import {module}"], stdin=subprocess.DEVNULL,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    except OSError:
+        return False
+    return r.returncode == 0
+
+
+def check_plot_dir(path: str | Path, what: str) -> None:
+    """A directory for PNG plots: matplotlib importable, the path a directory (or creatable).
+    Imported in a child interpreter, not here: ``rig dry-run --report`` checks this in the
+    process that then runs the loop, which must not load matplotlib (plots come after the run)."""
+    if not _importable("matplotlib"):
+        raise ConfigError(None, what, "matplotlib installed for plots (pip install 'rig-runtime[plot]')")
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise ConfigError(None, what, "a directory (this is a file)", str(p))
