@@ -71,7 +71,9 @@ class DriveReadings:
     """All drives of one bus after a poll: ``readings["fl"].omega``; iteration in wheel order.
 
     ``bus`` is the health of the bus itself (send failures, error frames);
-    ``enabled``: the driver is active and every drive OPERATION ENABLED with a FRESH reading.
+    ``enabled``: the driver is active and every drive's latest statusword says OPERATION
+    ENABLED with a reading that is not INVALID (a stale one still counts: whether a drive
+    went silent is the supervisor's stale rule, which then names that drive).
     """
 
     t: float
@@ -736,7 +738,7 @@ class DriveBus(Driver):
             wheels[d.wheel] = WheelReading(d.wheel, d.node_id, d.omega, d.current, sw if sw > 0 else 0,
                                            d.state, d.nmt, nan if t is None else t, d.health,
                                            d.unanswered)
-            if enabled and (state is not Freshness.FRESH or d.state != OPERATION_ENABLED):
+            if enabled and (state is Freshness.INVALID or d.state != OPERATION_ENABLED):
                 enabled = False
         self._enabled = enabled
         if now - self._bus_err_t <= self._hold:
