@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from drivers import cia402 as co
 from rig_runtime import config
@@ -85,3 +87,58 @@ def assert_safe_stop(r, device, check):
     j = kinds.index("fault")
     assert (ev["device"][j], ev["check"][j]) == (device, check)
     assert r.log["rows"] == s["cycles"]
+
+
+# The real-time end-to-end tests run on a shared 2-CPU machine whose scheduling they do not
+# test: each states the tolerance it needs in a run config of its own. These are the
+# hardware's own ceilings (configs/hardware.yaml: stale_s = overrun_s = 50 ms = 10 periods):
+# a loop late by up to 9 periods in a row, an input (a free-running laser, a TPDO answering a
+# SYNC) up to 10 periods late, is within what the machine may take; a longer stall of the
+# runtime or of the simulator is still a fault, and fails the test that meets it.
+REALTIME_TOLERANCE = {"limits.overrun_burst": 10, "limits.stale_periods": 10}
+# the drivers' own TPDO timeout while it exists (issue 17: one staleness setting per kind)
+REALTIME_TOLERANCE_IF_KNOWN = {"devices.can.tpdo_timeout_periods": 10}
+
+
+def config_with(base: Path, out: Path, settings: dict, if_known: dict | None = None) -> Path:
+    """A run config at ``out``: ``base`` (and its includes) with ``settings`` (dotted keys,
+    e.g. ``limits.overrun_burst``) set, every section written out except the hardware
+    description, which stays an include. ``if_known``: settings applied only if the config
+    schema has them. Loaded once here, so a setting beyond a ceiling fails at once."""
+    sections = config.load_sections(Path(base))
+    known = config.load(base)
+    data: dict = {"include": [sections["hardware"][1]]}
+    for name, (value, _) in sections.items():
+        if name != "hardware":
+            data[name] = copy.deepcopy(value)
+
+    def put(key: str, value) -> None:
+        *path, last = key.split(".")
+        d = data
+        for part in path:
+            d = d.setdefault(part, {})
+        d[last] = value
+
+    def in_schema(key: str) -> bool:
+        obj = known
+        for part in key.split("."):
+            if not hasattr(obj, part):
+                return False
+            obj = getattr(obj, part)
+        return True
+
+    for key, value in settings.items():
+        assert in_schema(key), f"no setting {key}"
+        put(key, value)
+    for key, value in (if_known or {}).items():
+        if in_schema(key):
+            put(key, value)
+    out = Path(out)
+    out.write_text(yaml.safe_dump(data, sort_keys=False))
+    config.load(out)
+    return out
+
+
+def realtime_config(base: Path, out: Path) -> Path:
+    """``base`` with the real-time tests' stated tolerance (REALTIME_TOLERANCE)."""
+    return config_with(base, out, REALTIME_TOLERANCE, REALTIME_TOLERANCE_IF_KNOWN)
