@@ -28,7 +28,6 @@ import numpy as np
 import pytest
 
 from rig_runtime import config, schema
-from rig_runtime.errors import DeviceInitError
 from rig_runtime.export import read_log
 from sim_backend.launcher import start_sim_process
 from sim_backend.realtime_sim import RealtimeSim
