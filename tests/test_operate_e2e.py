@@ -13,9 +13,9 @@ runs once and states what it tolerates: the SIGKILL test holds on a fault (it ch
 process and the log, not the control); the `rig ctl` test runs `rig run` against `rig sim`
 at SCHED_FIFO (tests/test_sim_process.py SIM_RT_ARGS: `rig dry-run --realtime` starts its
 simulator at normal priority, and on this machine its lasers fell silent for 75 ms while the
-loop ran on time) with the stated real-time tolerance (tests/e2e.py REALTIME_TOLERANCE: the
-loop may be late up to 9 periods in a row, an input up to 10 periods old — the hardware's
-ceilings); any fault fails it.
+loop ran on time) with the stated real-time tolerance (tests/e2e.py REALTIME_TOLERANCE: a stall
+of up to 0.3 s of the loop or of an input, measured necessary on this machine); any fault
+fails it.
 """
 
 from __future__ import annotations

@@ -11,8 +11,8 @@ Real time on a shared 2-CPU VM: the instants in the start-up are placed from a m
 start-up (one unsignalled run first), those from RUNNING on from the simulator's session
 start (every drive enabled), and more are added while either side of RUNNING has fewer than
 three. The machine's scheduling is not what these tests check: every run uses the generated
-config with the stated real-time tolerance (tests/e2e.py REALTIME_TOLERANCE: the loop may
-be late up to 9 periods in a row, an input up to 10 periods old — the hardware's ceilings).
+config with the stated real-time tolerance (tests/e2e.py REALTIME_TOLERANCE: a stall of up to
+0.3 s of the loop or of an input, measured necessary on this machine).
 Every run is judged once; a fault, whatever its cause, fails the test.
 """
 
@@ -26,12 +26,12 @@ import time
 
 import pytest
 
+from rig_runtime import config
 from rig_runtime.config import WHEELS
 from rig_runtime.export import read_log
 
 from .test_sim_process import SharedSim
 
-CONSUMER_S = 0.25      # the drives' heartbeat consumer time (sim.yaml: 100 ms x 2.5)
 DURATION_S = 1.0       # each run's --duration
 
 
@@ -51,11 +51,19 @@ def _run(sim, log, duration=str(DURATION_S)):
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
 
 
+def _consumer_s(sim) -> float:
+    """The drives' heartbeat consumer time the run config sets (the runtime's heartbeat
+    period x heartbeat_timeout_factor)."""
+    can = config.load(sim.run_config).devices.can
+    return can.heartbeat_ms * can.heartbeat_timeout_factor / 1000.0
+
+
 def _drives_off(sim, t_after: float) -> dict:
     """A status written after ``t_after`` (and after the consumer time, so a consumer that was
     not switched off would have fired by then)."""
-    time.sleep(CONSUMER_S + 0.15)
-    return sim.wait_status(lambda s: s["t"] > t_after + CONSUMER_S, timeout_s=3.0)
+    consumer_s = _consumer_s(sim)
+    time.sleep(consumer_s + 0.15)
+    return sim.wait_status(lambda s: s["t"] > t_after + consumer_s, timeout_s=3.0)
 
 
 def _summary(out: str) -> dict:
@@ -191,7 +199,7 @@ def test_sigkill_after_configure_the_drives_stop_by_themselves(sim, tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait(5)
     t_kill = time.monotonic()
-    st = sim.wait_status(lambda s: s["t"] > t_kill + CONSUMER_S + 0.2
+    st = sim.wait_status(lambda s: s["t"] > t_kill + _consumer_s(sim) + 0.2
                          and all(s["drives"][w]["heartbeat_events"] > events0[w] for w in WHEELS), timeout_s=5.0)
     # the status file shows NMT OPERATIONAL up to 50 ms late; a runtime at SCHED_FIFO may have
     # armed by then and begun enabling the drives: one still READY TO SWITCH ON has no power
