@@ -164,3 +164,9 @@ def config_with(base: Path, out: Path, settings: dict, if_known: dict | None = N
 def realtime_config(base: Path, out: Path) -> Path:
     """``base`` with the real-time tests' stated tolerance (REALTIME_TOLERANCE)."""
     return config_with(base, out, REALTIME_TOLERANCE, REALTIME_TOLERANCE_IF_KNOWN, REALTIME_CEILINGS)
+
+
+def realtime_sim_config(directory: Path) -> Path:
+    """configs/sim.yaml with the stated tolerance, for ``rig sim --config``: the simulated
+    drives take their RPDO watchdog from the simulator's config, not from the runtime."""
+    return realtime_config(config.CONFIG_DIR / "sim.yaml", Path(directory) / "sim-tolerant.yaml")

@@ -24,7 +24,7 @@ from rig_runtime.scenario import load_scenario
 
 from sim_backend.launcher import start_sim_process
 
-from .e2e import realtime_config
+from .e2e import realtime_config, realtime_sim_config
 from .test_sim_process import _finish, _start_run
 
 STATES = {"IDLE", "ARMED", "RUNNING", "STOPPING", "FAULT"}
@@ -300,7 +300,7 @@ def test_tune_figures_gain_labels_boundary_and_paper_overlay():
 # --------------------------------------------------------------------------------- rig run (slow)
 @pytest.mark.slow
 def test_log_tools_on_a_rig_run_log(tmp_path, capsys):
-    with start_sim_process(workdir=tmp_path / "sim",
+    with start_sim_process(config=realtime_sim_config(tmp_path), workdir=tmp_path / "sim",
                            extra_args=["--rt-priority", "50", "--runtime-rt-priority", "80"]) as sim:
         # the real-time tests' stated tolerance (tests/e2e.py): the machine's scheduling is not
         # what this test checks

@@ -38,7 +38,7 @@ from rig_runtime.safety import State
 from sim_backend.launcher import start_sim_process
 
 from .conftest import ROOT
-from .e2e import realtime_config
+from .e2e import realtime_config, realtime_sim_config
 from .test_sim_process import SIM_RT_ARGS
 
 pytestmark = pytest.mark.slow
@@ -168,7 +168,7 @@ def _operate(tmp_path: Path) -> dict:
     with `rig ctl stop`; what each command answered and how the run ended."""
     # the duration only bounds the run: `rig ctl stop` ends it once the operator's part is done,
     # however long the status polls and the seven `rig ctl` launches take on a loaded machine
-    with start_sim_process(extra_args=SIM_RT_ARGS, workdir=tmp_path / "sim") as sp:
+    with start_sim_process(config=realtime_sim_config(tmp_path), extra_args=SIM_RT_ARGS, workdir=tmp_path / "sim") as sp:
         run_config = realtime_config(sp.config_path, tmp_path / "rig-run.yaml")    # the stated tolerance
         return _operate_run(tmp_path, run_config)
 

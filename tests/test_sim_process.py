@@ -33,7 +33,7 @@ from sim_backend.launcher import start_sim_process
 from sim_backend.realtime_sim import RealtimeSim
 from sim_backend.slcan import SlcanAdapter, encode_frame, parse_frame
 
-from .e2e import REALTIME_STALL_S, realtime_config
+from .e2e import realtime_config, realtime_sim_config
 
 WHEELS = ("fl", "fr", "rl", "rr")
 _CFG = config.load()
@@ -301,23 +301,21 @@ class _Feeder:
 
 # The drives are fed by a thread of this (normally scheduled) test process while the test asks
 # for the status: what the machine's scheduling does to that thread is not what this test
-# checks, so it states the tolerance it needs — the drives' RPDO watchdog at the real-time
-# tests' REALTIME_STALL_S (tests/e2e.py) rather than the shipped 50 ms, and 2 s for an SDO
-# answer while configuring (the driver's default is 0.3 s; test_canopen402 alike).
-FEEDER_WATCHDOG_MS = int(REALTIME_STALL_S * 1000)
+# checks, so it states the tolerance it needs — the real-time tests' config (tests/e2e.py
+# realtime_sim_config: the drives' RPDO watchdog 300 ms rather than the shipped 50 ms), and
+# 2 s for an SDO answer while configuring (the driver's default is 0.3 s; test_canopen402 alike).
+FEEDER_WATCHDOG_MS = 300
 FEEDER_SDO_TIMEOUT_S = 2.0
 
 
 @pytest.mark.parametrize("mode", ["process", "thread"])
-def test_can_responder_serves_the_drives(mode):
+def test_can_responder_serves_the_drives(mode, tmp_path):
     """RealtimeSim with the CAN responder in a child process or on a thread of its own: the
     runtime's drive driver (over rig_slcan) starts the drives, every SYNC gets its TPDOs,
     the commanded currents reach the plant side, an NMT stop ends the session."""
     from drivers.canopen402 import DriveBus
-    import dataclasses
-    cfg = config.load()
-    cfg = dataclasses.replace(cfg, devices=dataclasses.replace(
-        cfg.devices, can=dataclasses.replace(cfg.devices.can, watchdog_ms=FEEDER_WATCHDOG_MS)))
+    cfg = config.load(realtime_sim_config(tmp_path))
+    assert cfg.devices.can.watchdog_ms == FEEDER_WATCHDOG_MS
     h = cfg.controller.h
     feeder = None
     with RealtimeSim(cfg, seed=0, can_responder=mode) as rt:
@@ -437,7 +435,10 @@ class SharedSim:
     scheduling is not what these tests check), the one every `rig run` here uses."""
 
     def __init__(self, tmp_path_factory, extra_args=()):
-        self.sp = start_sim_process(extra_args=SIM_RT_ARGS + list(extra_args), workdir=tmp_path_factory.mktemp("rig-sim"))
+        workdir = tmp_path_factory.mktemp("rig-sim")
+        self.sim_config = realtime_sim_config(workdir)         # what `rig sim --config` simulates
+        self.sp = start_sim_process(config=self.sim_config, extra_args=SIM_RT_ARGS + list(extra_args),
+                                    workdir=workdir)
         self.run_config = realtime_config(self.sp.config_path, self.sp.config_path.with_name("rig-run.yaml"))
 
     def __getattr__(self, name):            # status(), wait_status(), config_path, ports, ...
@@ -525,7 +526,7 @@ def test_generated_config_points_at_the_simulator(sim):
     assert cfg.devices.can.interface == "rig_slcan" and cfg.devices.can.channel == sim.ports["can"]["channel"]
     assert {l.role: l.port for l in cfg.devices.lasers} == sim.ports["laser"]
     assert {s.name: (s.host, s.port) for s in cfg.devices.ft.sensors} == sim.ports["ft"]
-    ref = config.load()                                  # the same plant, controller, geometry
+    ref = config.load(sim.sim_config)                    # the same plant, controller, geometry
     assert cfg.plant == ref.plant and cfg.controller == ref.controller and cfg.geometry == ref.geometry
     assert cfg.devices.can.drives == ref.devices.can.drives and cfg.devices.can.watchdog_ms == ref.devices.can.watchdog_ms
     for line in sim.lines[:-1]:
@@ -537,9 +538,12 @@ def test_generated_config_points_at_the_simulator(sim):
     assert st["can_responder"]["mode"] == "process" and st["can_responder"]["pid"] != st["pid"]
 
 
-def test_generated_config_matches_the_shipped_template(sim):
-    """configs/sim-process.yaml documents the generated file: same settings, other ports."""
-    gen, tpl = config.load(sim.config_path), config.load(config.CONFIG_DIR / "sim-process.yaml")
+def test_generated_config_matches_the_shipped_template(sim, tmp_path):
+    """configs/sim-process.yaml documents the generated file: same settings, other ports
+    (this module's rig sim simulates configs/sim.yaml with the stated tolerance: the template
+    with the same tolerance)."""
+    gen = config.load(sim.config_path)
+    tpl = config.load(realtime_config(config.CONFIG_DIR / "sim-process.yaml", tmp_path / "template.yaml"))
 
     def strip(c):
         d = schema.to_dict(c.devices)
@@ -651,7 +655,8 @@ def test_sigkill_converter_watchdog_cuts_current(sim, tmp_path):
 def test_scenario_faults_act_in_scenario_time(tmp_path):
     """`rig sim --scenario fault-dropout`: laser b_f falls silent 3 s into the session
     (scenario time starts when the runtime has enabled every drive, about when it goes RUNNING)."""
-    with start_sim_process(scenario="fault-dropout", workdir=tmp_path / "sim", extra_args=SIM_RT_ARGS) as sp:
+    with start_sim_process(config=realtime_sim_config(tmp_path), scenario="fault-dropout", workdir=tmp_path / "sim",
+                           extra_args=SIM_RT_ARGS) as sp:
         run_config = realtime_config(sp.config_path, tmp_path / "rig-run.yaml")    # the stated tolerance
         log = tmp_path / "dropout.h5"
         proc = subprocess.Popen(rig_run_cmd("--config", str(run_config), "--scenario", "fault-dropout",
