@@ -467,9 +467,11 @@ def _log_faults(log) -> list[dict]:
 
 
 def _start_run(config_path, tmp_path, name, *extra):
-    """`rig run --config config_path` (e.g. a SharedSim's run_config: the stated tolerance)."""
+    """`rig run --config config_path` (e.g. a SharedSim's run_config: the stated tolerance),
+    with a `rig ctl` socket of its own (the default path is shared with every run of this user)."""
     log = tmp_path / f"{name}.h5"
-    cmd = rig_run_cmd("--config", str(config_path), "--scenario", "single-step", "--json", "--log", str(log), *extra)
+    cmd = rig_run_cmd("--config", str(config_path), "--scenario", "single-step", "--json", "--log", str(log),
+                      "--ctl-socket", str(log.with_suffix(".sock")), *extra)
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
     return proc, log
 
@@ -660,7 +662,7 @@ def test_scenario_faults_act_in_scenario_time(tmp_path):
         run_config = realtime_config(sp.config_path, tmp_path / "rig-run.yaml")    # the stated tolerance
         log = tmp_path / "dropout.h5"
         proc = subprocess.Popen(rig_run_cmd("--config", str(run_config), "--scenario", "fault-dropout",
-                                            "--json", "--log", str(log)),
+                                            "--json", "--log", str(log), "--ctl-socket", str(log.with_suffix(".sock"))),
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
         try:
             out, err = proc.communicate(timeout=30)

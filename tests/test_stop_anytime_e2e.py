@@ -46,8 +46,9 @@ def sim(tmp_path_factory):
 
 
 def _run(sim, log, duration=str(DURATION_S)):
+    # a `rig ctl` socket of its own: the default path is shared with every run of this user
     cmd = [sys.executable, "-m", "rig_runtime", "run", "--config", str(sim.run_config), "--json",
-           "--duration", duration, "--log", str(log)]
+           "--duration", duration, "--log", str(log), "--ctl-socket", str(log.with_suffix(".sock"))]
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
 
 
