@@ -82,7 +82,9 @@ class DriveReadings:
     configure, ``cause`` describes the latest of them ("" if none); ``bus_error_t`` is the
     ``now`` of the poll/write in which the latest happened (-inf: never) — how recent a
     bus error must be to stop the rig is the supervisor's rule. ``enabled``: the driver is
-    active and every drive OPERATION ENABLED and not INVALID.
+    active and every drive's latest statusword says OPERATION ENABLED with a reading that is
+    not INVALID (a stale one still counts: whether a drive went silent is the supervisor's
+    stale rule, which then names that drive).
     """
 
     t: float

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from drivers import cia402 as co
 from rig_runtime import config
@@ -85,3 +87,80 @@ def assert_safe_stop(r, device, check):
     j = kinds.index("fault")
     assert (ev["device"][j], ev["check"][j]) == (device, check)
     assert r.log["rows"] == s["cycles"]
+
+
+# The real-time end-to-end tests run on a shared 2-CPU machine whose scheduling they do not
+# test: each states the tolerance it needs in a run config of its own. Measured on this
+# machine (docs/sim-process.md, "Runtime-side issues" item 6): the loop at SCHED_FIFO 80
+# blocks in read()/poll() of a pty until a SCHED_OTHER kworker has moved the pty's input
+# to the line discipline (n_tty_read -> tty_buffer_flush_work), and with four other agents
+# loading two CPUs that kworker waits 10–150 ms; the simulator's data reaches the runtime
+# through the same kworkers. The hardware's ceilings (50 ms blind, a 100 ms drive watchdog)
+# cannot take that, so these tests run the simulated rig under a hardware description of
+# their own that allows REALTIME_STALL_S of stall, and set the limits to it: a longer stall
+# is still a fault, and fails the test that meets it.
+REALTIME_STALL_S = 0.3
+_PERIODS = 60                          # REALTIME_STALL_S / h (h = 5 ms)
+REALTIME_CEILINGS = {"overrun_s": REALTIME_STALL_S, "stale_s": REALTIME_STALL_S,
+                     "drive_watchdog_ms": int(REALTIME_STALL_S * 1000)}
+REALTIME_TOLERANCE = {
+    "limits.overrun_burst": _PERIODS,               # the loop may lose up to 59 periods in a row
+    "limits.stale_periods": _PERIODS,               # an input may be up to 60 periods old
+    "devices.can.watchdog_ms": int(REALTIME_STALL_S * 1000),   # the drives' RPDO watchdog
+    "devices.can.heartbeat_timeout_factor": 5.0,    # consumers: 100 ms x 5 = the 500 ms ceiling
+}
+
+
+def config_with(base: Path, out: Path, settings: dict, ceilings: dict | None = None) -> Path:
+    """A run config at ``out``: ``base`` (and its includes) with ``settings`` (dotted keys,
+    e.g. ``limits.overrun_burst``) set, every section written out except the hardware
+    description, which stays an include — of ``base``'s file, or with ``ceilings`` of a
+    copy next to ``out`` with those ceilings changed. Loaded once here, so a setting beyond a
+    ceiling fails at once."""
+    sections = config.load_sections(Path(base))
+    known = config.load(base)
+    out = Path(out)
+    hw_value, hw_file = sections["hardware"]
+    if ceilings:
+        hw = copy.deepcopy(hw_value)
+        hw["ceilings"].update(ceilings)
+        hw_file = out.with_name(out.stem + "-hardware.yaml")
+        Path(hw_file).write_text("# the simulated rig on a shared test machine (tests/e2e.py), not a machine's ceilings\n"
+                                 + yaml.safe_dump({"hardware": hw}, sort_keys=False))
+    data: dict = {"include": [str(hw_file)]}
+    for name, (value, _) in sections.items():
+        if name != "hardware":
+            data[name] = copy.deepcopy(value)
+
+    def put(key: str, value) -> None:
+        *path, last = key.split(".")
+        d = data
+        for part in path:
+            d = d.setdefault(part, {})
+        d[last] = value
+
+    def in_schema(key: str) -> bool:
+        obj = known
+        for part in key.split("."):
+            if not hasattr(obj, part):
+                return False
+            obj = getattr(obj, part)
+        return True
+
+    for key, value in settings.items():
+        assert in_schema(key), f"no setting {key}"
+        put(key, value)
+    out.write_text(yaml.safe_dump(data, sort_keys=False))
+    config.load(out)
+    return out
+
+
+def realtime_config(base: Path, out: Path) -> Path:
+    """``base`` with the real-time tests' stated tolerance (REALTIME_TOLERANCE)."""
+    return config_with(base, out, REALTIME_TOLERANCE, ceilings=REALTIME_CEILINGS)
+
+
+def realtime_sim_config(directory: Path) -> Path:
+    """configs/sim.yaml with the stated tolerance, for ``rig sim --config``: the simulated
+    drives take their RPDO watchdog from the simulator's config, not from the runtime."""
+    return realtime_config(config.CONFIG_DIR / "sim.yaml", Path(directory) / "sim-tolerant.yaml")

@@ -6,7 +6,6 @@ import math
 import random
 import time
 import uuid
-import warnings
 
 import can
 import canopen
@@ -580,13 +579,18 @@ def test_unconfigured_tpdo_mapping_shows_up_as_garbled(rig):
     assert "DLC 2 != 8" in r["rr"].health.cause and r["fl"].health.fresh and r["fl"].health.cause == ""
 
 
-def _realtime_attempt(channel: str):
-    """One run of test_realtime_mode on a bus of its own. Returns None when it passed, or
-    why a stall of this thread spoiled it: a gap between two writes longer than the drives'
-    watchdog (a loaded machine) faults them, which is the drives' job, not a driver bug."""
+# test_realtime_mode writes from this (normally scheduled) test thread: the machine's
+# scheduling is not what it checks, so the drives' RPDO watchdog is the real-time tests'
+# stated stall (tests/e2e.py REALTIME_STALL_S = 0.3 s), not the shipped 50 ms
+REALTIME_WATCHDOG_MS = 300
+
+
+def test_realtime_mode(channel):
+    """The virtual drives serving from their own thread in real time: the driver enables
+    them, the commanded current reaches them, and when the writes stop their watchdog cuts it."""
     a = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
     b = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-    cfg = can_cfg(channel)
+    cfg = can_cfg(channel, watchdog_ms=REALTIME_WATCHDOG_MS)
     watchdog_s = cfg.watchdog_ms / 1000
     vds = VirtualDriveSet(cfg, b)
     drv = DriveBus(cfg, a, period_s=H, sdo_timeout_s=SDO_TIMEOUT_S)
@@ -618,9 +622,8 @@ def _realtime_attempt(channel: str):
                 time.sleep(max(0.0, t_next - time.monotonic()))
 
         def spoiled(what: str):
-            if state["gap"] > 0.8 * watchdog_s:
-                return f"{what}, after a {state['gap'] * 1e3:.0f} ms gap between writes"
-            pytest.fail(f"{what} (longest gap between writes {state['gap'] * 1e3:.0f} ms)")
+            pytest.fail(f"{what} (longest gap between writes {state['gap'] * 1e3:.0f} ms, "
+                        f"drive watchdog {watchdog_s * 1e3:.0f} ms)")
 
         k = {"n": 0}
 
@@ -630,33 +633,23 @@ def _realtime_attempt(channel: str):
 
         r = cycle_until(enabled, 5.0)
         if r is None:
-            return spoiled(f"not enabled within 5 s: {[x.health.cause for x in drv.poll(time.monotonic())]}")
+            spoiled(f"not enabled within 5 s: {[x.health.cause for x in drv.poll(time.monotonic())]}")
         # the drive thread applies the current when it handles the RPDOs: cycle until it has
         r = cycle_until(lambda r: all(vds.current_A(w) == pytest.approx(-1.25, abs=STEP_A / 2)
                                       for w in WHEELS), 2.0)
         if r is None:
-            return spoiled(f"currents {[vds.current_A(w) for w in WHEELS]} A, not -1.25 A within 2 s")
+            spoiled(f"currents {[vds.current_A(w) for w in WHEELS]} A, not -1.25 A within 2 s")
         assert r["rl"].omega == pytest.approx(BASE_SPEEDS["rl"], abs=VF)
         # writes stop: converters cut current (the drives' watchdog, cfg.watchdog_ms)
         deadline = time.monotonic() + 2.0
         while not all(vds.current_A(w) == 0.0 for w in WHEELS):
             assert time.monotonic() < deadline, [vds.current_A(w) for w in WHEELS]
             time.sleep(0.005)
-        return None
     finally:
         vds.stop()
         drv.close()
         a.shutdown()
         b.shutdown()
-
-
-def test_realtime_mode(channel):
-    for attempt in range(1, 4):
-        why = _realtime_attempt(f"{channel}-{attempt}")
-        if why is None:
-            return
-        warnings.warn(f"test_realtime_mode, attempt {attempt} spoiled by a stall of the machine: {why}")
-    pytest.fail(f"test_realtime_mode: 3 attempts spoiled, the last: {why}")
 
 
 # =========================================================================== independent peer

@@ -15,7 +15,6 @@ import subprocess
 import sys
 import threading
 import time
-import warnings
 from multiprocessing import shared_memory
 
 import pytest
@@ -35,7 +34,11 @@ from rig_runtime.config import FTBus, FTSensor
 from rig_runtime.errors import ConfigError, DeviceInitError
 from sim_backend.virtual_ft import VirtualFTServer
 
-TIMEOUT_S = 0.1
+# The open (configure) makes three blocking reads per sensor, each answered by the server's
+# thread within TIMEOUT_S; that thread's scheduling on a loaded machine is not what these
+# tests check, so TIMEOUT_S is 0.25 s (the shipped 0.1 s lost opens to 0.1 s stalls) — still
+# short enough for the tests of dropouts, staleness and bad frames to see many timeouts.
+TIMEOUT_S = 0.25
 # For the tests that count no timeout or one connect: TIMEOUT_S lets a reply the server's
 # thread sends 0.1 s late (a loaded machine) count as a timeout and reconnect. The short
 # one stays for the tests of dropouts and bad frames.
@@ -96,18 +99,8 @@ def server():
 
 
 def _running(server, poller: str, **kw):
-    for attempt in range(1, 4):
-        d = FTSensorSet(bus("left", "right", poller=poller, **kw), server.endpoints)
-        try:
-            d.configure()
-            break
-        except DeviceInitError as exc:
-            # the open's 3 reads each wait timeout_s (0.1 s for ``driver``) for the server's
-            # thread: all three late is a stall of the loaded machine, not what is tested
-            if "(timeout)" not in str(exc) or attempt == 3:
-                raise
-            warnings.warn(f"F/T open, attempt {attempt}: the server's thread answered late "
-                          f"(a stall of the machine), opening again: {exc}")
+    d = FTSensorSet(bus("left", "right", poller=poller, **kw), server.endpoints)
+    d.configure()               # each read answered within timeout_s (TIMEOUT_S: the stated tolerance)
     # inline: the reads at open have no time on the caller's clock (t = -inf until polled)
     wait_for(lambda: all(r.health.fresh and r.t > -math.inf for r in d.poll(time.monotonic()).values()))
     return d

@@ -13,7 +13,6 @@ import concurrent.futures
 import subprocess
 import sys
 import threading
-import warnings
 from pathlib import Path
 
 import pytest
@@ -25,7 +24,7 @@ from drivers.ft_codec import Wrench
 from rig_runtime import config as rig_config
 from drivers.ft300 import POLLERS
 from rig_runtime.config import FT_POLLERS, FTBus, FTSensor
-from rig_runtime.errors import ConfigError, DeviceInitError
+from rig_runtime.errors import ConfigError
 from sim_backend.virtual_ft import VirtualFTServer
 
 from .test_ft300 import quiet_port
@@ -48,33 +47,24 @@ class Lockstep:
     ``advance`` (the simulator answers what is pending), then the runtime's ``poll(t)``.
 
     The open (``configure()``) is the one part in wall-clock time: blocking reads that the
-    server's thread answers, each within TIMEOUT_S (0.125 s). A reply later than that (a
-    stall of the loaded machine) counts a timeout and a reconnect, which would show in the
-    counts the tests compare; such an open is retried (with a warning), up to 3 times."""
+    server's thread answers. That thread's scheduling is not what these tests check; the
+    tolerance they state is TIMEOUT_S (0.125 s) for each reply of the open — a later one
+    would count a timeout and a reconnect, and the open is checked to have had neither."""
 
     def __init__(self, names: tuple[str, ...], reconnect_s: float = 4 * H, ports: dict | None = None) -> None:
         self.names = names
-        for attempt in range(1, 4):
-            self.srv = VirtualFTServer(list(names), ports=ports).start()
-            self.drv = FTSensorSet(inline_bus(*names), self.srv.endpoints, reconnect_s=reconnect_s)
-            try:
-                self.drv.configure()         # blocking reads, answered by the server's own thread
-                stall = [f"{s.name}: {s.timeouts} timeouts, {s.bad_frames} bad frames, "
-                         f"{s.counters['connects']} connects" for s in self.drv.poller.core.sensors
-                         if s.timeouts or s.bad_frames or s.counters["connects"] != 1]
-            except DeviceInitError as exc:
-                if "timeout" not in str(exc):
-                    self.srv.close()
-                    raise
-                stall = [str(exc)]
-            if not stall:
-                break
-            self.drv.close()
+        self.srv = VirtualFTServer(list(names), ports=ports).start()
+        self.drv = FTSensorSet(inline_bus(*names), self.srv.endpoints, reconnect_s=reconnect_s)
+        try:
+            self.drv.configure()         # blocking reads, answered by the server's own thread
+        except BaseException:
             self.srv.close()
-            if attempt == 3:
-                pytest.fail(f"the open kept timing out (3 attempts): {stall}")
-            warnings.warn(f"Lockstep open, attempt {attempt}: the server thread answered later than "
-                          f"{TIMEOUT_S} s (a stall of the machine), opening again: {stall}")
+            raise
+        late = [f"{s.name}: {s.timeouts} timeouts, {s.bad_frames} bad frames, {s.counters['connects']} connects"
+                for s in self.drv.poller.core.sensors if s.timeouts or s.bad_frames or s.counters["connects"] != 1]
+        if late:
+            self.close()
+            pytest.fail(f"the open had replies later than {TIMEOUT_S} s: {late}")
         self.srv.answer_pending()       # the first advance retires that thread
         self.k = 0
 

@@ -1,5 +1,6 @@
-"""Operating a real-time run end to end, as an operator does: ``rig dry-run --realtime``
-(the plant served by ``rig sim`` in its own process), watched and commanded from outside.
+"""Operating a real-time run end to end, as an operator does, watched and commanded from
+outside: ``rig dry-run --realtime`` (the plant served by ``rig sim`` in its own process) and
+``rig run`` against a ``rig sim`` of the test's own.
 
 - The runtime's process runs one thread; SIGKILL of it mid-run leaves a log that holds every
   cycle up to the kill (the recording sidecar closes it) and no process of the run behind.
@@ -7,9 +8,14 @@
   and the controller follows it from the cycle that took it; out of bounds, destabilising
   and limit changes are refused with a clear message.
 
-Real time on a shared 2-CPU VM: a run may fault on an overrun (the supervisor's rule: five
-control periods lost) before the operator's part is done. Such an attempt is repeated (at
-most three times) and the reason printed; any other outcome fails at once.
+Real time on a shared 2-CPU VM whose scheduling is not what these tests check. Each test
+runs once and states what it tolerates: the SIGKILL test holds on a fault (it checks the
+process and the log, not the control); the `rig ctl` test runs `rig run` against `rig sim`
+at SCHED_FIFO (tests/test_sim_process.py SIM_RT_ARGS: `rig dry-run --realtime` starts its
+simulator at normal priority, and on this machine its lasers fell silent for 75 ms while the
+loop ran on time) with the stated real-time tolerance (tests/e2e.py REALTIME_TOLERANCE: a stall
+of up to 0.3 s of the loop or of an input, measured necessary on this machine); any fault
+fails it.
 """
 
 from __future__ import annotations
@@ -26,37 +32,16 @@ import h5py
 import numpy as np
 import pytest
 
-from rig_runtime import config
 from rig_runtime.app.export import read_log
 from rig_runtime.safety import State
 
+from sim_backend.launcher import start_sim_process
+
 from .conftest import ROOT
+from .e2e import realtime_config, realtime_sim_config
+from .test_sim_process import SIM_RT_ARGS
 
 pytestmark = pytest.mark.slow
-ATTEMPTS = 3
-_STALLS = ("overrun", "periods lost", "heartbeat error")   # what a real-time stall of this VM looks like
-_LATE_INPUT = ("stale", "disabled")     # a stale input, a power stage whose reading is not fresh
-_WATCHDOG_S, _H_S = config.load().devices.can.watchdog_ms / 1000.0, config.load().controller.h
-
-
-def _stall(summary: dict, text: str) -> bool:
-    """The run's end (its summary; ``text``: what else it said) is what a real-time stall of
-    this VM looks like: the loop's overrun rule (or arming blocked by lost periods), a drive's
-    heartbeat error; only stale inputs / power stages not enabled while the loop itself
-    skipped periods (docs/sim-process.md, known runtime issue 5: no SYNC in a skipped period,
-    so no TPDO; the simulator, starved alike); a drive's RPDO timeout after a cycle of the
-    loop as long as the drives' watchdog."""
-    faults = summary.get("faults") or []
-    if any(k in text + json.dumps(faults) for k in _STALLS):
-        return True
-    timing = summary.get("timing") or {}
-    late = (timing.get("skipped_periods") or 0) > 0 or (timing.get("deadline_misses") or 0) > 0
-    if faults and late and all(f.get("check") in _LATE_INPUT for f in faults):
-        return True
-    # a drive's RPDO watchdog after one cycle of the loop (its release lateness and work) took
-    # as long as the watchdog: the runtime fell silent
-    longest = sum((timing.get(k) or {}).get("max") or 0.0 for k in ("release_lateness_us", "cycle_work_us")) * 1e-6
-    return bool(faults) and longest >= _WATCHDOG_S - _H_S and all("RPDO timeout" in (f.get("message") or "") for f in faults)
 
 
 def _summary(out: str) -> dict:
@@ -66,10 +51,12 @@ def _summary(out: str) -> dict:
         return {}
 
 
-def _start(tmp: Path, name: str, *extra: str) -> tuple[subprocess.Popen, Path, Path]:
+def _start(tmp: Path, name: str, *extra: str, run_config: Path | None = None) -> tuple[subprocess.Popen, Path, Path]:
+    """`rig dry-run --realtime`, or with ``run_config`` `rig run --config run_config`."""
     log, sock = tmp / f"{name}.h5", tmp / f"{name}.sock"
-    p = subprocess.Popen([sys.executable, "-m", "rig_runtime", "dry-run", "--realtime", "--log", str(log),
-                          "--ctl-socket", str(sock), "--json", *extra],
+    cmd = ["dry-run", "--realtime"] if run_config is None else ["run", "--config", str(run_config)]
+    p = subprocess.Popen([sys.executable, "-m", "rig_runtime", *cmd,
+                          "--log", str(log), "--ctl-socket", str(sock), "--json", *extra],
                          cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     return p, log, sock
 
@@ -176,11 +163,18 @@ def _cleanup(p: subprocess.Popen) -> None:
         p.wait(10)
 
 
-def _operate(tmp_path: Path, k: int) -> tuple[str, dict]:
-    """One attempt: returns ("retry", reason) or ("ok", results)."""
+def _operate(tmp_path: Path) -> dict:
+    """Start a run, carry out the operator's part with `rig ctl` once it is RUNNING, stop it
+    with `rig ctl stop`; what each command answered and how the run ended."""
     # the duration only bounds the run: `rig ctl stop` ends it once the operator's part is done,
     # however long the status polls and the seven `rig ctl` launches take on a loaded machine
-    p, log, sock = _start(tmp_path, f"ctl{k}", "--duration", "60")
+    with start_sim_process(config=realtime_sim_config(tmp_path), extra_args=SIM_RT_ARGS, workdir=tmp_path / "sim") as sp:
+        run_config = realtime_config(sp.config_path, tmp_path / "rig-run.yaml")    # the stated tolerance
+        return _operate_run(tmp_path, run_config)
+
+
+def _operate_run(tmp_path: Path, run_config: Path) -> dict:
+    p, log, sock = _start(tmp_path, "ctl", "--scenario", "single-step", "--duration", "60", run_config=run_config)
     res: dict = {"log": log}
     try:
         st = _wait(lambda: (s := _status(sock)) and s.get("state") in ("RUNNING", "FAULT") and s, 60,
@@ -189,12 +183,9 @@ def _operate(tmp_path: Path, k: int) -> tuple[str, dict]:
             if p.poll() is None:
                 p.send_signal(signal.SIGINT)
             out, err = p.communicate(timeout=30)
-            why = json.dumps(st.get("faults")) if st else err[-600:]
-            summary = _summary(out)
-            assert _stall(summary, why), f"the run ended before RUNNING (exit {p.returncode}): {why} {out[-600:]}"
-            return "retry", f"the run ended or faulted before the operator's part: {why}; timing {summary.get('timing')}"
-        gains = st["gains"]
-        res["old"] = gains
+            pytest.fail(f"the run did not reach RUNNING (exit {p.returncode}): status {st}\n"
+                        f"summary {_summary(out)}\nstderr {err[-1500:]}")
+        res["old"] = st["gains"]
         res["ok"] = _ctl(sock, "set", "K_P_y", "4.5")
         res["bounds"] = _ctl(sock, "set", "K_P_y", "50")
         res["limit"] = _ctl(sock, "set", "u_max", "3")
@@ -206,23 +197,17 @@ def _operate(tmp_path: Path, k: int) -> tuple[str, dict]:
         if res["stop"].returncode != 0:
             p.send_signal(signal.SIGINT)        # end it anyway (the test fails on the refused stop)
         out, err = p.communicate(timeout=60)
-        res["code"], res["summary"] = p.returncode, json.loads(out) if out.strip() else {}
-        faults = json.dumps(res["summary"].get("faults") or []) + err[-600:]
-        if res["summary"].get("final_state") != "IDLE" and _stall(res["summary"], faults):
-            return "retry", f"a real-time stall during the operator's part: {faults}; timing {res['summary'].get('timing')}"
-        return "ok", res
+        res["code"], res["summary"], res["stderr"] = p.returncode, _summary(out), err[-1500:]
+        return res
     finally:
         _cleanup(p)
 
 
 def test_rig_ctl_tunes_a_gain_live_and_refuses_what_it_must(tmp_path):
-    for k in range(ATTEMPTS):
-        verdict, res = _operate(tmp_path, k)
-        if verdict == "ok":
-            break
-        print(f"attempt {k + 1}: {res} — retrying (a shared VM's real-time stall, not the code under test)")
-    else:
-        pytest.fail(f"{ATTEMPTS} attempts ended by real-time stalls")
+    res = _operate(tmp_path)
+    s = res["summary"]
+    assert res["code"] == 0 and s.get("final_state") == "IDLE" and s.get("faults") == [], \
+        (res["code"], s.get("faults"), s.get("timing"), res["stderr"])
     kpy0, kiy = res["old"]["K_P_y"], res["old"]["K_I_y"]
     assert res["ok"].returncode == 0, (res["ok"].stderr, res["summary"])
     assert f"K_P_y {kpy0:g} -> 4.5" in res["ok"].stdout

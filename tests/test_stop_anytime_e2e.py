@@ -10,9 +10,10 @@ current, not FAULT (the runtime switched their heartbeat consumers off before it
 Real time on a shared 2-CPU VM: the instants in the start-up are placed from a measured
 start-up (one unsignalled run first), those from RUNNING on from the simulator's session
 start (every drive enabled), and more are added while either side of RUNNING has fewer than
-three. A run that stopped on a fault of the runtime's own that a real-time stall of the
-machine explains (tests/test_sim_process.py's known runtime faults) is repeated at the same instant (at most three times, with a warning); any other
-outcome fails at once.
+three. The machine's scheduling is not what these tests check: every run uses the generated
+config with the stated real-time tolerance (tests/e2e.py REALTIME_TOLERANCE: a stall of up to
+0.3 s of the loop or of an input, measured necessary on this machine).
+Every run is judged once; a fault, whatever its cause, fails the test.
 """
 
 from __future__ import annotations
@@ -22,41 +23,48 @@ import signal
 import subprocess
 import sys
 import time
-import warnings
 
 import pytest
 
+from rig_runtime import config
 from rig_runtime.config import WHEELS
 from rig_runtime.app.export import read_log
 
-from .test_sim_process import SharedSim, _known_runtime_fault, _sim_stats
+from .test_sim_process import SharedSim
 
-CONSUMER_S = 0.25      # the drives' heartbeat consumer time (sim.yaml: 100 ms x 2.5)
 DURATION_S = 1.0       # each run's --duration
-ATTEMPTS = 3           # per instant: a real-time stall of the machine repeats it
-EXIT_SETUP, EXIT_FAULT = 2, 3
 
 
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
-    """SCHED_FIFO for rig sim and, through the generated config, for the runtime: without it
-    the runtime faults on its own deadline misses in 2 of 5 runs of 6 s (docs/sim-process.md)."""
+    """SCHED_FIFO for rig sim and, through the generated config, for the runtime (measured
+    without it: the runtime faulted on its own deadline misses in 2 of 5 runs of 6 s,
+    docs/sim-process.md); ``sim.run_config``: the stated tolerance."""
     s = SharedSim(tmp_path_factory)
     yield s
     s.close()
 
 
 def _run(sim, log, duration=str(DURATION_S)):
-    cmd = [sys.executable, "-m", "rig_runtime", "run", "--config", str(sim.config_path), "--json",
-           "--duration", duration, "--log", str(log)]
+    # a `rig ctl` socket of its own: the default path is shared with every run of this user
+    cmd = [sys.executable, "-m", "rig_runtime", "run", "--config", str(sim.run_config), "--json",
+           "--duration", duration, "--log", str(log), "--ctl-socket", str(log.with_suffix(".sock"))]
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
+
+
+def _consumer_s(sim) -> float:
+    """The drives' heartbeat consumer time the run config sets (the runtime's heartbeat
+    period x heartbeat_timeout_factor)."""
+    can = config.load(sim.run_config).devices.can
+    return can.heartbeat_ms * can.heartbeat_timeout_factor / 1000.0
 
 
 def _drives_off(sim, t_after: float) -> dict:
     """A status written after ``t_after`` (and after the consumer time, so a consumer that was
     not switched off would have fired by then)."""
-    time.sleep(CONSUMER_S + 0.15)
-    return sim.wait_status(lambda s: s["t"] > t_after + CONSUMER_S, timeout_s=3.0)
+    consumer_s = _consumer_s(sim)
+    time.sleep(consumer_s + 0.15)
+    return sim.wait_status(lambda s: s["t"] > t_after + consumer_s, timeout_s=3.0)
 
 
 def _summary(out: str) -> dict:
@@ -64,23 +72,6 @@ def _summary(out: str) -> dict:
         return json.loads(out.strip().splitlines()[-1])
     except (IndexError, ValueError):
         return {}
-
-
-def _stall(sim, code: int, out: str, err: str) -> str:
-    """Why this run's end is what a real-time stall of the machine looks like ("" if it is not):
-    a FAULT made only of the runtime's known faults (tests/test_sim_process.py: its own
-    deadline misses, a stale TPDO or laser value the simulator demonstrably served in time, a
-    drive's RPDO watchdog or heartbeat consumer after the runtime's SYNCs stopped for that
-    long); or arming refused because the loop was still losing periods to deadline misses."""
-    if code == EXIT_FAULT:
-        faults = _summary(out).get("faults") or []
-        stats = _sim_stats(sim)
-        if faults and all(_known_runtime_fault(f, stats) for f in faults):
-            brief = [(f["device"], f["check"], f.get("message")) for f in faults]
-            return f"FAULT {brief}; simulator: {stats}; runtime timing: {_summary(out).get('timing')}"
-    if code == EXIT_SETUP and "periods lost to deadline misses" in err:
-        return err.strip().splitlines()[-1]
-    return ""
 
 
 def _session_t0(sim, proc, count0: int) -> float | None:
@@ -96,13 +87,12 @@ def _session_t0(sim, proc, count0: int) -> float | None:
     return None
 
 
-def _signal_at(sim, tmp_path, name: str, when: tuple[str, float] | None, sig) -> tuple[str, float | str | None]:
+def _signal_at(sim, tmp_path, name: str, when: tuple[str, float] | None, sig) -> tuple[str, float | None]:
     """One `rig run`, sent ``sig`` at ``when`` = (anchor, delay): ``delay`` s after its start
     ("start") or after the simulator's session began ("session", i.e. about RUNNING); no
     signal if ``when`` is None. Checks the clean stop. Returns (what the signal met: "before
     Python", "before RUNNING", "after RUNNING", "" if it was not sent or came after the run's
-    end; or "stall" and the reason), and when RUNNING began, s after the start (None if
-    unknown; the reason of a stall)."""
+    end), and when RUNNING began, s after the start (None if unknown)."""
     log = tmp_path / f"{name}.h5"
     st0 = sim.status()
     events0 = {w: d["heartbeat_events"] for w, d in st0["drives"].items()}
@@ -129,10 +119,7 @@ def _signal_at(sim, tmp_path, name: str, when: tuple[str, float] | None, sig) ->
     summary = _summary(out)
     started = summary.get("run_started_t")
     t_running = started - t_start if isinstance(started, float) and started == started else None
-    stall = _stall(sim, proc.returncode, out, err)
-    if stall:
-        met = "stall"
-    elif proc.returncode == -sig:
+    if proc.returncode == -sig:
         # the signal came before the interpreter reached the runtime's first line (its start
         # takes ~0.1-0.3 s here): the default action ended it, nothing had been opened
         assert sent, what
@@ -156,32 +143,17 @@ def _signal_at(sim, tmp_path, name: str, when: tuple[str, float] | None, sig) ->
     st = _drives_off(sim, t_exit)
     for w in WHEELS:
         dr = st["drives"][w]
-        assert dr["current_A"] == 0.0, (what, w, dr)     # even after a stall: no current left on
-        if not stall:
-            assert dr["state"] == "SWITCH ON DISABLED", (what, w, dr)
-            assert dr["heartbeat_events"] == events0[w] and dr["error_code"] == 0, (what, w, dr)
-    if stall:
-        sim.restart_if_faulted()
-        return "stall", stall
+        assert dr["current_A"] == 0.0, (what, w, dr)
+        assert dr["state"] == "SWITCH ON DISABLED", (what, w, dr)
+        assert dr["heartbeat_events"] == events0[w] and dr["error_code"] == 0, (what, w, dr)
     return met, t_running
-
-
-def _attempts(sim, tmp_path, name: str, when: tuple[str, float] | None, sig) -> tuple[str, float | None]:
-    """``_signal_at`` until the run is not ended by a real-time stall (at most ATTEMPTS times)."""
-    for i in range(ATTEMPTS):
-        met, info = _signal_at(sim, tmp_path, f"{name}-{i}", when, sig)
-        if met != "stall":
-            return met, info
-        warnings.warn(f"{name} (instant {when}, {sig.name}), attempt {i + 1}/{ATTEMPTS}: a real-time "
-                      f"stall of the machine, not the code under test — repeated: {info}")
-    pytest.fail(f"{name}: rig run stopped on a real-time stall in all {ATTEMPTS} attempts")
 
 
 @pytest.mark.slow
 def test_a_signal_at_any_instant_ends_in_a_clean_stop(sim, tmp_path):
     # start-up (imports, configure, warm-up/arm) takes ~1 s here, more on a loaded machine:
     # measure it once, unsignalled (the same clean end is checked)
-    met, t_running = _attempts(sim, tmp_path, "calibration", None, signal.SIGINT)
+    met, t_running = _signal_at(sim, tmp_path, "calibration", None, signal.SIGINT)
     assert t_running is not None and t_running > 0.0, t_running
     # instants: s after the start of `rig run` over the interpreter's start and the start-up;
     # s after the session began (about RUNNING, whenever the start-up ended) over RUNNING
@@ -193,7 +165,7 @@ def test_a_signal_at_any_instant_ends_in_a_clean_stop(sim, tmp_path):
     while k < len(instants):
         anchor, delay = instants[k]
         sig = (signal.SIGINT, signal.SIGTERM)[k % 2]
-        met, t_run = _attempts(sim, tmp_path, f"run-{k}", (anchor, round(delay, 3)), sig)
+        met, t_run = _signal_at(sim, tmp_path, f"run-{k}", (anchor, round(delay, 3)), sig)
         seen[met] += 1
         if t_run is not None:
             t_running = min(t_running, t_run)           # the shortest start-up seen
@@ -228,7 +200,7 @@ def test_sigkill_after_configure_the_drives_stop_by_themselves(sim, tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait(5)
     t_kill = time.monotonic()
-    st = sim.wait_status(lambda s: s["t"] > t_kill + CONSUMER_S + 0.2
+    st = sim.wait_status(lambda s: s["t"] > t_kill + _consumer_s(sim) + 0.2
                          and all(s["drives"][w]["heartbeat_events"] > events0[w] for w in WHEELS), timeout_s=5.0)
     # the status file shows NMT OPERATIONAL up to 50 ms late; a runtime at SCHED_FIFO may have
     # armed by then and begun enabling the drives: one still READY TO SWITCH ON has no power
