@@ -502,3 +502,21 @@ def test_the_first_rule_in_order_trips(cfg, spec, counts_on):
     if expected:
         _, k, check = min(expected)
         assert (s.fault.device, s.fault.check) == (f"c{k}", check)
+
+
+def test_a_drive_is_judged_by_the_syncs_it_left_unanswered_not_by_the_clock(cfg):
+    """The runtime's own lateness is not a drive's fault: a wheel whose latest TPDO is far
+    older than stale_periods·h in wall time, but which answered every SYNC the runtime sent
+    (the loop lost periods and sent none), is fit; one that left stale_periods SYNCs
+    unanswered is stale however recent its last TPDO, and the fault says so."""
+    n = cfg.limits.stale_periods
+    s, _, _ = running(cfg)
+    t = 1.0
+    step(s, t, rl={"t": t - 0.5, "unanswered": 1})      # 0.5 s old: a stalled loop, one SYNC out since
+    assert s.state is State.RUNNING
+    step(s, t + H, rl={"t": t + H, "unanswered": n - 1})
+    assert s.state is State.RUNNING
+    step(s, t + 2 * H, rl={"t": t + H, "unanswered": n})
+    f = s.fault
+    assert (f.device, f.check, f.value, f.limit) == ("rl", "stale", n, n)
+    assert f.message == f"no valid value for {n} requests sent"
