@@ -16,6 +16,8 @@ from collections import deque
 from contextlib import contextmanager
 from typing import Callable, Iterable, Iterator, Optional
 
+from distributed.diagnostics.plugin import WorkerPlugin
+
 from rig_runtime.errors import ConfigError
 
 from .task import Job, run_sample
@@ -55,11 +57,33 @@ def connect(workers: Optional[int], scheduler: Optional[str]) -> Iterator[object
     try:
         client = Client(cluster)
         try:
+            _register(client, IgnoreInterrupt())
             yield client
         finally:
             client.close()
     finally:
         cluster.close()
+
+
+class IgnoreInterrupt(WorkerPlugin):
+    """A worker plugin for the local cluster's worker processes: they ignore SIGINT. A
+    Ctrl-C on the terminal goes to the whole process group; the campaign process turns it
+    into a clean stop (the runs under way finish), which needs its workers alive. They are
+    still ended by the cluster's close (SIGTERM, then SIGKILL)."""
+
+    name = "rig-campaign-ignore-sigint"
+    idempotent = True
+
+    def setup(self, worker) -> None:
+        import signal
+        import threading
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _register(client, plugin) -> None:
+    reg = getattr(client, "register_plugin", None) or client.register_worker_plugin
+    reg(plugin)
 
 
 def threads(client) -> int:
@@ -84,8 +108,8 @@ def run_all(client, jobs: Iterable[Job], *, on_dispatch: Callable[[int], None],
                 job = queue.popleft()
                 on_dispatch(job.run_id)
                 flying[client.submit(run_sample, job, key=f"rig-run-{tag}-{job.run_id}", pure=False)] = job
-        elif not flying:
-            break
+        elif not flying or threads(client) == 0:
+            break                       # stopped; with no worker left the runs under way are the resume's
         try:
             done, _ = wait(list(flying), timeout=POLL_S, return_when="FIRST_COMPLETED")
         except TimeoutError:
