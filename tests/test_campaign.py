@@ -151,7 +151,7 @@ def test_a_row_reproduced_by_its_command_gives_identical_metrics(local_run, tmp_
     p = subprocess.run(rig(*cmd[1:], "--log", str(log), "--json"), cwd=tmp_path, env=ENV, capture_output=True,
                        text=True, timeout=HANG_S)
     assert p.returncode == 0, p.stderr
-    again = outcome.metrics(json.loads(p.stdout), log)
+    again = outcome.metrics(json.loads(p.stdout), log, 0.0)
     assert again == {m: row[m] for m in outcome.METRICS}
 
 
@@ -177,25 +177,25 @@ def test_remote_scheduler_and_two_workers_give_the_same_table(local_run, tmp_pat
 
 
 def test_sigint_halfway_then_resume_runs_every_run_exactly_once(tmp_path, procs):
-    spec = write_spec(tmp_path / "s.yaml", design={"method": "lhs", "n": 12, "seed": 5})
+    spec = write_spec(tmp_path / "s.yaml", design={"method": "lhs", "n": 8, "seed": 5})
     out = tmp_path / "out"
     p = start(rig("campaign", "run", str(spec), "--out", str(out), "--workers", "2"), tmp_path)
     procs.append(p)
-    wait_for(lambda: len(started_lines(out)) >= 4, "four runs started")
+    wait_for(lambda: len(started_lines(out)) >= 3, "three runs started")
     os.killpg(p.pid, signal.SIGINT)             # as Ctrl-C: the whole process group
     code, _, err = finish(p)
     assert code == 130, err
     assert "stopped by SIGINT" in err and "--resume" in err
     first = count(out, "SELECT COUNT(*) FROM results")
-    assert 4 <= first < 12
+    assert 3 <= first < 8
     # the runs under way were finished: every run started has its row, none is missing or twice
     assert sorted(int(l[0]) for l in started_lines(out)) == sorted(r["run_id"] for r in table(out))
     code, _, err = finish(start(rig("campaign", "run", str(spec), "--out", str(out), "--workers", "2", "--resume"),
                                 tmp_path))
     assert code == 0, err
-    assert [r["run_id"] for r in table(out)] == list(range(12))
-    assert sorted(int(l[0]) for l in started_lines(out)) == list(range(12))    # each run started once
-    assert count(out, "SELECT COUNT(*) FROM dispatches") == 12
+    assert [r["run_id"] for r in table(out)] == list(range(8))
+    assert sorted(int(l[0]) for l in started_lines(out)) == list(range(8))    # each run started once
+    assert count(out, "SELECT COUNT(*) FROM dispatches") == 8
     assert count(out, "SELECT COUNT(*) FROM results WHERE status = 'error'") == 0
 
 
@@ -238,8 +238,8 @@ def test_a_bad_spec_is_refused_before_any_run(tmp_path, capsys, change, key):
 def test_report_on_reduced_robust_gains(tmp_path):
     spec = yaml.safe_load((ROOT / "configs/campaigns/robust-gains.yaml").read_text())
     spec["design"]["n"] = 2                     # 2 · (8 + 2) = 20 runs instead of 2560
-    spec["base"]["duration_s"] = 11.0           # the first rail-irregularity pulse (10 s) included
-    spec["pass"]["max_abs_e_y_mm"] = 0.25       # tight enough that some conditions fail
+    spec["base"]["duration_s"] = 10.6           # the first rail-irregularity pulse (10 s) included
+    spec["pass"]["max_abs_e_y_mm"] = 0.2        # tight enough that some conditions fail
     (tmp_path / "rg.yaml").write_text(yaml.safe_dump(spec))
     out = tmp_path / "rg"
     p = subprocess.run(rig("campaign", "run", str(tmp_path / "rg.yaml"), "--out", str(out), "--workers", "2"),

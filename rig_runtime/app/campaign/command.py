@@ -99,7 +99,7 @@ def _execute(args, spec, out: Path, store) -> int:
             texts.clear() if len(texts) > 64 else None
             texts[sc] = Path(sc).read_text()
         return Job(run_id=i, config_text=Path(s["config"]).read_text(), hardware_text=hardware,
-                   scenario_text=texts[sc], seed=s["seed"], duration_s=spec.duration_s, criteria=spec.criteria,
+                   scenario_text=texts[sc], seed=s["seed"], duration_s=spec.duration_s, settle_s=spec.settle_s, criteria=spec.criteria,
                    no_fault=spec.no_fault, keep_logs=spec.keep_logs, audit_path=str(out / "started.log"))
 
     counts = store.counts()

@@ -35,12 +35,14 @@ def _worst(steps: list[dict], key: str, absolute: bool = False) -> Optional[floa
     return float(max(abs(v) for v in vals) if absolute else max(vals))
 
 
-def metrics(summary: Mapping, log_path) -> dict[str, Optional[float]]:
+def metrics(summary: Mapping, log_path, settle_s: float = 0.0) -> dict[str, Optional[float]]:
     """The campaign metrics of one lockstep run: ``summary`` as :func:`run_lockstep` (and
-    ``rig dry-run --json``) returns it, ``log_path`` its HDF5 log."""
+    ``rig dry-run --json``) returns it, ``log_path`` its HDF5 log. ``settle_s``: the y, ψ
+    metrics leave out the first seconds of RUNNING (the carrier settling from its rest
+    state, which is not what a disturbance campaign asks about)."""
     from rig_runtime.export import read_log
     d = read_log(log_path)["columns"]
-    run = d["t_run"] > 0
+    run = d["t_run"] > settle_s
     y, y_ref, psi = d["y_r"][run], d["y_ref"][run], d["psi_r"][run]
     e = y_ref - y
     have = bool(len(y))

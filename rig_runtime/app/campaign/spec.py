@@ -54,6 +54,7 @@ class Spec:
     config: Path                # the base config file
     scenario: Path              # the base scenario file
     duration_s: Optional[float]
+    settle_s: float             # the y, psi metrics start this long after RUNNING began
     parameters: tuple[Parameter, ...]
     seed_per_run: bool          # True: run i has seed seed_value + i; False: every run seed_value
     seed_value: int
@@ -228,8 +229,9 @@ def load_spec(path: str | Path) -> Spec:
     base = raw.get("base")
     if not isinstance(base, dict) or "scenario" not in base:
         raise _err(s, "base", "a mapping {config, scenario, duration_s}", base)
-    if set(base) - {"config", "scenario", "duration_s"}:
-        raise _err(s, "base", "only config, scenario, duration_s", sorted(base))
+    if set(base) - {"config", "scenario", "duration_s", "settle_s"}:
+        raise _err(s, "base", "only config, scenario, duration_s, settle_s", sorted(base))
+    settle = _number(s, "base.settle_s", base.get("settle_s", 0.0), nonneg=True)
     cfg_path = _resolve(src, str(base.get("config", "sim.yaml")), rig_config.CONFIG_DIR, "config")
     sc_path = _resolve(src, str(base["scenario"]), SCENARIO_DIR, "scenario")
     duration = base.get("duration_s")
@@ -293,6 +295,6 @@ def load_spec(path: str | Path) -> Spec:
     if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
         raise _err(s, "name", "a name of letters, digits, _ . -", name)
     return Spec(name=name, source=s, description=str(raw.get("description", "")), config=cfg_path,
-                scenario=sc_path, duration_s=duration, parameters=tuple(params), seed_per_run=per_run,
+                scenario=sc_path, duration_s=duration, settle_s=settle, parameters=tuple(params), seed_per_run=per_run,
                 seed_value=seed_value, design=design, criteria=criteria, no_fault=no_fault, keep_logs=keep,
                 sensitivity=tuple(sens))

@@ -33,6 +33,7 @@ class Job:
     scenario_text: str
     seed: int
     duration_s: Optional[float]
+    settle_s: float
     criteria: dict
     no_fault: bool
     keep_logs: str                  # none | failing | all
@@ -89,7 +90,7 @@ def run_sample(job: Job) -> dict:
             return row
         summary, code = run_lockstep(cfg, scenario, log, seed=job.seed, duration_s=job.duration_s)
         from .outcome import metrics
-        values = metrics(summary, log)
+        values = metrics(summary, log, job.settle_s)
         passed, why = verdict(values, summary["final_state"], code, job.criteria, job.no_fault)
         row.update(values)
         row.update(status="pass" if passed else "fail", why=why, final_state=summary["final_state"], exit_code=code,
