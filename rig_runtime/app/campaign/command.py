@@ -65,6 +65,12 @@ def _workers(value: str) -> int:
 def campaign_run(args: argparse.Namespace) -> int:
     from . import prepare
     from .spec import load_spec
+    try:
+        import distributed  # noqa: F401
+        import SALib  # noqa: F401
+    except ImportError as e:
+        raise ConfigError(None, "campaign", f"Dask distributed and SALib installed (pip install -e '.[campaign]'; {e})") \
+            from None
     if args.workers and args.scheduler:
         raise ConfigError(None, "--workers", "either --workers (local cluster) or --scheduler, not both")
     spec = load_spec(args.spec)
