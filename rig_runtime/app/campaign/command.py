@@ -131,7 +131,7 @@ def _execute(args, spec, out: Path, store) -> int:
                                             on_row=on_row, stop_requested=lambda: stops.requested)
             except dispatch.LostCluster as e:
                 print(f"rig campaign: lost the Dask cluster ({e}); {len(store.done_ids())} of {total} rows "
-                      f"written; continue with --resume", file=sys.stderr)
+                      f"written; continue with: rig campaign run {args.spec} --out {out} --resume", file=sys.stderr)
                 return 1
     c = store.counts()
     line = ", ".join(f"{c.get(k, 0)} {k}" for k in ("pass", "fail", "refused", "error"))

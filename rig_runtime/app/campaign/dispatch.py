@@ -5,7 +5,8 @@ The window is the cluster's thread count: every run handed to Dask starts at onc
 stop request (SIGINT/SIGTERM) nothing is queued — the runs under way finish and are
 written, nothing new starts, and ``--resume`` does the rest with no run done twice. A
 worker that dies mid-run: Dask gives the run to another worker (after several deaths it
-is an ``error`` row, KilledWorker). A lost scheduler ends the campaign (resume later)."""
+is an ``error`` row, KilledWorker). A lost scheduler ends the campaign (:class:`LostCluster`,
+resume later)."""
 
 from __future__ import annotations
 
@@ -36,6 +37,10 @@ def connect(workers: Optional[int], scheduler: Optional[str]) -> Iterator[object
     with ``workers`` processes (default: the machine's cores)."""
     from distributed import Client, LocalCluster
     if scheduler:
+        # the client's own log lines on a lost or unreachable scheduler (reconnect attempts,
+        # tracebacks from its close) would bury the campaign's one line that says so
+        for name in ("distributed", "distributed.client"):     # dask's logging config sets both
+            logging.getLogger(name).setLevel(logging.CRITICAL)
         try:
             client = Client(scheduler, timeout="10s")
         except (OSError, TimeoutError) as e:
@@ -96,34 +101,54 @@ def run_all(client, jobs: Iterable[Job], *, on_dispatch: Callable[[int], None],
     if every job ran, False if a stop request ended it early (the runs under way were
     still finished and handed to ``on_row``)."""
     from distributed import wait
-    from distributed.client import FutureCancelledError
     from distributed.scheduler import KilledWorker
     tag = uuid.uuid4().hex[:8]
     queue = deque(jobs)
     flying: dict = {}
     while queue or flying:
-        if not stop_requested():
-            cap = max(1, threads(client)) if queue else 0
-            while queue and len(flying) < cap:
-                job = queue.popleft()
-                on_dispatch(job.run_id)
-                flying[client.submit(run_sample, job, key=f"rig-run-{tag}-{job.run_id}", pure=False)] = job
-        elif not flying or threads(client) == 0:
-            break                       # stopped; with no worker left the runs under way are the resume's
-        try:
-            done, _ = wait(list(flying), timeout=POLL_S, return_when="FIRST_COMPLETED")
-        except TimeoutError:
-            continue
+        with _on_cluster():
+            if not stop_requested():
+                cap = max(1, threads(client)) if queue else 0
+                while queue and len(flying) < cap:
+                    job = queue.popleft()
+                    on_dispatch(job.run_id)
+                    flying[client.submit(run_sample, job, key=f"rig-run-{tag}-{job.run_id}", pure=False)] = job
+            elif not flying or threads(client) == 0:
+                break                       # stopped; with no worker left the runs under way are the resume's
+            try:
+                done, _ = wait(list(flying), timeout=POLL_S, return_when="FIRST_COMPLETED")
+            except TimeoutError:
+                continue
         for fut in done:
             job = flying.pop(fut)
             try:
-                row = fut.result()
+                with _on_cluster():
+                    row = fut.result()
             except KilledWorker as e:
                 row = {"run_id": job.run_id, "status": "error", "error": f"KilledWorker: {e}"[:2000]}
-            except (FutureCancelledError, OSError) as e:
-                raise LostCluster(f"{type(e).__name__}: {e}") from None
+            except LostCluster:
+                raise
             except Exception as e:  # noqa: BLE001 - what the task did not catch is still a row, not the end
                 row = {"run_id": job.run_id, "status": "error", "error": f"{type(e).__name__}: {e}"[:2000]}
             fut.release()
             on_row(job, row)
     return not queue
+
+
+@contextmanager
+def _on_cluster() -> Iterator[None]:
+    """Around calls to the Dask client: a lost scheduler shows as cancelled futures (the
+    client cancels what was under way when its connection goes) or a closed comm; either
+    is :class:`LostCluster`, named in one line. A wait's timeout is not a loss."""
+    from concurrent.futures import CancelledError
+    try:
+        yield
+    except TimeoutError:
+        raise
+    except CancelledError as e:
+        groups = getattr(e, "error_groups", None) or [e]      # several futures cancelled, or one
+        reasons = sorted({str(g.reason) for g in groups if getattr(g, "reason", None)})
+        raise LostCluster("the runs under way were cancelled: " + (", ".join(reasons) or "by the scheduler")) \
+            from None
+    except OSError as e:
+        raise LostCluster(f"{type(e).__name__}: " + " ".join(str(e).split())[:300]) from None

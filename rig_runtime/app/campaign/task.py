@@ -12,7 +12,6 @@ config whose F/T poller is the multiprocessing one). A run that the gate refuses
 from __future__ import annotations
 
 import json
-import logging
 import os
 import shutil
 import socket
@@ -22,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
+from ..quiet import quiet_device_libraries
 from .outcome import METRICS, verdict
 
 
@@ -56,11 +56,6 @@ def _audit(job: Job) -> None:
         pass
 
 
-def _quiet_libraries() -> None:
-    for name in ("pymodbus", "can", "canopen"):
-        logging.getLogger(name).setLevel(logging.CRITICAL)
-
-
 def run_sample(job: Job) -> dict:
     """The row of one run (without the client's columns: parameters, command, log path).
     ``log_bytes``: the HDF5 log when the spec keeps it (the client writes it into DIR)."""
@@ -70,7 +65,7 @@ def run_sample(job: Job) -> dict:
     from ..dryrun import run_lockstep
 
     _audit(job)
-    _quiet_libraries()
+    quiet_device_libraries()
     t0 = time.monotonic()
     row: dict = {"run_id": job.run_id, "status": "error", "why": "", "error": "", "final_state": "",
                  "exit_code": None, "faults": "[]", "sim_s": None, "worker": f"{socket.gethostname()}:{os.getpid()}",
