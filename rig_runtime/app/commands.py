@@ -7,19 +7,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import sys
 from pathlib import Path
 
 from . import preflight
 from .command import arg, command
 from .metrics import clean
+from .quiet import quiet_device_libraries
 from .runner import EXIT_OK, default_log_path, execute
-
-
-def _quiet_libraries() -> None:
-    for name in ("pymodbus", "can", "canopen"):
-        logging.getLogger(name).setLevel(logging.CRITICAL)
 
 
 def _run_time(summary: dict, t: float) -> str:
@@ -126,7 +121,7 @@ def _live_outputs(args: argparse.Namespace, realtime: bool) -> list[tuple[str, d
 def cmd_dry_run(args: argparse.Namespace) -> int:
     from .. import config
     from ..scenario import load_scenario
-    _quiet_libraries()
+    quiet_device_libraries()
     cfg = config.load(args.config)
     scenario = load_scenario(args.scenario)
     log = Path(args.log) if args.log else default_log_path("dry-run")
@@ -166,7 +161,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from ..clock import RealtimeClock, apply_realtime
     from ..devices import RigDevices
     from ..scenario import load_scenario
-    _quiet_libraries()
+    quiet_device_libraries()
     cfg = config.load(args.config or config.CONFIG_DIR / "rig.yaml")
     scenario = load_scenario(args.scenario) if args.scenario else None
     log = Path(args.log) if args.log else default_log_path("run")
