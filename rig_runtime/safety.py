@@ -10,8 +10,9 @@ be loosened.
 The checks are one ordered list of small named rules (no second copy of any of them):
 the system rules (loop overruns, recorder, converters), the channel rules (each applied to
 every sensor channel before the next rule), then the pose rules (each applied to every
-controlled carrier before the next rule). The first rule that fails in a cycle trips the fault. Arming asks the same channel
-rules whether every channel is fit.
+controlled carrier before the next rule), then the observer rules (each applied to every
+observed carrier, on the statistics of its latest estimate). The first rule that fails in a
+cycle trips the fault. Arming asks the same channel rules whether every channel is fit.
 """
 
 from __future__ import annotations
@@ -263,6 +264,50 @@ def output_not_finite(carrier: str, u: float, lim: Limits) -> Finding:
 OUTPUT_RULES = (output_not_finite,)
 
 
+# ---------------------------------------------------------------------- observer rules
+# An observer rule takes one carrier's observer (rig_runtime.observer.Observer: its window
+# statistics of the normalised innovations, as of the latest estimate) and returns
+# (device, check, value, limit, message) or None.
+def _joined(names: Sequence[str]) -> str:
+    return "/".join(names)
+
+
+def innovation(o, lim: Limits) -> Optional[tuple]:
+    """Analytical redundancy (docs/observer.md): a measurement whose window-mean normalised
+    innovation has χ²(1) ``T`` above ``limits.innovation_chi2`` disagrees with the model and
+    the other sensors. The yaw lasers are tested first (every other measurement leans on
+    ψ), then the lateral y, then Δω: the estimate follows the precise lateral lasers, so a
+    Δω that disagrees with it means the carrier's lateral lasers or its encoders — which of
+    them the test cannot tell, and the finding says so."""
+    thr = lim.innovation_chi2
+    if thr is None or not o.window_full:
+        return None
+    d = o.d
+    car = d.carrier
+    if o.T_psi > thr:
+        return (_joined(d.yaw_lasers), "innovation", o.T_psi, thr,
+                f"{car} carrier: yaw lasers {_joined(d.yaw_lasers)} disagree with the model and the other "
+                f"sensors (chi2 {o.T_psi:.1f} > {thr:g}); the test cannot tell the two apart")
+    if o.T_lat > thr:
+        L = d.lateral_lasers
+        return (_joined(L), "innovation", o.T_lat, thr,
+                f"{car} carrier: lateral lasers {_joined(L)} disagree with the model driven by psi "
+                f"(window-mean innovation {o.mean_lat * 1e6:+.1f} um, chi2 {o.T_lat:.1f} > {thr:g}; "
+                f"y weights {L[0]} {d.lateral_weights[0]:.2f}, {L[1]} {d.lateral_weights[1]:.2f})")
+    if o.T_dw > thr:
+        L, enc = d.lateral_lasers, d.encoders
+        gy = d.dw_row[0]
+        return (f"{L[0]}|{_joined(enc)}", "innovation", o.T_dw, thr,
+                f"{car} carrier: {L[0]} (y weight {d.lateral_weights[0]:.2f}; {L[1]} {d.lateral_weights[1]:.2f}) "
+                f"and the encoders {_joined(enc)} disagree by {o.mean_dw * 1e3:+.2f} mrad/s of dw "
+                f"(= {o.mean_dw / gy * 1e3:+.3f} mm of y; chi2 {o.T_dw:.1f} > {thr:g}): the innovation "
+                "test cannot tell the lateral laser from the encoders")
+    return None
+
+
+OBSERVER_RULES = (innovation,)
+
+
 class Step(NamedTuple):
     """What :meth:`Supervisor.cycle` decided: the state after this cycle's transitions and
     checks, and whether RUNNING began in this cycle."""
@@ -280,10 +325,13 @@ class Supervisor:
     output :meth:`limit` shapes (the lanes')."""
 
     def __init__(self, limits: Limits, h: float, channels: Sequence[Channel], carriers: Sequence[str],
-                 hardware: Hardware, on_event: Callable | None = None, activate_timeout_s: float = 0.5):
+                 hardware: Hardware, on_event: Callable | None = None, activate_timeout_s: float = 0.5,
+                 observers: Sequence = ()):
         self._limits = limits           # frozen, and not replaceable: see the property
         self.h = h
         self.channels = list(channels)
+        self._by_name = {c.name: c for c in self.channels}
+        self.observers = tuple(observers)      # the lanes' observers (rig_runtime.observer.Observer)
         self.carriers = tuple(carriers)
         self.hw = hardware
         self.activate_timeout_s = activate_timeout_s
@@ -455,6 +503,24 @@ class Supervisor:
                 f = rule(p, lim)
                 if f is not None:
                     return self.trip(t, "geometry", *f)
+        for rule in OBSERVER_RULES:
+            for o in self.observers:
+                f = rule(o, lim)
+                if f is not None:
+                    return self.trip(t, *f)
+
+    def fit(self, names: Sequence[str], t: float) -> bool:
+        """Every named channel fit for use this cycle: what arming asks of a channel (a
+        fresh, finite, in-range sample; ``ARM_RULES``). The observer's lateral update uses a
+        laser only then."""
+        lim = self.limits
+        by = self._by_name
+        for n in names:
+            c = (by[n],)
+            for rule in ARM_RULES:
+                if rule(c, t, lim) is not None:
+                    return False
+        return True
 
     # ------------------------------------------------------------------ output limit
     def limit(self, carrier: str, u: float, t: float) -> float:
