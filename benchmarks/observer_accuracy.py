@@ -8,6 +8,7 @@ and the largest innovation statistic seen (the false-alarm margin).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 import tempfile
@@ -55,8 +56,11 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=None)
     ap.add_argument("--seeds", type=int, nargs="*", default=[0])
     ap.add_argument("--config", default=None)
+    ap.add_argument("--chi2", type=float, default=None, help="limits.innovation_chi2 for this run")
     a = ap.parse_args()
     cfg = config.load(a.config)
+    if a.chi2 is not None:
+        cfg = dataclasses.replace(cfg, limits=dataclasses.replace(cfg.limits, innovation_chi2=a.chi2))
     sc = load_scenario(a.scenario)
     for seed in a.seeds:
         with tempfile.TemporaryDirectory() as d:
@@ -64,7 +68,7 @@ def main() -> None:
             summary, code = run_lockstep(cfg, sc, log, seed=seed, duration_s=a.duration)
             res = judge(log)
         print(f"{a.scenario} seed={seed} final={summary['final_state']} faults="
-              f"{[(f['device'], f['check']) for f in summary['faults']]} "
+              f"{[(f['t'] - summary['run_started_t'], f['device'], f['check'], f['message']) for f in summary['faults']]} "
               f"wall_us/cycle={summary['wall_us_per_cycle']:.0f}")
         for car, r in res.items():
             print("  ", car, {k: (round(v, 4) if isinstance(v, float) and math.isfinite(v) else v) for k, v in r.items()})
