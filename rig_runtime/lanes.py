@@ -45,7 +45,7 @@ class Lane:
     → ``apply``."""
 
     __slots__ = ("carrier", "wheels", "controller", "reference", "open_loop", "controlled",
-                 "y", "psi", "dw", "y_ref", "u_cmd", "u", "observer", "lateral_lasers")
+                 "y", "psi", "dw", "y_ref", "u_cmd", "u", "observer", "lateral_lasers", "ft_sensors")
 
     def __init__(self, carrier: str, controller, reference: Callable[[float], float],
                  open_loop: Optional[Callable[[float], float]] = None,
@@ -53,6 +53,7 @@ class Lane:
         self.carrier = carrier
         self.observer = Observer(observer) if observer is not None else None
         self.lateral_lasers = observer.lateral_lasers if observer is not None else ()
+        self.ft_sensors = observer.ft_sensors if observer is not None else ()
         self.wheels = CARRIER_WHEELS[carrier]
         self.controller = controller            # None: the lane only plays an open-loop input
         self.controlled = controller is not None
@@ -67,11 +68,12 @@ class Lane:
         """This cycle's measurement of the carrier."""
         self.y, self.psi, self.dw = m.carrier(self.carrier)
 
-    def estimate(self, lat_ok: bool, y_other: float) -> None:
+    def estimate(self, lat_ok: bool, y_other: float, f_lat: float = 0.0) -> None:
         """The observer's step on this cycle's measurement and the current held since the
         last cycle (``lat_ok``: the lateral lasers are fit this cycle, as the supervisor
-        judges them; ``y_other``: the other carrier's lateral displacement, a known input)."""
-        self.observer.step(self.y, self.psi, self.dw, self.u, y_other, lat_ok)
+        judges them; ``y_other``: the other carrier's lateral displacement, ``f_lat``: its
+        measured lateral force (N), known inputs)."""
+        self.observer.step(self.y, self.psi, self.dw, self.u, y_other, lat_ok, f_lat)
 
     def start(self) -> None:
         """RUNNING began: the controller starts bumplessly on the reference's first value."""

@@ -127,6 +127,7 @@ class ControlLoop:
         self.t_start: float | None = None
         self.max_abs_current = 0.0
         self.cycle = Cycle()
+        self._values: Mapping[str, float] = {}      # this cycle's channel values by name
         self.columns = log_columns(cfg, self.channels, devices.extra_columns, [l.carrier for l in self.observed])
         self._getters = self._row_getters()
 
@@ -303,6 +304,7 @@ class ControlLoop:
         """Sec. 2 geometry from the reading by name; each lane takes its carrier's part."""
         m = self.cycle.m = measure(reading.values, self.cfg.geometry)
         self.cycle.wrench = reading.wrench
+        self._values = reading.values
         for lane in self.lanes:
             lane.sense(m)
 
@@ -322,16 +324,22 @@ class ControlLoop:
 
     def _estimate(self, t: float) -> None:
         """Each observed lane's observer on this cycle's measurement; the lateral lasers are
-        used only if the supervisor finds them fit this cycle. The other carrier's y is a
+        used only if the supervisor finds them fit this cycle, the F/T sensors' lateral
+        force (the sum of the carrier's two sides' Fy) likewise, else no force is assumed. The other carrier's y is a
         known input where both carriers are on the rollers (else 0: the lifted one's)."""
         if not self.observed:
             return
-        sup, m = self.supervisor, self.cycle.m
+        sup, m, values = self.supervisor, self.cycle.m, self._values
         for lane in self.observed:
             y_other = 0.0
             if self._front_contact:
                 y_other = m.y_f if lane.carrier == "rear" else m.y_r
-            lane.estimate(sup.fit(lane.lateral_lasers, t), y_other)
+            f_lat = 0.0
+            ft = lane.ft_sensors
+            if ft and sup.fit(ft, t):
+                for n in ft:
+                    f_lat += values[n]
+            lane.estimate(sup.fit(lane.lateral_lasers, t), y_other, f_lat)
 
     def _start(self, t: float) -> None:
         """RUNNING began: the scenario's time origin, the duration, bumpless controllers."""

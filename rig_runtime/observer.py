@@ -4,10 +4,14 @@ the linear model of Sec. 4, run every cycle as a stage of the carrier's lane.
 State ``x = (y, ψ, ψ̇)`` of the carrier, input the differential current ``u`` held over the
 period (and the other carrier's ``y`` where both are in contact, as a known input):
 
-    (2b)  ẏ = −a y + c̄_y v ψ + a y_other + (v/2l0) y_off             (a = c̄_y v/(2 l0))
+    (2b)  ẏ = −a y + c̄_y v ψ + a y_other + (v/2l0) y_off + |v|/(2 c22) F_y    (a = c̄_y v/(2 l0))
     (6)   ψ̈ = −2Dω0 ψ̇ − ω0² ψ + Kω0² u + ω0² ψ_off              (hysteresis: process noise)
 
-held over h (``A``, ``B``, ``E``, ``c``), with three measurements
+with ``F_y`` the carrier's lateral force as its F/T sensors measure it (the sum of the two
+sides' Fy: the same force the plant applies, docs/plant-model.md §3), a known input like u —
+a force pulse or side wind moves y without moving ψ first, which the model would otherwise
+take for a lateral laser disagreeing; held over h (``A``, ``B``, ``E``, ``F``, ``c``), with
+three measurements
 
     lateral:  y from the lateral lasers (Sec. 2 geometry)   — used only when they are fit
     yaw:      ψ from the yaw lasers
@@ -40,17 +44,19 @@ LOG_FIELDS = ("y_hat", "psi_hat", "psi_rate_hat", "nu_lat", "nu_psi", "nu_dw",
 class ObserverDesign:
     """A carrier's filter as plain numbers (row-major tuples), made at configure time.
 
-    ``A`` (3×3), ``B``/``E``/``c`` (3): the model held over h for input u, the other
-    carrier's y and the offsets; ``dw_row`` = (∂Δω/∂y, ∂Δω/∂ψ̇, ∂Δω/∂u) of (4);
+    ``A`` (3×3), ``B``/``E``/``F``/``c`` (3): the model held over h for input u, the other
+    carrier's y, the lateral force F_y (N) and the offsets; ``dw_row`` = (∂Δω/∂y, ∂Δω/∂ψ̇, ∂Δω/∂u) of (4);
     ``K_full`` (3×3: state × (lat, psi, dw)), ``K_nolat`` (3×2: state × (psi, dw));
     ``S_full`` (3), ``S_nolat`` (2): the steady-state innovation variances; ``window``:
     cycles of the health statistic; ``lateral_lasers``/``yaw_lasers``/``encoders``: the
-    devices behind each measurement (for the supervisor's finding)."""
+    devices behind each measurement (for the supervisor's finding); ``ft_sensors``: the F/T
+    sensors whose Fy sum to the carrier's lateral force (empty: no force input)."""
 
     carrier: str
     A: tuple[float, ...]
     B: tuple[float, float, float]
     E: tuple[float, float, float]
+    F: tuple[float, float, float]
     c: tuple[float, float, float]
     dw_row: tuple[float, float, float]
     K_full: tuple[float, ...]
@@ -62,6 +68,7 @@ class ObserverDesign:
     lateral_weights: tuple[float, ...]       # ∂y/∂(laser reading) of the geometry, same order
     yaw_lasers: tuple[str, ...]
     encoders: tuple[str, ...]
+    ft_sensors: tuple[str, ...] = ()
 
 
 class Observer:
@@ -100,9 +107,9 @@ class Observer:
         self.T_lat = self.T_psi = self.T_dw = 0.0
 
     def step(self, y_meas: float, psi_meas: float, dw_meas: float, u_held: float, y_other: float,
-             lat_ok: bool) -> None:
-        """One cycle: predict over h with the current held since the last cycle (``u_held``)
-        and the other carrier's y, then correct with this cycle's measurements (the lateral
+             lat_ok: bool, f_lat: float = 0.0) -> None:
+        """One cycle: predict over h with the current held since the last cycle (``u_held``),
+        the other carrier's y and the measured lateral force ``f_lat`` (N), then correct with this cycle's measurements (the lateral
         one only if ``lat_ok``), and update the health window."""
         d = self.d
         if not self.started:                    # first cycle: start on the measurements
@@ -111,11 +118,11 @@ class Observer:
             self.psi = psi_meas
             self.rate = 0.0
             return
-        A, B, E, c = d.A, d.B, d.E, d.c
+        A, B, E, F, c = d.A, d.B, d.E, d.F, d.c
         y, p, r = self.y, self.psi, self.rate
-        yp = A[0] * y + A[1] * p + A[2] * r + B[0] * u_held + E[0] * y_other + c[0]
-        pp = A[3] * y + A[4] * p + A[5] * r + B[1] * u_held + E[1] * y_other + c[1]
-        rp = A[6] * y + A[7] * p + A[8] * r + B[2] * u_held + E[2] * y_other + c[2]
+        yp = A[0] * y + A[1] * p + A[2] * r + B[0] * u_held + E[0] * y_other + F[0] * f_lat + c[0]
+        pp = A[3] * y + A[4] * p + A[5] * r + B[1] * u_held + E[1] * y_other + F[1] * f_lat + c[1]
+        rp = A[6] * y + A[7] * p + A[8] * r + B[2] * u_held + E[2] * y_other + F[2] * f_lat + c[2]
         gy, gr, gu = d.dw_row
         n_psi = psi_meas - pp
         n_dw = dw_meas - (gy * yp + gr * rp + gu * u_held)

@@ -23,7 +23,7 @@ def _toy(window: int = 4) -> ObserverDesign:
     """A design with numbers easy to follow by hand."""
     return ObserverDesign(
         carrier="rear", A=(0.5, 1.0, 0.0, 0.0, 1.0, 0.1, 0.0, 0.0, 0.9), B=(0.0, 0.0, 2.0),
-        E=(0.25, 0.0, 0.0), c=(0.01, 0.0, 0.0), dw_row=(10.0, 2.0, 0.1),
+        E=(0.25, 0.0, 0.0), F=(0.0, 0.0, 0.0), c=(0.01, 0.0, 0.0), dw_row=(10.0, 2.0, 0.1),
         K_full=(0.5, 0.0, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.1), K_nolat=(0.0, 0.0, 0.5, 0.0, 0.0, 0.1),
         S_full=(4.0, 1.0, 0.25), S_nolat=(1.0, 0.25), window=window,
         lateral_lasers=("b_r", "b_f"), lateral_weights=(0.85, 0.15), yaw_lasers=("s_rl", "s_rr"),
@@ -127,6 +127,21 @@ def test_design_matches_relation_4(cfg):
     assert gr == pytest.approx(2.0)
     assert gy == pytest.approx(p.Gamma * p.v * p.b / (2 * p.r0 ** 2))
     assert gu == pytest.approx(p.v * p.k_tau / (p.r0 ** 2 * p.c11))
+
+
+def test_lateral_force_enters_as_the_plants_creep_velocity(cfg):
+    """The held model's force column: y moves by ≈ h·|v|/(2 c̄11) per N over one period (the
+    plant's ẏ += |v| F_y/(2 c22), c22 ≈ c̄11; exact to the small decay −a y over h), ψ not at
+    all; the carrier's F/T sensors are those of its two wheels."""
+    d = od.design(cfg, "rear")
+    p, h = cfg.plant, cfg.controller.h
+    assert d.F[0] == pytest.approx(h * abs(p.v) / (2 * p.c11), rel=1e-2)
+    assert d.F[0] > 0 and d.F[1] == 0.0 and d.F[2] == 0.0
+    assert d.ft_sensors == ("ft_rl", "ft_rr")
+    o = Observer(dataclasses.replace(_toy(), F=(0.5, 0.0, 0.0)))
+    o.step(1.0, 0.5, 0.0, 0.0, 0.0, True)
+    o.step(2.0, 1.0, 20.0, 1.0, 0.4, True, f_lat=0.2)       # prediction of y: 1.11 + 0.5·0.2
+    assert o.nu_lat == pytest.approx(0.79)
 
 
 def test_lateral_weights_of_the_geometry(cfg):

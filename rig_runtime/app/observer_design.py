@@ -35,16 +35,19 @@ def _lateral_weights(cfg: RigConfig, carrier: str) -> tuple[tuple[str, str], tup
 
 
 def continuous_model(cfg: RigConfig, carrier: str, D: float) -> tuple[np.ndarray, np.ndarray]:
-    """A (3×3) and the input matrix for (u, y_other, 1) of the carrier's model (x = y, ψ, ψ̇)."""
+    """A (3×3) and the input matrix for (u, y_other, F_y, 1) of the carrier's model
+    (x = y, ψ, ψ̇). The lateral force enters as the plant's creep velocity |v| F_y/(2 c22),
+    c22 ≈ c̄11 (the plant model's ESTIMATE, docs/plant-model.md §3)."""
     p = cfg.plant
     a, cyv, w0 = p.a_lat, p.c_y * p.v, p.omega0
+    fy = abs(p.v) / (2.0 * p.c11)
     w2 = w0 * w0
     if carrier == "rear":
         a_own, a_other, off = -a, a, p.v / (2 * p.l0) * p.y_off
     else:
         a_own, a_other, off = a, -a, 0.0
     A = np.array([[a_own, cyv, 0.0], [0.0, 0.0, 1.0], [0.0, -w2, -2 * D * w0]])
-    Bc = np.array([[0.0, a_other, off], [0.0, 0.0, 0.0], [p.K * w2, 0.0, w2 * p.psi_off]])
+    Bc = np.array([[0.0, a_other, fy, off], [0.0, 0.0, 0.0, 0.0], [p.K * w2, 0.0, 0.0, w2 * p.psi_off]])
     return A, Bc
 
 
@@ -97,11 +100,21 @@ def design(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None) -> 
     left, right = CARRIER_WHEELS[carrier]
     flat = lambda M: tuple(float(v) for v in np.asarray(M).ravel())     # noqa: E731
     return ObserverDesign(
-        carrier=carrier, A=flat(Ad), B=flat(Bd[:, 0]), E=flat(Bd[:, 1]), c=flat(Bd[:, 2]),
+        carrier=carrier, A=flat(Ad), B=flat(Bd[:, 0]), E=flat(Bd[:, 1]), F=flat(Bd[:, 2]), c=flat(Bd[:, 3]),
         dw_row=(gy, gr, gu), K_full=flat(K_full), K_nolat=flat(K_nl),
         S_full=flat(np.diag(S_full)), S_nolat=flat(np.diag(S_nl)),
         window=cfg.limits.innovation_window, lateral_lasers=lasers, lateral_weights=weights,
-        yaw_lasers=(f"s_{left}", f"s_{right}"), encoders=(left, right))
+        yaw_lasers=(f"s_{left}", f"s_{right}"), encoders=(left, right),
+        ft_sensors=_ft_sensors(cfg, (left, right)))
+
+
+def _ft_sensors(cfg: RigConfig, wheels: tuple[str, str]) -> tuple[str, ...]:
+    """The F/T sensors of the carrier's two wheels, by the name's wheel suffix (``ft_rl``,
+    ``ft_rr``: the convention of the shipped configs and the simulator); both or none (one
+    side alone is not the carrier's lateral force)."""
+    names = [s.name for s in cfg.devices.ft.sensors]
+    found = tuple(next((n for n in names if n.endswith(w)), "") for w in wheels)
+    return found if all(found) else ()
 
 
 def designs(cfg: RigConfig) -> dict[str, ObserverDesign]:
