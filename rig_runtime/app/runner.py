@@ -70,7 +70,10 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     again or a stop ends it. ``recorder_when_full="wait"``: a full recording ring makes the
     loop wait for the sidecar instead of dropping the row (lockstep runs only)."""
     analysis.stability_gate(cfg)        # also for callers that bypass the CLI's preflight
-    observers = observer_designs(cfg)   # the Riccati design here, not in the loop's modules
+    # the Riccati design here, not in the loop's modules; a carrier per the set-up in rolling
+    # contact only (a carrier the scenario lifts off the rollers has no (2b) and no (4))
+    lifted = scenario.lifted_carrier if scenario else None
+    observers = {c: d for c, d in observer_designs(cfg).items() if c != lifted}
     reference = Reference(scenario.reference) if scenario else (lambda t: 0.0)
     open_loop = (scenario.open_loop.carrier, open_loop_input(scenario.open_loop)) if scenario and scenario.open_loop else None
     duration = duration_s if duration_s is not None else (scenario.duration_s if scenario else math.inf)
