@@ -70,6 +70,11 @@ class ObserverDesign:
     encoders: tuple[str, ...]
     ft_sensors: tuple[str, ...] = ()
 
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """The supervisor channels behind the filter's measurements."""
+        return self.lateral_lasers + self.yaw_lasers + self.encoders
+
 
 class Observer:
     """One carrier's filter and health statistics, updated in place by :meth:`step`."""

@@ -11,8 +11,9 @@ The checks are one ordered list of small named rules (no second copy of any of t
 the system rules (loop overruns, recorder, converters), the channel rules (each applied to
 every sensor channel before the next rule), then the pose rules (each applied to every
 controlled carrier before the next rule), then the observer rules (each applied to every
-observed carrier, on the statistics of its latest estimate). The first rule that fails in a
-cycle trips the fault. Arming asks the same channel rules whether every channel is fit.
+observed carrier, on the statistics of its latest estimate, and not while a channel rule is
+gathering evidence on one of the carrier's sensors: a channel rule that sees the fault names
+it first). The first rule that fails in a cycle trips the fault. Arming asks the same channel rules whether every channel is fit.
 """
 
 from __future__ import annotations
@@ -505,9 +506,27 @@ class Supervisor:
                     return self.trip(t, "geometry", *f)
         for rule in OBSERVER_RULES:
             for o in self.observers:
+                if self._channel_evidence(o.d.channels):
+                    continue
                 f = rule(o, lim)
                 if f is not None:
                     return self.trip(t, *f)
+
+    def _channel_evidence(self, names: Sequence[str]) -> bool:
+        """A channel rule is gathering evidence on one of the named channels: it has repeated
+        its value (``stuck``) or brought garbled frames (``corrupt_link``) in its latest
+        cycles. The observer rules wait then — a stuck yaw laser disagrees with the model
+        long before ``stuck_periods`` have passed, and the channel rule names the sensor
+        itself, where the innovation test can only name the measurement (and, for a yaw
+        laser frozen on a moving carrier, first sees the lateral lasers disagree). A
+        healthy, quantised laser repeats a value for a cycle or two now and then: the rule
+        then waits that long."""
+        by = self._by_name
+        for n in names:
+            c = by.get(n)
+            if c is not None and (c.same > 0 or c.bad_run > 0):
+                return True
+        return False
 
     def fit(self, names: Sequence[str], t: float) -> bool:
         """Every named channel fit for use this cycle: what arming asks of a channel (a

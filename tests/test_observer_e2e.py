@@ -14,7 +14,7 @@ import pytest
 
 from rig_runtime import config
 from rig_runtime.app.dryrun import TRUTH_GROUP, run_lockstep
-from rig_runtime.scenario import load_scenario
+from rig_runtime.scenario import SCENARIO_DIR, load_scenario
 
 
 @pytest.fixture(scope="module")
@@ -111,3 +111,17 @@ def test_without_the_force_input_the_pulse_looks_like_a_laser_fault(tmp_path, oc
     summary, code = run_lockstep(ocfg, sc, tmp_path / "run.h5", duration_s=5.0)
     assert summary["final_state"] == "FAULT"
     assert summary["faults"][0]["check"] == "innovation" and summary["faults"][0]["device"].startswith("b_r")
+
+
+_FAULT_SCENARIOS = sorted(p.stem for p in SCENARIO_DIR.glob("fault-*.yaml") if p.stem != "fault-drift")
+
+
+@pytest.mark.parametrize("name", _FAULT_SCENARIOS)
+def test_with_the_rule_on_every_fault_scenario_keeps_its_fault(tmp_path, ocfg, name):
+    """The channel rules name their faults first: the innovation rule waits while a channel
+    rule gathers evidence on one of the carrier's sensors (fault-stuck: a frozen yaw laser
+    disagrees with the model ~0.7 s into its stuck second, and the test alone named the
+    lateral lasers)."""
+    sc = load_scenario(name)
+    summary, code = run_lockstep(ocfg, sc, tmp_path / "run.h5")
+    assert summary["faults"] and summary["faults"][0]["check"] == sc.expect_fault, summary["faults"][:1]
