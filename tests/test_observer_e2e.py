@@ -125,3 +125,25 @@ def test_with_the_rule_on_every_fault_scenario_keeps_its_fault(tmp_path, ocfg, n
     sc = load_scenario(name)
     summary, code = run_lockstep(ocfg, sc, tmp_path / "run.h5")
     assert summary["faults"] and summary["faults"][0]["check"] == sc.expect_fault, summary["faults"][:1]
+
+
+def test_no_observer_for_a_lifted_carrier(tmp_path, ocfg):
+    """ident-free-response lifts the rear carrier off the rollers: no (2b), no (4), so no
+    filter for it (it would take the free yaw swing for a sensor fault)."""
+    summary, code = run_lockstep(ocfg, load_scenario("ident-free-response"), tmp_path / "run.h5",
+                                 duration_s=2.0)
+    assert summary["final_state"] == "IDLE" and not summary["faults"]
+    data, _, _ = _log(tmp_path / "run.h5")
+    assert not any(c.startswith("rear_obs_") for c in data)
+
+
+def test_the_false_alarm_benchmark_takes_every_fault_free_scenario():
+    import importlib.util
+    from pathlib import Path
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / "observer_false_alarms.py"
+    spec = importlib.util.spec_from_file_location("observer_false_alarms", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    names = mod.fault_free()
+    assert {"robustness", "step-sequence", "single-step", "sine-hysteresis"} <= set(names)
+    assert not any(n.startswith("fault-") for n in names)
