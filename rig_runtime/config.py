@@ -198,6 +198,29 @@ class Observer:
     D: Optional[float] = check(positive, default=None)      # damping of (6) in the model (None: plant.D_min)
 
 
+@dataclass(frozen=True, kw_only=True)
+class DegradedLimits:
+    """The tighter limits a carrier runs under while it is controlled on the observer's ŷ."""
+
+    u_max: float = check(positive, default=2.0)          # A
+    y_max: float = check(positive, default=0.004)        # m, judged on ŷ
+
+
+@dataclass(frozen=True, kw_only=True)
+class Degraded:
+    """What a lost lateral laser does (docs/observer.md, "Degraded mode"): ``stop`` — the
+    channel rule's fault, as without an observer; ``observe`` — the carriers whose y it
+    feeds continue on their observer's ŷ under ``limits``, for at most ``max_s``; the laser
+    is readmitted once it is fit and agrees with ŷ within ``readmit_tol_m`` for
+    ``readmit_s``."""
+
+    on_lateral_loss: Literal["observe", "stop"] = "stop"
+    max_s: float = check(positive, default=15.0)
+    limits: DegradedLimits = field(default_factory=DegradedLimits)
+    readmit_s: float = check(positive, default=1.0)
+    readmit_tol_m: float = check(positive, default=0.1e-3)
+
+
 # --------------------------------------------------------------------------- devices
 @dataclass(frozen=True, kw_only=True)
 class LaserDevice:
@@ -314,6 +337,7 @@ class RigConfig:
     realtime: Realtime = field(default_factory=Realtime)
     recorder: Recorder = field(default_factory=Recorder)
     observer: Optional[Observer] = None             # None: no observer in the lanes
+    degraded: Degraded = field(default_factory=Degraded)    # a lost lateral laser: stop (default) or observe
     sim: Optional[dict[str, Any]] = None            # validated by sim_backend
     source: str = ""                                # file it was loaded from (not a YAML key)
 
@@ -321,10 +345,20 @@ class RigConfig:
         if not self.controlled:
             raise ConfigError(None, "controlled", "at least one of 'front', 'rear'")
         check_ceilings(self)     # every limit at most its hardware ceiling, however the object was made
+        d = self.degraded
+        if d.on_lateral_loss == "observe":
+            if self.observer is None:
+                raise ConfigError(None, "degraded.on_lateral_loss", "'stop' without an observer: section "
+                                  "(a carrier can only continue on an estimate it has)", d.on_lateral_loss)
+            for k in ("u_max", "y_max"):
+                if getattr(d.limits, k) > getattr(self.limits, k):
+                    raise ConfigError(None, f"degraded.limits.{k}", f"at most limits.{k} = "
+                                      f"{getattr(self.limits, k):g} (degraded limits are tighter)",
+                                      getattr(d.limits, k))
 
 
 _SECTION_FILES = ("geometry", "plant", "controller", "limits", "controlled", "tuning",
-                  "devices", "realtime", "recorder", "observer", "sim", "hardware")
+                  "devices", "realtime", "recorder", "observer", "degraded", "sim", "hardware")
 HARDWARE_FILE = CONFIG_DIR / "hardware.yaml"
 
 # Bounds of a YAML file: a config is a few kB; a "billion laughs" file of a few hundred

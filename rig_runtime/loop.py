@@ -49,6 +49,7 @@ class RunResult:
     t_start: Optional[float] = None     # when RUNNING began (scenario time origin); None: never
     wall_time_s: float = 0.0
     arm_blockers: list = field(default_factory=list)
+    degraded: list = field(default_factory=list)    # DEGRADED intervals (carrier, laser, t_start, t_end, end)
 
 
 CYCLE_FIELDS = ("t", "t_run", "lateness", "work", "state", "y_ref")
@@ -120,7 +121,8 @@ class ControlLoop:
         self.observed = [l for l in self.lanes if l.observer is not None]
         self._front_contact = cfg.plant.front_contact
         self.supervisor = Supervisor(cfg.limits, self.h, self.channels, [l.carrier for l in self.lanes], devices,
-                                     on_event=self._event, observers=[l.observer for l in self.observed])
+                                     on_event=self._event, observers=[l.observer for l in self.observed],
+                                     degraded=cfg.degraded)
         self.stats = CycleStats()
         self.stop_requested = False
         self.stop_reason = "stop requested (signal)"
@@ -290,7 +292,8 @@ class ControlLoop:
         return RunResult(final_state=sup.state.name, faults=[f.as_dict() for f in sup.faults],
                          cycles=summary.pop("cycles"), max_abs_current_A=self.max_abs_current,
                          timing=summary, t_start=self.t_start, wall_time_s=time.perf_counter() - wall0,
-                         arm_blockers=sup.arm_blockers if sup.arm_failed or self.t_start is None else [])
+                         arm_blockers=sup.arm_blockers if sup.arm_failed or self.t_start is None else [],
+                         degraded=list(sup.degraded_log))
 
     # ---- the stages, in cycle order
     def _operator_command(self, t: float) -> None:
@@ -339,7 +342,14 @@ class ControlLoop:
             if ft and sup.fit(ft, t):
                 for n in ft:
                     f_lat += values[n]
-            lane.estimate(sup.fit(lane.lateral_lasers, t), y_other, f_lat)
+            lat = lane.lateral_lasers
+            lane.estimate(sup.fit(lat, t) and not sup.isolated_any(lat), y_other, f_lat)
+            o = lane.observer
+            if lane.carrier in sup.degraded_since:      # DEGRADED: the lane runs on ŷ
+                lane.y = o.y
+                o.degraded = 1.0
+            else:
+                o.degraded = 0.0
 
     def _start(self, t: float) -> None:
         """RUNNING began: the scenario's time origin, the duration, bumpless controllers."""

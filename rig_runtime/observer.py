@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 MEASUREMENTS = ("lat", "psi", "dw")       # the filter's measurements, in gain-column order
 LOG_FIELDS = ("y_hat", "psi_hat", "psi_rate_hat", "nu_lat", "nu_psi", "nu_dw",
-              "T_lat", "T_psi", "T_dw", "lat_used")
+              "T_lat", "T_psi", "T_dw", "lat_used", "degraded")
 
 
 @dataclass(frozen=True)
@@ -81,7 +81,7 @@ class Observer:
 
     __slots__ = ("d", "carrier", "started", "y", "psi", "rate", "nu_lat", "nu_psi", "nu_dw",
                  "T_lat", "T_psi", "T_dw", "lat_used", "_ring", "_sum", "_i", "_n", "_N",
-                 "_is", "_is_nl", "mean_lat", "mean_dw")
+                 "_is", "_is_nl", "mean_lat", "mean_dw", "degraded")
 
     def __init__(self, design: ObserverDesign):
         self.d = design
@@ -92,6 +92,7 @@ class Observer:
         self.T_lat = self.T_psi = self.T_dw = 0.0
         self.mean_lat = self.mean_dw = 0.0      # window means of the innovations (m, rad/s)
         self.lat_used = 0.0
+        self.degraded = 0.0                     # 1: the lane runs on this estimate (set by the loop)
         N = design.window
         self._N = N
         self._ring = [[0.0] * N for _ in MEASUREMENTS]     # normalised innovations per measurement
@@ -181,4 +182,4 @@ class Observer:
     def log_values(self) -> tuple[float, ...]:
         """This cycle's values in ``LOG_FIELDS`` order."""
         return (self.y, self.psi, self.rate, self.nu_lat, self.nu_psi, self.nu_dw,
-                self.T_lat, self.T_psi, self.T_dw, self.lat_used)
+                self.T_lat, self.T_psi, self.T_dw, self.lat_used, self.degraded)

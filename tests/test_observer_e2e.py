@@ -121,9 +121,11 @@ def test_with_the_rule_on_every_fault_scenario_keeps_its_fault(tmp_path, ocfg, n
     """The channel rules name their faults first: the innovation rule waits while a channel
     rule gathers evidence on one of the carrier's sensors (fault-stuck: a frozen yaw laser
     disagrees with the model ~0.7 s into its stuck second, and the test alone named the
-    lateral lasers)."""
+    lateral lasers). sim-observer.yaml's degraded mode is switched back to stop: a lateral
+    laser's dropout is a fault then (tests/test_degraded_e2e.py has the other case)."""
     sc = load_scenario(name)
-    summary, code = run_lockstep(ocfg, sc, tmp_path / "run.h5")
+    cfg = dataclasses.replace(ocfg, degraded=config.Degraded())     # a lost laser stops (the default)
+    summary, code = run_lockstep(cfg, sc, tmp_path / "run.h5")
     assert summary["faults"] and summary["faults"][0]["check"] == sc.expect_fault, summary["faults"][:1]
 
 

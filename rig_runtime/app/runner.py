@@ -146,6 +146,8 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
         "run_started_t": result.t_start if result.t_start is not None else math.nan,
         "wall_time_s": result.wall_time_s,
     }
+    if result.degraded:
+        summary["degraded"] = result.degraded       # DEGRADED intervals (docs/observer.md)
     if stops.requested:
         summary["stopped_by"] = stops.name
     elif operator_stop:
