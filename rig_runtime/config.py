@@ -154,6 +154,9 @@ class Limits:
     stuck_periods: Optional[int] = check(positive, default=200)  # bit-identical samples -> stuck
     laser_step_max: Optional[float] = check(positive, default=0.002)  # m per period -> implausible jump
     corrupt_cycles: Optional[int] = check(positive, default=20)   # garbled frames in this many cycles in a row -> link fault
+    innovation_chi2: Optional[float] = check(positive, default=None)  # observer: χ²(1) of a measurement's window-mean
+                                                    # normalised innovation above this -> the sensor disagrees (None: off)
+    innovation_window: int = check(positive, default=200)   # cycles in that window
 
     def __post_init__(self) -> None:
         if self.psi_ref_max is not None and self.psi_ref_max > self.psi_max:
@@ -172,6 +175,50 @@ class TuningCriteria:
     slowest_eig_min: float = -1.5     # 1/s
     outer_lateral_form: Literal["eq17", "eq10"] = "eq17"
     D_values: tuple[float, ...] = (0.0, 0.1, 0.5, 1.0, 2.2, 6.0, 20.0, 100.0)
+
+
+# --------------------------------------------------------------------------- observer
+@dataclass(frozen=True, kw_only=True)
+class ObserverNoise:
+    """Standard deviations of the sensors as the observer assumes them (per sample)."""
+
+    lateral_laser_m: float = check(positive, default=1.0e-6)    # one lateral laser reading, m
+    yaw_laser_m: float = check(positive, default=1.0e-6)        # one yaw laser reading, m
+    encoder_rad_s: float = check(positive, default=0.002)       # one wheel speed, rad/s
+
+
+@dataclass(frozen=True, kw_only=True)
+class Observer:
+    """The lateral-displacement observer of every controlled carrier (docs/observer.md):
+    sensor noise, process noise (what the linear model leaves out) and the damping of (6)."""
+
+    noise: ObserverNoise = field(default_factory=ObserverNoise)
+    q_y: float = check(positive, default=1.0e-5)            # lateral velocity noise density (unmodelled forces), m/s per √Hz
+    q_psi_acc: float = check(positive, default=2.0)         # yaw acceleration noise (hysteresis, damping), rad/s² per √Hz
+    D: Optional[float] = check(positive, default=None)      # damping of (6) in the model (None: plant.D_min)
+
+
+@dataclass(frozen=True, kw_only=True)
+class DegradedLimits:
+    """The tighter limits a carrier runs under while it is controlled on the observer's ŷ."""
+
+    u_max: float = check(positive, default=2.0)          # A
+    y_max: float = check(positive, default=0.004)        # m, judged on ŷ
+
+
+@dataclass(frozen=True, kw_only=True)
+class Degraded:
+    """What a lost lateral laser does (docs/observer.md, "Degraded mode"): ``stop`` — the
+    channel rule's fault, as without an observer; ``observe`` — the carriers whose y it
+    feeds continue on their observer's ŷ under ``limits``, for at most ``max_s``; the laser
+    is readmitted once it is fit and agrees with ŷ within ``readmit_tol_m`` for
+    ``readmit_s``."""
+
+    on_lateral_loss: Literal["observe", "stop"] = "stop"
+    max_s: float = check(positive, default=15.0)
+    limits: DegradedLimits = field(default_factory=DegradedLimits)
+    readmit_s: float = check(positive, default=1.0)
+    readmit_tol_m: float = check(positive, default=0.1e-3)
 
 
 # --------------------------------------------------------------------------- devices
@@ -289,6 +336,8 @@ class RigConfig:
     devices: Devices = field(default_factory=Devices)
     realtime: Realtime = field(default_factory=Realtime)
     recorder: Recorder = field(default_factory=Recorder)
+    observer: Optional[Observer] = None             # None: no observer in the lanes
+    degraded: Degraded = field(default_factory=Degraded)    # a lost lateral laser: stop (default) or observe
     sim: Optional[dict[str, Any]] = None            # validated by sim_backend
     source: str = ""                                # file it was loaded from (not a YAML key)
 
@@ -296,10 +345,20 @@ class RigConfig:
         if not self.controlled:
             raise ConfigError(None, "controlled", "at least one of 'front', 'rear'")
         check_ceilings(self)     # every limit at most its hardware ceiling, however the object was made
+        d = self.degraded
+        if d.on_lateral_loss == "observe":
+            if self.observer is None:
+                raise ConfigError(None, "degraded.on_lateral_loss", "'stop' without an observer: section "
+                                  "(a carrier can only continue on an estimate it has)", d.on_lateral_loss)
+            for k in ("u_max", "y_max"):
+                if getattr(d.limits, k) > getattr(self.limits, k):
+                    raise ConfigError(None, f"degraded.limits.{k}", f"at most limits.{k} = "
+                                      f"{getattr(self.limits, k):g} (degraded limits are tighter)",
+                                      getattr(d.limits, k))
 
 
 _SECTION_FILES = ("geometry", "plant", "controller", "limits", "controlled", "tuning",
-                  "devices", "realtime", "recorder", "sim", "hardware")
+                  "devices", "realtime", "recorder", "observer", "degraded", "sim", "hardware")
 HARDWARE_FILE = CONFIG_DIR / "hardware.yaml"
 
 # Bounds of a YAML file: a config is a few kB; a "billion laughs" file of a few hundred

@@ -12,11 +12,12 @@ into its wheels' currents (±u/2); the loop, the log and the summaries use it.
 
 from __future__ import annotations
 
-from typing import Callable, MutableMapping, Optional, Sequence
+from typing import Callable, Mapping, MutableMapping, Optional, Sequence
 
 from .config import WHEELS, RigConfig
 from .control import make_controller
 from .geometry import Measurement
+from .observer import Observer, ObserverDesign
 
 CARRIER_WHEELS: dict[str, tuple[str, str]] = {"front": ("fl", "fr"), "rear": ("rl", "rr")}   # (left, right)
 
@@ -40,14 +41,19 @@ def wheel_currents(lanes: Sequence["Lane"], out: MutableMapping[str, float]) -> 
 
 class Lane:
     """One carrier the runtime drives (see the module docstring). Per cycle: ``sense`` →
-    (``start`` when RUNNING begins) → ``control`` → ``apply``."""
+    ``estimate`` (a lane with an observer) → (``start`` when RUNNING begins) → ``control``
+    → ``apply``."""
 
     __slots__ = ("carrier", "wheels", "controller", "reference", "open_loop", "controlled",
-                 "y", "psi", "dw", "y_ref", "u_cmd", "u")
+                 "y", "psi", "dw", "y_ref", "u_cmd", "u", "observer", "lateral_lasers", "ft_sensors")
 
     def __init__(self, carrier: str, controller, reference: Callable[[float], float],
-                 open_loop: Optional[Callable[[float], float]] = None):
+                 open_loop: Optional[Callable[[float], float]] = None,
+                 observer: Optional[ObserverDesign] = None):
         self.carrier = carrier
+        self.observer = Observer(observer) if observer is not None else None
+        self.lateral_lasers = observer.lateral_lasers if observer is not None else ()
+        self.ft_sensors = observer.ft_sensors if observer is not None else ()
         self.wheels = CARRIER_WHEELS[carrier]
         self.controller = controller            # None: the lane only plays an open-loop input
         self.controlled = controller is not None
@@ -61,6 +67,13 @@ class Lane:
     def sense(self, m: Measurement) -> None:
         """This cycle's measurement of the carrier."""
         self.y, self.psi, self.dw = m.carrier(self.carrier)
+
+    def estimate(self, lat_ok: bool, y_other: float, f_lat: float = 0.0) -> None:
+        """The observer's step on this cycle's measurement and the current held since the
+        last cycle (``lat_ok``: the lateral lasers are fit this cycle, as the supervisor
+        judges them; ``y_other``: the other carrier's lateral displacement, ``f_lat``: its
+        measured lateral force (N), known inputs)."""
+        self.observer.step(self.y, self.psi, self.dw, self.u, y_other, lat_ok, f_lat)
 
     def start(self) -> None:
         """RUNNING began: the controller starts bumplessly on the reference's first value."""
@@ -87,9 +100,12 @@ class Lane:
 
 
 def make_lanes(cfg: RigConfig, reference: Callable[[float], float],
-               open_loop: Optional[tuple[str, Callable[[float], float]]] = None) -> list[Lane]:
+               open_loop: Optional[tuple[str, Callable[[float], float]]] = None,
+               observers: Optional[Mapping[str, ObserverDesign]] = None) -> list[Lane]:
     """A lane per controlled carrier (PI-PD or P with the configured gains and limits), plus
-    one for an open-loop input on a carrier that is not controlled (in that order)."""
+    one for an open-loop input on a carrier that is not controlled (in that order); a
+    controlled carrier with a design in ``observers`` carries its observer."""
+    observers = observers or {}
     lim = cfg.limits
     ol_carrier, ol_input = open_loop if open_loop is not None else (None, None)
     carriers = list(cfg.controlled) + ([ol_carrier] if ol_carrier and ol_carrier not in cfg.controlled else [])
@@ -97,5 +113,6 @@ def make_lanes(cfg: RigConfig, reference: Callable[[float], float],
     for carrier in carriers:
         controlled = carrier in cfg.controlled
         ctrl = make_controller(cfg.controller, lim.u_max, lim.psi_ref_max) if controlled else None
-        lanes.append(Lane(carrier, ctrl, reference, ol_input if carrier == ol_carrier else None))
+        lanes.append(Lane(carrier, ctrl, reference, ol_input if carrier == ol_carrier else None,
+                          observers.get(carrier) if controlled else None))
     return lanes

@@ -22,7 +22,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from operator import attrgetter
-from typing import Callable, Iterable, Optional, Sequence
+from typing import Callable, Iterable, Mapping, Optional, Sequence
 
 from .clock import Clock
 from .config import WHEELS, RigConfig
@@ -32,6 +32,8 @@ from .geometry import Measurement, measure
 from .hardware import Hardware
 from .lanes import Lane, make_lanes, wheel_currents
 from .mailbox import Command
+from .observer import LOG_FIELDS as OBSERVER_FIELDS
+from .observer import ObserverDesign
 from .safety import Channel, State, Supervisor
 from .stats import CycleStats
 
@@ -46,6 +48,7 @@ class RunResult:
     t_start: Optional[float] = None     # when RUNNING began (scenario time origin); None: never
     wall_time_s: float = 0.0
     arm_blockers: list = field(default_factory=list)
+    degraded: list = field(default_factory=list)    # DEGRADED intervals (carrier, laser, t_start, t_end, end)
 
 
 CYCLE_FIELDS = ("t", "t_run", "lateness", "work", "state", "y_ref")
@@ -59,9 +62,11 @@ def _channel_column(c: Channel) -> str:
     return c.name if c.kind == "laser" else f"omega_{c.name}"
 
 
-def log_columns(cfg: RigConfig, channels: Sequence[Channel], extra_columns: Sequence[str]) -> list[str]:
+def log_columns(cfg: RigConfig, channels: Sequence[Channel], extra_columns: Sequence[str],
+                observed: Sequence[str] = ()) -> list[str]:
     """The log's columns for this config and device set, in row order (:meth:`ControlLoop.row`
-    builds its rows from the same lists)."""
+    builds its rows from the same lists); ``observed``: the carriers with an observer (their
+    ``{carrier}_obs_*`` columns come last)."""
     cols = list(CYCLE_FIELDS)
     for c in channels:
         if c.kind in LOGGED_KINDS:
@@ -72,6 +77,9 @@ def log_columns(cfg: RigConfig, channels: Sequence[Channel], extra_columns: Sequ
     for carrier in cfg.controlled:
         cols += (f"{carrier}_{f}" for f in CONTROLLER_FIELDS + LANE_FIELDS)
     cols += (f"i_{w}" for w in WHEELS)
+    for carrier in cfg.controlled:
+        if carrier in observed:
+            cols += (f"{carrier}_obs_{f}" for f in OBSERVER_FIELDS)
     return cols
 
 
@@ -97,7 +105,8 @@ class ControlLoop:
     def __init__(self, cfg: RigConfig, devices: Hardware, clock: Clock, *,
                  reference: Callable[[float], float] = lambda t: 0.0,
                  open_loop: Optional[tuple[str, Callable[[float], float]]] = None,
-                 recorder=None, mailbox=None, on_event: Callable | None = None):
+                 recorder=None, mailbox=None, on_event: Callable | None = None,
+                 observers: Optional[Mapping[str, ObserverDesign]] = None):
         self.cfg = cfg
         self.h = cfg.controller.h
         self.dev = devices
@@ -106,17 +115,21 @@ class ControlLoop:
         self.mailbox = mailbox          # a mailbox.Mailbox: operator commands (rig ctl), taken once per cycle
         self._events = on_event
         self.channels = devices.channels()
-        self.lanes: list[Lane] = make_lanes(cfg, reference, open_loop)
+        self.lanes: list[Lane] = make_lanes(cfg, reference, open_loop, observers)
         self.controllers = [l.controller for l in self.lanes if l.controlled]
+        self.observed = [l for l in self.lanes if l.observer is not None]
+        self._front_contact = cfg.plant.front_contact
         self.supervisor = Supervisor(cfg.limits, self.h, self.channels, [l.carrier for l in self.lanes], devices,
-                                     on_event=self._event)
+                                     on_event=self._event, observers=[l.observer for l in self.observed],
+                                     degraded=cfg.degraded)
         self.stats = CycleStats()
         self.stop_requested = False
         self.stop_reason = "stop requested (signal)"
         self.t_start: float | None = None
         self.max_abs_current = 0.0
         self.cycle = Cycle()
-        self.columns = log_columns(cfg, self.channels, devices.extra_columns)
+        self._values: Mapping[str, float] = {}      # this cycle's channel values by name
+        self.columns = log_columns(cfg, self.channels, devices.extra_columns, [l.carrier for l in self.observed])
         self._getters = self._row_getters()
 
     def _row_getters(self) -> list[Getter]:
@@ -132,6 +145,9 @@ class ControlLoop:
             if lane.controlled:
                 get.append(lambda cy, l=lane, st=st: (*st(l.controller.st), l.u_cmd, l.u))
         get.append(lambda cy: [cy.currents[w] for w in WHEELS])
+        for lane in self.lanes:
+            if lane.observer is not None:
+                get.append(lambda cy, o=lane.observer: o.log_values())
         return get
 
     @property
@@ -244,6 +260,7 @@ class ControlLoop:
                 reading = self.dev.poll(t)
                 self._measure(reading)
                 step = self._supervise(t, reading)
+                self._estimate(t)
                 if step.started:
                     self._start(t)
                 self._control(t, step.state is State.RUNNING)
@@ -274,7 +291,8 @@ class ControlLoop:
         return RunResult(final_state=sup.state.name, faults=[f.as_dict() for f in sup.faults],
                          cycles=summary.pop("cycles"), max_abs_current_A=self.max_abs_current,
                          timing=summary, t_start=self.t_start, wall_time_s=time.perf_counter() - wall0,
-                         arm_blockers=sup.arm_blockers if sup.arm_failed or self.t_start is None else [])
+                         arm_blockers=sup.arm_blockers if sup.arm_failed or self.t_start is None else [],
+                         degraded=list(sup.degraded_log))
 
     # ---- the stages, in cycle order
     def _operator_command(self, t: float) -> None:
@@ -288,6 +306,7 @@ class ControlLoop:
         """Sec. 2 geometry from the reading by name; each lane takes its carrier's part."""
         m = self.cycle.m = measure(reading.values, self.cfg.geometry)
         self.cycle.wrench = reading.wrench
+        self._values = reading.values
         for lane in self.lanes:
             lane.sense(m)
 
@@ -304,6 +323,32 @@ class ControlLoop:
         poses = [(l.carrier, l.y, l.psi) for l in self.lanes if l.controlled]
         return sup.cycle(t, reading.samples, reading.converters, poses, misses,
                          rec.healthy if rec is not None else True, rec.error if rec is not None else "")
+
+    def _estimate(self, t: float) -> None:
+        """Each observed lane's observer on this cycle's measurement; the lateral lasers are
+        used only if the supervisor finds them fit this cycle, the F/T sensors' lateral
+        force (the sum of the carrier's two sides' Fy) likewise, else no force is assumed. The other carrier's y is a
+        known input where both carriers are on the rollers (else 0: the lifted one's)."""
+        if not self.observed:
+            return
+        sup, m, values = self.supervisor, self.cycle.m, self._values
+        for lane in self.observed:
+            y_other = 0.0
+            if self._front_contact:
+                y_other = m.y_f if lane.carrier == "rear" else m.y_r
+            f_lat = 0.0
+            ft = lane.ft_sensors
+            if ft and sup.fit(ft, t):
+                for n in ft:
+                    f_lat += values[n]
+            lat = lane.lateral_lasers
+            lane.estimate(sup.fit(lat, t) and not sup.isolated_any(lat), y_other, f_lat)
+            o = lane.observer
+            if lane.carrier in sup.degraded_since:      # DEGRADED: the lane runs on ŷ
+                lane.y = o.y
+                o.degraded = 1.0
+            else:
+                o.degraded = 0.0
 
     def _start(self, t: float) -> None:
         """RUNNING began: the scenario's time origin, the duration, bumpless controllers."""

@@ -10,11 +10,15 @@ be loosened.
 The checks are one ordered list of small named rules (no second copy of any of them):
 the system rules (loop overruns, recorder, converters), the channel rules (each applied to
 every sensor channel before the next rule), then the pose rules (each applied to every
-controlled carrier before the next rule). The first rule that fails in a cycle trips the fault. Arming asks the same channel
-rules whether every channel is fit.
+controlled carrier before the next rule), then the observer rules (each applied to every
+observed carrier, on the statistics of its latest estimate, and not while a channel rule is
+gathering evidence on one of the carrier's sensors: a channel rule that sees the fault names
+it first). The first rule that fails in a cycle trips the fault. Arming asks the same channel rules whether every channel is fit.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import enum
 import math
@@ -263,6 +267,50 @@ def output_not_finite(carrier: str, u: float, lim: Limits) -> Finding:
 OUTPUT_RULES = (output_not_finite,)
 
 
+# ---------------------------------------------------------------------- observer rules
+# An observer rule takes one carrier's observer (rig_runtime.observer.Observer: its window
+# statistics of the normalised innovations, as of the latest estimate) and returns
+# (device, check, value, limit, message) or None.
+def _joined(names: Sequence[str]) -> str:
+    return "/".join(names)
+
+
+def innovation(o, lim: Limits) -> Optional[tuple]:
+    """Analytical redundancy (docs/observer.md): a measurement whose window-mean normalised
+    innovation has χ²(1) ``T`` above ``limits.innovation_chi2`` disagrees with the model and
+    the other sensors. The yaw lasers are tested first (every other measurement leans on
+    ψ), then the lateral y, then Δω: the estimate follows the precise lateral lasers, so a
+    Δω that disagrees with it means the carrier's lateral lasers or its encoders — which of
+    them the test cannot tell, and the finding says so."""
+    thr = lim.innovation_chi2
+    if thr is None or not o.window_full:
+        return None
+    d = o.d
+    car = d.carrier
+    if o.T_psi > thr:
+        return (_joined(d.yaw_lasers), "innovation", o.T_psi, thr,
+                f"{car} carrier: yaw lasers {_joined(d.yaw_lasers)} disagree with the model and the other "
+                f"sensors (chi2 {o.T_psi:.1f} > {thr:g}); the test cannot tell the two apart")
+    if o.T_lat > thr:
+        L = d.lateral_lasers
+        return (_joined(L), "innovation", o.T_lat, thr,
+                f"{car} carrier: lateral lasers {_joined(L)} disagree with the model driven by psi "
+                f"(window-mean innovation {o.mean_lat * 1e6:+.1f} um, chi2 {o.T_lat:.1f} > {thr:g}; "
+                f"y weights {L[0]} {d.lateral_weights[0]:.2f}, {L[1]} {d.lateral_weights[1]:.2f})")
+    if o.T_dw > thr:
+        L, enc = d.lateral_lasers, d.encoders
+        gy = d.dw_row[0]
+        return (f"{L[0]}|{_joined(enc)}", "innovation", o.T_dw, thr,
+                f"{car} carrier: {L[0]} (y weight {d.lateral_weights[0]:.2f}; {L[1]} {d.lateral_weights[1]:.2f}) "
+                f"and the encoders {_joined(enc)} disagree by {o.mean_dw * 1e3:+.2f} mrad/s of dw "
+                f"(= {o.mean_dw / gy * 1e3:+.3f} mm of y; chi2 {o.T_dw:.1f} > {thr:g}): the innovation "
+                "test cannot tell the lateral laser from the encoders")
+    return None
+
+
+OBSERVER_RULES = (innovation,)
+
+
 class Step(NamedTuple):
     """What :meth:`Supervisor.cycle` decided: the state after this cycle's transitions and
     checks, and whether RUNNING began in this cycle."""
@@ -280,10 +328,22 @@ class Supervisor:
     output :meth:`limit` shapes (the lanes')."""
 
     def __init__(self, limits: Limits, h: float, channels: Sequence[Channel], carriers: Sequence[str],
-                 hardware: Hardware, on_event: Callable | None = None, activate_timeout_s: float = 0.5):
+                 hardware: Hardware, on_event: Callable | None = None, activate_timeout_s: float = 0.5,
+                 observers: Sequence = (), degraded=None):
         self._limits = limits           # frozen, and not replaceable: see the property
         self.h = h
         self.channels = list(channels)
+        self._by_name = {c.name: c for c in self.channels}
+        self.observers = tuple(observers)      # the lanes' observers (rig_runtime.observer.Observer)
+        # degraded mode (config.Degraded; docs/observer.md): only with on_lateral_loss "observe"
+        self._deg = degraded if (degraded is not None and degraded.on_lateral_loss == "observe"
+                                 and self.observers) else None
+        self._deg_limits = (dataclasses.replace(limits, u_max=degraded.limits.u_max, y_max=degraded.limits.y_max)
+                            if self._deg is not None else limits)
+        self._obs_of = {o.d.carrier: o for o in self.observers}
+        self.isolated: dict[str, tuple[float, int]] = {}    # lateral laser -> (since t, agreeing cycles)
+        self.degraded_since: dict[str, float] = {}           # carrier -> DEGRADED since t
+        self.degraded_log: list[dict] = []                   # the DEGRADED intervals, for the summary
         self.carriers = tuple(carriers)
         self.hw = hardware
         self.activate_timeout_s = activate_timeout_s
@@ -355,6 +415,12 @@ class Supervisor:
             self._started = True
         elif new is State.FAULT or (new is State.IDLE and old is State.STOPPING):
             self.hw.deactivate(t)
+        if new in (State.FAULT, State.IDLE) and self.degraded_since:
+            for e in self.degraded_log:         # the run ends DEGRADED: close the interval
+                if e["t_end"] is None:
+                    e["t_end"], e["end"] = t, new.name
+            self.degraded_since.clear()
+            self.isolated.clear()
 
     def trip(self, t: float, device: str, check: str, value: float, limit: float, message: str = "") -> None:
         """Latch a fault (the first one of a cycle is the cause recorded)."""
@@ -446,15 +512,133 @@ class Supervisor:
             return self.trip(t, "converters", "disabled", math.nan, math.nan,
                              "a power stage left OPERATION ENABLED while running")
         chs = self.channels
-        for rule in CHANNEL_RULES:
+        if self.isolated:
+            chs = [c for c in chs if c.name not in self.isolated]
+        rules = iter(CHANNEL_RULES)
+        for rule in rules:
             b = rule(chs, t, lim)
             if b is not None:
-                return self.trip(t, b[0].name, *b[1])
+                if not self._degrade(t, b):
+                    return self.trip(t, b[0].name, *b[1])
+                chs = [c for c in chs if c.name not in self.isolated]      # judge the rest afresh
+                rules = iter(CHANNEL_RULES)
+        if self.isolated:
+            f = self._degraded_checks(t, poses)
+            if f is not None:
+                return self.trip(t, *f)
+            poses = [Pose(p.carrier, self._obs_of[p.carrier].y, p.psi, p.psi_rate)
+                     if p.carrier in self.degraded_since else p for p in poses]
         for rule in POSE_RULES:
             for p in poses:
-                f = rule(p, lim)
+                f = rule(p, self._deg_limits if p.carrier in self.degraded_since else lim)
                 if f is not None:
                     return self.trip(t, "geometry", *f)
+        for rule in OBSERVER_RULES:
+            for o in self.observers:
+                if self._channel_evidence(o.d.channels):
+                    continue
+                f = rule(o, lim)
+                if f is not None:
+                    return self.trip(t, *f)
+
+    # ------------------------------------------------------------------ degraded mode
+    _LOSS = ("invalid", "stale", "not_finite", "out_of_range")     # a laser that is lost, not lying
+
+    def _degrade(self, t: float, b: tuple) -> bool:
+        """A channel rule's breach on a lateral laser of an observed carrier, a loss (not a
+        stuck or jumping value), while RUNNING with ``degraded.on_lateral_loss: observe``:
+        isolate the laser and run every carrier whose y it feeds on its observer's ŷ
+        (DEGRADED) instead of tripping. False: the breach is a fault as usual."""
+        c, (check, value, limit, message) = b
+        if self._deg is None or self.state is not State.RUNNING or check not in self._LOSS:
+            return False
+        carriers = [o.d.carrier for o in self.observers if c.name in o.d.lateral_lasers]
+        if not carriers:
+            return False
+        self.isolated[c.name] = (t, 0)
+        for car in carriers:
+            if car not in self.degraded_since:
+                self.degraded_since[car] = t
+                self.degraded_log.append({"carrier": car, "laser": c.name, "check": check, "t_start": t,
+                                          "t_end": None, "end": ""})
+        self._on_event(t, "degraded", None,
+                       f"DEGRADED: {c.name} {check} ({message}); {'/'.join(carriers)} carrier(s) on the "
+                       f"observer's estimate, u_max {self._deg_limits.u_max:g} A, y_max "
+                       f"{self._deg_limits.y_max * 1e3:g} mm, at most {self._deg.max_s:g} s")
+        return True
+
+    def _degraded_checks(self, t: float, poses: Sequence[Pose]) -> Optional[tuple]:
+        """While DEGRADED: ``max_s`` (a finding), and the readmission of each isolated laser
+        that is fit again and whose carriers' measured y agrees with ŷ within
+        ``readmit_tol_m`` for ``readmit_s`` without a break."""
+        deg = self._deg
+        for car, since in self.degraded_since.items():
+            if t - since > deg.max_s:
+                lasers = "/".join(n for n in self._obs_of[car].d.lateral_lasers if n in self.isolated)
+                return (lasers, "degraded", t - since, deg.max_s,
+                        f"{car} carrier DEGRADED (lateral laser {lasers} lost) for longer than "
+                        f"degraded.max_s = {deg.max_s:g} s")
+        need = max(1, round(deg.readmit_s / self.h))
+        y_meas = {p.carrier: p.y for p in poses}
+        lim = self.limits
+        for name, (since, n) in list(self.isolated.items()):
+            c = (self._by_name[name],)
+            ok = all(rule(c, t, lim) is None for rule in CHANNEL_RULES)
+            if ok:
+                for o in self.observers:
+                    if name in o.d.lateral_lasers:
+                        y = y_meas.get(o.d.carrier, math.nan)
+                        if not abs(y - o.y) <= deg.readmit_tol_m:
+                            ok = False
+            n = n + 1 if ok else 0
+            if n < need:
+                self.isolated[name] = (since, n)
+                continue
+            del self.isolated[name]
+            self._on_event(t, "degraded", None, f"{name} readmitted: fit and within "
+                           f"{deg.readmit_tol_m * 1e3:g} mm of the estimate for {deg.readmit_s:g} s")
+            for car in list(self.degraded_since):
+                if not any(l in self.isolated for l in self._obs_of[car].d.lateral_lasers):
+                    del self.degraded_since[car]
+                    for e in self.degraded_log:
+                        if e["carrier"] == car and e["t_end"] is None:
+                            e["t_end"], e["end"] = t, f"{name} readmitted"
+                    self._on_event(t, "degraded", None, f"{car} carrier: DEGRADED ended")
+        return None
+
+    def isolated_any(self, names: Sequence[str]) -> bool:
+        """One of the named lateral lasers is isolated (not to be used by the observer)."""
+        iso = self.isolated
+        return bool(iso) and any(n in iso for n in names)
+
+    def _channel_evidence(self, names: Sequence[str]) -> bool:
+        """A channel rule is gathering evidence on one of the named channels: it has repeated
+        its value (``stuck``) or brought garbled frames (``corrupt_link``) in its latest
+        cycles. The observer rules wait then — a stuck yaw laser disagrees with the model
+        long before ``stuck_periods`` have passed, and the channel rule names the sensor
+        itself, where the innovation test can only name the measurement (and, for a yaw
+        laser frozen on a moving carrier, first sees the lateral lasers disagree). A
+        healthy, quantised laser repeats a value for a cycle or two now and then: the rule
+        then waits that long."""
+        by = self._by_name
+        for n in names:
+            c = by.get(n)
+            if c is not None and n not in self.isolated and (c.same > 0 or c.bad_run > 0):
+                return True
+        return False
+
+    def fit(self, names: Sequence[str], t: float) -> bool:
+        """Every named channel fit for use this cycle: what arming asks of a channel (a
+        fresh, finite, in-range sample; ``ARM_RULES``). The observer's lateral update uses a
+        laser only then."""
+        lim = self.limits
+        by = self._by_name
+        for n in names:
+            c = (by[n],)
+            for rule in ARM_RULES:
+                if rule(c, t, lim) is not None:
+                    return False
+        return True
 
     # ------------------------------------------------------------------ output limit
     def limit(self, carrier: str, u: float, t: float) -> float:
@@ -470,7 +654,7 @@ class Supervisor:
                     self.trip(t, "controller", *f)
                     self._u_prev[carrier] = 0.0
                     return 0.0
-            m = lim.u_max
+            m = self._deg_limits.u_max if carrier in self.degraded_since else lim.u_max
             u = m if u > m else (-m if u < -m else u)
             p, d = self._u_prev[carrier], self._du
             u = p + d if u > p + d else (p - d if u < p - d else u)

@@ -19,7 +19,7 @@ from .errors import ConfigError
 from .schema import check, nonneg, positive, probability
 
 SCENARIO_DIR = CONFIG_DIR / "scenarios"
-FAULT_KINDS = ("dropout", "corrupt", "stuck", "offset", "out_of_range", "no_heartbeat", "bus_error", "stall")
+FAULT_KINDS = ("dropout", "corrupt", "stuck", "offset", "out_of_range", "no_heartbeat", "bus_error", "stall", "drift")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -62,12 +62,13 @@ class Disturbance:
 
 @dataclass(frozen=True, kw_only=True)
 class FaultInjection:
-    kind: Literal["dropout", "corrupt", "stuck", "offset", "out_of_range", "no_heartbeat", "bus_error", "stall"]
+    kind: Literal["dropout", "corrupt", "stuck", "offset", "out_of_range", "no_heartbeat", "bus_error", "stall", "drift"]
     t: float = check(nonneg)
     duration_s: float = check(positive, default=1e9)
     device: str = ""                 # laser role, wheel (fl…rr) or F/T name; "" for stall
     fraction: float = check(probability, default=0.5)   # corrupt / bus_error
     amount: float = 0.0              # offset: m for lasers, rad/s for wheels, N for F/T
+    rate_mm_s: float = 0.0           # drift (lasers): the reading creeps off the truth at this rate, mm/s
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -225,7 +225,8 @@ class SimulatedRig:
             vl = self.lasers[dev]
             if not on:
                 return vl.clear(f.kind)
-            kw = {"corrupt": {"p": f.fraction}, "offset": {"amount_m": f.amount}}.get(f.kind, {})
+            kw = {"corrupt": {"p": f.fraction}, "offset": {"amount_m": f.amount},
+                  "drift": {"amount_m": 0.0}}.get(f.kind, {})
             return vl.inject(f.kind, **kw)
         if dev in self.drives.drives:
             if not on:
@@ -237,6 +238,13 @@ class SimulatedRig:
             return self.ft.clear(dev, f.kind)
         kw = {"offset": {"fy": f.amount}}.get(f.kind, {})
         return self.ft.inject(dev, f.kind, **kw)
+
+    def _update_drifts(self, tau: float) -> None:
+        """Each active drift fault's bias at scenario time ``tau``: rate × time since it began."""
+        for i in self._active_faults:
+            t0, _, kind, f = self._events[i]
+            if f.kind == "drift":
+                self.lasers[f.device].set_drift(f.rate_mm_s * 1e-3 * (tau - t0))
 
     def _stall_s(self, t: float) -> float:
         """How long the runtime is starved at its release ``t``: the scenario's ``stall``
@@ -260,6 +268,7 @@ class SimulatedRig:
         if self.scenario_started:
             tau = self.t - self.t_run0
             self._update_faults(tau)
+            self._update_drifts(tau)
             forces = self._forces(tau)
         else:
             forces = _NO_FORCES

@@ -22,6 +22,8 @@ Faults (``inject(kind, **params)``, ``clear(kind)``):
                                (the protocol has no checksum)
   stuck                        repeat the last value sent
   offset   amount_m            add amount_m to the distance
+  drift    amount_m            add amount_m to the distance; the simulated rig moves it at the
+                               scenario's rate (``set_drift``): a reading creeping off the truth
   out_of_range  code=262076    send an error code instead of the distance
 A distance outside the device's span (−1 % … 101 % of MR) is sent as 262077/262078, as the
 real sensor does. A full pty buffer never blocks: the bytes that do not fit are dropped
@@ -51,7 +53,7 @@ from rig_runtime.config import LaserDevice
 
 __all__ = ["FAULT_KINDS", "LaserGroup", "VirtualLaser", "emit_all"]
 
-FAULT_KINDS = ("dropout", "corrupt", "stuck", "offset", "out_of_range")
+FAULT_KINDS = ("dropout", "corrupt", "stuck", "offset", "out_of_range", "drift")
 PEAK_BEFORE_RANGE = 262077
 PEAK_AFTER_RANGE = 262078
 NO_PEAK = 262076
@@ -216,7 +218,7 @@ class VirtualLaser:
             xs = [int(f["stuck"]["x"])] * n
         elif n <= _SMALL:
             # scalar path (the lockstep hot path: a few frames per 5 ms step)
-            d0 = self._distance_m + float(f.get("offset", {}).get("amount_m", 0.0)) if f else self._distance_m
+            d0 = self._distance_m + self._bias() if f else self._distance_m
             sd = self.noise_std_m
             x_of = self._x_of
             if sd > 0:
@@ -224,12 +226,24 @@ class VirtualLaser:
             else:
                 xs = [x_of(d0)] * n
         else:
-            d = np.full(n, self._distance_m + float(f.get("offset", {}).get("amount_m", 0.0)))
+            d = np.full(n, self._distance_m + self._bias())
             if self.noise_std_m > 0:
                 d += self.noise_std_m * np.array(self._standard_normals(n))
             xs = self._to_x(d).tolist()
         self._last_x = xs[-1]
         return xs
+
+    def _bias(self) -> float:
+        """What the offset and drift faults add to the distance, m."""
+        f = self._faults
+        return float(f.get("offset", {}).get("amount_m", 0.0)) + float(f.get("drift", {}).get("amount_m", 0.0))
+
+    def set_drift(self, amount_m: float) -> None:
+        """The drift fault's current bias (no-op unless a drift is injected)."""
+        with self._lock:
+            d = self._faults.get("drift")
+            if d is not None:
+                d["amount_m"] = float(amount_m)
 
     def _standard_normals(self, n: int) -> list[float]:
         """n standard normal draws from blocks of the seeded generator (the same sequence

@@ -46,6 +46,9 @@ def _print_summary(summary: dict, as_json: bool) -> None:
     for f in summary["faults"]:
         print(f"  fault at {_run_time(summary, f['t'])}: {f['device']} {f['check']} value={f['value']} "
               f"limit={f['limit']} {f['message']}")
+    for d in summary.get("degraded", ()):
+        print(f"  DEGRADED at {_run_time(summary, d['t_start'])}: {d['carrier']} carrier on the observer's "
+              f"estimate ({d['laser']} {d['check']}) until {_run_time(summary, d['t_end'])}: {d['end']}")
     if summary.get("arm_failed"):
         print(f"  {summary['arm_failed']}")
     if summary.get("clock") == "lockstep":

@@ -21,6 +21,40 @@ from .runner import execute
 from .signals import StopSignals
 
 
+TRUTH_GROUP = "sim_truth"
+TRUTH_FIELDS = ("t", "y_f", "y_r", "psi_af", "psi_ar")
+
+
+class TruthRecorder:
+    """The simulated plant's true state at every release of the lockstep clock (after the
+    plant was integrated to it: the state the lasers' frames of that cycle show), written
+    after the run into the log's group ``sim_truth`` — marked as simulation, never a
+    measurement — so that an estimate can be judged against it (docs/observer.md)."""
+
+    def __init__(self, sim: SimulatedRig):
+        self.sim = sim
+        self.rows: list[tuple[float, ...]] = []
+
+    def advance(self, t: float):
+        r = self.sim.advance(t)
+        p = self.sim.plant
+        self.rows.append((self.sim.t, p.y_f, p.y_r, p.psi_af, p.psi_ar))
+        return r
+
+    def write(self, log_path: Path) -> None:
+        import h5py
+        import numpy as np
+        data = np.array(self.rows, dtype=float).reshape(-1, len(TRUTH_FIELDS))
+        with h5py.File(log_path, "a") as f:
+            if TRUTH_GROUP in f:
+                del f[TRUTH_GROUP]
+            g = f.create_group(TRUTH_GROUP)
+            g.attrs["simulation"] = ("SIMULATION: the simulated plant's true state (m, rad) at each "
+                                     "release of the lockstep clock, simulated time t (s); not a measurement")
+            for i, name in enumerate(TRUTH_FIELDS):
+                g.create_dataset(name, data=data[:, i])
+
+
 def run_lockstep(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *, seed: Optional[int] = None,
                  duration_s: Optional[float] = None,
                  prepare: Optional[Callable[[SimulatedRig, RigDevices, LockstepClock], None]] = None,
@@ -31,8 +65,9 @@ def run_lockstep(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *
     ``prepare(sim, devices, clock)`` runs before the devices are configured (tests use it
     to tap the CAN wire or to wrap a device)."""
     sim = SimulatedRig(cfg, scenario, seed=seed)
+    truth = TruthRecorder(sim)
     try:
-        clock = LockstepClock(advance=sim.advance)
+        clock = LockstepClock(advance=truth.advance)
         devices = RigDevices(cfg, laser_ports=sim.laser_ports, can_bus=sim.runtime_bus(),
                              ft_endpoints=sim.ft_endpoints)
         if prepare is not None:
@@ -48,5 +83,7 @@ def run_lockstep(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *
         summary["wall_us_per_cycle"] = summary["wall_time_s"] * 1e6 / max(summary["cycles"], 1)
     finally:
         sim.close()
+    if log_path is not None and Path(log_path).exists():
+        truth.write(Path(log_path))
     summary["steps"] = steps_from_log(log_path, scenario, cfg.controller.h)
     return summary, code

@@ -25,6 +25,7 @@ from ..loop import ControlLoop, log_columns
 from ..recorder import Recorder
 from ..scenario import Reference, Scenario, open_loop_input
 from .live import StatusPublisher
+from .observer_design import designs as observer_designs
 from .signals import StopSignals
 
 EXIT_OK, EXIT_CRASH, EXIT_SETUP, EXIT_FAULT = 0, 1, 2, 3
@@ -69,6 +70,10 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     again or a stop ends it. ``recorder_when_full="wait"``: a full recording ring makes the
     loop wait for the sidecar instead of dropping the row (lockstep runs only)."""
     analysis.stability_gate(cfg)        # also for callers that bypass the CLI's preflight
+    # the Riccati design here, not in the loop's modules; a carrier per the set-up in rolling
+    # contact only (a carrier the scenario lifts off the rollers has no (2b) and no (4))
+    lifted = scenario.lifted_carrier if scenario else None
+    observers = {c: d for c, d in observer_designs(cfg).items() if c != lifted}
     reference = Reference(scenario.reference) if scenario else (lambda t: 0.0)
     open_loop = (scenario.open_loop.carrier, open_loop_input(scenario.open_loop)) if scenario and scenario.open_loop else None
     duration = duration_s if duration_s is not None else (scenario.duration_s if scenario else math.inf)
@@ -89,14 +94,14 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
                      "experiment": (scenario.experiment or "") if scenario else "",
                      "duration_s": float(duration), "controlled": list(cfg.controlled)}
             attrs.update(extra_attrs or {})
-            columns = log_columns(cfg, devices.channels(), devices.extra_columns)
+            columns = log_columns(cfg, devices.channels(), devices.extra_columns, list(observers))
             rec = Recorder(log_path, columns, attrs=attrs, buffer_cycles=cfg.recorder.buffer_cycles,
                            flush_s=cfg.recorder.flush_s, outputs=outputs, when_full=recorder_when_full,
                            cpus=helper_cpus(cfg.realtime))
             rec.open()
         # the mailbox carries operator commands, if an output (rig ctl's server) sends any
         loop = ControlLoop(cfg, devices, clock, reference=reference, open_loop=open_loop, recorder=rec,
-                           mailbox=rec.mailbox if rec is not None else None)
+                           mailbox=rec.mailbox if rec is not None else None, observers=observers)
         stops.on_stop(lambda: setattr(loop, "stop_requested", True))
         if not stops.requested:
             phase = "while configuring the devices"
@@ -141,6 +146,8 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
         "run_started_t": result.t_start if result.t_start is not None else math.nan,
         "wall_time_s": result.wall_time_s,
     }
+    if result.degraded:
+        summary["degraded"] = result.degraded       # DEGRADED intervals (docs/observer.md)
     if stops.requested:
         summary["stopped_by"] = stops.name
     elif operator_stop:
