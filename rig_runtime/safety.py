@@ -115,7 +115,7 @@ class Channel:
         prev = self.value
         self.delta = v - prev
         self.value = v
-        t = s.t if s.t == s.t else -math.inf
+        t = -math.inf if math.isnan(s.t) else s.t      # NaN: no valid value ever
         if t != self.t:
             self.bad_at_value = h.bad_frames      # a new valid value: garbled frames counted from here
         self.t = t
@@ -176,7 +176,7 @@ def stale(chs: Sequence[Channel], t: float, lim: Limits) -> Breach:
 def not_finite(chs: Sequence[Channel], t: float, lim: Limits) -> Breach:
     for c in chs:
         v = c.value
-        if v != v or v == math.inf or v == -math.inf:
+        if not math.isfinite(v):
             return c, ("nan", v, math.nan, "value is not finite")
     return None
 
