@@ -7,9 +7,11 @@ with health.
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import math
 import os
-import select
+import termios
 from typing import NamedTuple
 
 import serial
@@ -22,10 +24,9 @@ from .optoncdt import MAX_DISTANCE_X, X_PER_PERCENT, Decoded, FrameDecoder, erro
 
 __all__ = ["LaserReading", "LaserDriver"]
 
-_LDISC_FULL = 4095              # Linux n_tty holds this many unread bytes; more wait behind
-_READ_CHUNK = 65536
 _os_read = os.read              # module-level so a test can make the port fail
-_HUP = select.POLLHUP | select.POLLERR | select.POLLNVAL
+_ioctl = fcntl.ioctl
+_FIONREAD = termios.FIONREAD    # = TIOCINQ: bytes in the line discipline, without waiting
 _NO_VALUES = Decoded(b"", [])
 _NO_DATA = "no data yet"        # FRESH's note before the first valid value (t is NaN)
 
@@ -84,7 +85,7 @@ class LaserDriver(Driver):
         self._bias = (cfg.offset_mm - mr / 100.0) / 1000.0
         self._average = cfg.average
         self._ser: serial.Serial | None = None
-        self._poller: select.poll | None = None
+        self._inq = bytearray(4)        # TIOCINQ's answer, reused poll after poll
         self._reset_state()
 
     def _reset_state(self) -> None:
@@ -115,11 +116,8 @@ class LaserDriver(Driver):
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DeviceInitError(self.name, f"cannot open serial port {self.port!r}: {exc}") from exc
         self._ser = ser
-        self._poller = select.poll()      # POLLHUP tells a vanished device from "no data yet"
-        self._poller.register(ser.fd, select.POLLIN)
 
     def _close(self) -> None:
-        self._poller = None
         ser, self._ser = self._ser, None
         if ser is not None:
             try:
@@ -127,21 +125,24 @@ class LaserDriver(Driver):
             except Exception:  # noqa: BLE001 - a vanished device must not stop shutdown
                 pass
 
-    def _read_available(self, data: bytes) -> bytes:
-        """Finish a poll's first non-blocking ``read(2)`` (``data``) on the port pyserial
-        opened (pyserial's ``in_waiting`` + ``read`` cost two system calls and ~5 µs more
-        per poll): an empty read may be a hang-up; a read that filled the line discipline
-        has more waiting behind it."""
-        if not data:
-            # VMIN = VTIME = 0: an empty read means "nothing yet" — unless the port also
-            # polls readable, which is a hang-up (the device end is gone)
-            if self._poller is not None and any(ev & _HUP for _, ev in self._poller.poll(0)):
-                raise DeviceIOError(self.name, "device disconnected (hang-up on the port)")
-            return data
-        try:                    # the line discipline was full: more waits behind it
-            return data + _os_read(self._ser.fd, _READ_CHUNK)
-        except BlockingIOError:
-            return data
+    def _pending(self, fd: int) -> int:
+        """Bytes the line discipline holds for us (``TIOCINQ``); a hang-up raises.
+
+        Asked instead of reading blind because an empty tty's ``read(2)``/``poll(2)`` first
+        waits for the kernel's flip-buffer work (``n_tty_read``/``n_tty_poll`` →
+        ``tty_buffer_flush_work``), run by an ordinary-priority kworker — a real-time loop
+        would wait for it. ``TIOCINQ`` only counts, so bytes the kworker has not moved yet
+        are read one poll later. A hung-up tty (the device end gone: pty master closed,
+        USB adapter unplugged) answers every ioctl with EIO.
+        """
+        b = self._inq
+        try:
+            _ioctl(fd, _FIONREAD, b, True)
+        except OSError as exc:
+            if exc.errno == errno.EIO:
+                raise DeviceIOError(self.name, "device disconnected (hang-up on the port)") from exc
+            raise
+        return int.from_bytes(b, "little", signed=True)
 
     # ------------------------------------------------------------------ cycle
     def poll(self, now: float) -> LaserReading:
@@ -150,10 +151,9 @@ class LaserDriver(Driver):
         if ser is None:
             return self._reading(Freshness.INVALID, "port not configured", math.nan, 0)
         try:
-            # the usual case read here; an empty or full read is finished by _read_available
-            data = _os_read(ser.fd, _READ_CHUNK)
-            if not data or len(data) >= _LDISC_FULL:
-                data = self._read_available(data)
+            # read only what the line discipline holds: never a wait for the kernel's worker
+            n = self._pending(ser.fd)
+            data = _os_read(ser.fd, n) if n > 0 else b""
         except BlockingIOError:
             data = b""
         except Exception as exc:  # noqa: BLE001 - poll must not raise inside the loop

@@ -6,7 +6,8 @@ python-can's own ``slcan`` interface reads one byte per ``read(1)`` (a ``select`
 several milliseconds a cycle — too slow for the control loop. This bus speaks the same
 protocol (``C``/``S<n>``/``O`` at open; frames ``tIIILDD…``, ``TIIIIIIIILDD…``, ``rIIIL``,
 ``RIIIIIIIIL``; ``\\r`` = OK, ``\\a`` = error; ``z``/``Z`` transmit acknowledgements are
-skipped) and drains the port with one non-blocking ``read(2)`` per ``recv``. Registered as
+skipped) and drains the port with one non-blocking ``read(2)`` of the bytes ``TIOCINQ``
+reports per ``recv`` (see :meth:`SlcanBus._drain`). Registered as
 the python-can interface ``rig_slcan`` (entry point in pyproject.toml); it works with
 USB-SLCAN adapters as well as with the adapter ``rig sim`` emulates on a pty.
 """
@@ -14,8 +15,11 @@ USB-SLCAN adapters as well as with the adapter ``rig sim`` emulates on a pty.
 from __future__ import annotations
 
 import collections
+import errno
+import fcntl
 import os
 import select
+import termios
 import time
 from typing import Any, Optional, Sequence
 
@@ -23,6 +27,8 @@ import can
 import serial
 
 from .slcan_codec import FRAME_START, encode_frame, parse_frame  # noqa: F401 - one codec for both ends
+
+_os_read = os.read              # module-level so a test can watch the port's reads
 
 _BITRATES = {10000: "S0", 20000: "S1", 50000: "S2", 100000: "S3", 125000: "S4", 250000: "S5",
              500000: "S6", 750000: "S7", 1000000: "S8", 83300: "S9"}
@@ -38,6 +44,7 @@ class SlcanBus(can.BusABC):
         except (serial.SerialException, OSError, ValueError) as e:
             raise can.CanInitializationError(f"cannot open SLCAN port {channel!r}: {e}") from e
         self._fd = self._ser.fd
+        self._inq = bytearray(4)          # TIOCINQ's answer, reused recv after recv
         self._buf = b""
         self._rx: collections.deque = collections.deque()
         self.errors = 0                   # \a replies of the adapter
@@ -82,8 +89,27 @@ class SlcanBus(can.BusABC):
             raise can.CanOperationError("SLCAN write incomplete (port buffer full)")
 
     def _drain(self) -> None:
+        """Read the bytes the line discipline holds (``TIOCINQ``), queue the frames they end.
+
+        Nothing is read while ``TIOCINQ`` says 0: an empty tty's ``read(2)`` first waits for
+        the kernel's flip-buffer work (``n_tty_read`` → ``tty_buffer_flush_work``), run by
+        an ordinary-priority kworker, which would stall a real-time caller of ``recv(0)``;
+        bytes the kworker has not moved yet are read by a later ``recv``. A hung-up port
+        (adapter unplugged, pty master closed) answers the ioctl with EIO.
+        """
+        fd = self._fd
+        b = self._inq
         try:
-            chunk = os.read(self._fd, 65536)
+            fcntl.ioctl(fd, termios.FIONREAD, b, True)
+        except OSError as e:
+            if e.errno == errno.EIO:
+                raise can.CanOperationError("SLCAN adapter disconnected (hang-up on the port)") from e
+            raise can.CanOperationError(f"SLCAN read failed: {e}") from e
+        n = int.from_bytes(b, "little", signed=True)
+        if n <= 0:
+            return
+        try:
+            chunk = _os_read(fd, n)
         except BlockingIOError:
             return
         except OSError as e:

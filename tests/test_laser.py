@@ -628,12 +628,42 @@ def test_serial_exception_in_poll_is_reported_not_raised(rig, monkeypatch):
     assert _cycle(vl, drv, 3).health.fresh
 
 
-def test_device_gone_is_invalid(rig):
+@pytest.mark.parametrize("pending", [False, True])
+def test_device_gone_is_invalid(rig, pending):
+    """The far end disappears (cable pulled) with nothing or frames still unread: the pty
+    slave is hung up, and the next poll says so (TIOCINQ answers EIO; bytes are lost)."""
     vl, drv = rig
     _cycle(vl, drv, 1)
-    vl.close()                                        # the far end disappears (cable pulled)
+    if pending:
+        vl.emit_until(2 * H)                          # readable at the slave (lockstep wait)
+    vl.close()
     r = drv.poll(2 * H)
     assert r.health.state is Freshness.INVALID and "read error" in r.health.cause
+    assert "device disconnected (hang-up on the port)" in r.health.cause
+    assert drv.counters()["read_errors"] == 1 and math.isnan(r.value_m)
+    assert drv.poll(3 * H).health.state is Freshness.INVALID      # and every poll after
+    assert drv.counters()["read_errors"] == 2
+
+
+def test_a_poll_reads_only_what_the_line_discipline_holds(rig, monkeypatch):
+    """No read(2) while TIOCINQ says 0 (an empty tty's read waits for the kernel's
+    flip-buffer worker), else one read of exactly the bytes it reported."""
+    vl, drv = rig
+    reads: list[int] = []
+    real_read = laser_mod._os_read
+
+    def watched(fd, n):
+        reads.append(n)
+        return real_read(fd, n)
+
+    monkeypatch.setattr(laser_mod, "_os_read", watched)
+    r = drv.poll(0.0)                                 # nothing sent yet
+    assert reads == [] and r.health.state is Freshness.FRESH and r.n_values == 0
+    vl.set_distance(0.06)
+    r = _cycle(vl, drv, 1)                            # 20 frames, readable before the poll
+    assert reads == [60] and r.n_values == 20 and r.health.fresh
+    r = drv.poll(1 * H + 0.001)                       # drained: no read again
+    assert reads == [60] and r.n_values == 0 and r.t == 1 * H
 
 
 @settings(max_examples=150, deadline=None)

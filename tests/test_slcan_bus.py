@@ -93,7 +93,67 @@ def _bare_bus(fd):
     from drivers.slcan_bus import SlcanBus
     bus = object.__new__(SlcanBus)
     bus._fd, bus._buf, bus._rx, bus.errors = fd, b"", collections.deque(), 0
+    bus._inq = bytearray(4)
     return bus
+
+
+@pytest.fixture
+def raw_pty():
+    """(master, slave) of a raw pty, the slave non-blocking as pyserial opens it."""
+    import os
+    import tty
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    os.set_blocking(slave, False)
+    fds = [master, slave]
+    yield fds
+    for fd in fds:
+        if fd >= 0:
+            os.close(fd)
+
+
+def test_an_empty_port_is_not_read(raw_pty, monkeypatch):
+    """No read(2) while TIOCINQ says 0 (an empty tty's read waits for the kernel's
+    flip-buffer worker), else one read of exactly the bytes it reported."""
+    import os
+    import select
+
+    import drivers.slcan_bus as slcan_mod
+    master, slave = raw_pty
+    reads: list[int] = []
+    real_read = slcan_mod._os_read
+
+    def watched(fd, n):
+        reads.append(n)
+        return real_read(fd, n)
+
+    monkeypatch.setattr(slcan_mod, "_os_read", watched)
+    bus = _bare_bus(slave)
+    assert bus._recv_internal(0) == (None, False) and reads == []
+    os.write(master, b"t1810\r")
+    assert select.select([slave], [], [], 5.0)[0]     # the kernel moved the bytes to the slave
+    msg, _ = bus._recv_internal(0)
+    assert reads == [6] and msg.arbitration_id == 0x181 and msg.dlc == 0
+    assert bus._recv_internal(0) == (None, False) and reads == [6]
+
+
+@pytest.mark.parametrize("pending", [b"", b"t1810\r"])
+def test_hang_up_is_a_can_operation_error(raw_pty, pending):
+    """The adapter end vanishes (pty master closed; a USB adapter unplugged hangs up the
+    same way): recv names the hang-up, with or without unread bytes."""
+    import os
+    import select
+    master, slave = raw_pty
+    bus = _bare_bus(slave)
+    if pending:
+        os.write(master, pending)
+        assert select.select([slave], [], [], 5.0)[0]
+    os.close(master)
+    raw_pty[0] = -1
+    with pytest.raises(can.CanOperationError, match=r"disconnected \(hang-up on the port\)"):
+        bus._recv_internal(0)
+    with pytest.raises(can.CanOperationError, match="hang-up"):
+        bus._recv_internal(0.01)                      # the waiting form too, without spinning
 
 
 def test_drain_keeps_split_lines_and_skips_acks_and_garbage():
