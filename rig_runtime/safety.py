@@ -7,13 +7,18 @@ power stages (``hardware.activate``); FAULT and the end of STOPPING deactivate t
 fault the output is zero in the same cycle. Limits come from the frozen config and cannot
 be loosened.
 
-The checks are one ordered list of small named rules (no second copy of any of them):
-the system rules (loop overruns, recorder, converters), the channel rules (each applied to
-every sensor channel before the next rule), then the pose rules (each applied to every
-controlled carrier before the next rule), then the observer rules (each applied to every
-observed carrier, on the statistics of its latest estimate, and not while a channel rule is
-gathering evidence on one of the carrier's sensors: a channel rule that sees the fault names
-it first). The first rule that fails in a cycle trips the fault. Arming asks the same channel rules whether every channel is fit.
+Every rule is judged here and only here: drivers report what they observed (the latest
+valid value and when it arrived, what the device said, protocol events with counts, the
+SYNCs a drive left unanswered); freshness, range, stuck, jump and corruption are decided by
+the rules below, each with one setting in ``limits:``. The checks are ordered lists of small
+named rules (no second copy of any of them): the system rules (loop overruns, recorder,
+converters, a recent bus error), the channel rules (each applied to every sensor channel
+before the next rule), then the pose rules (each applied to every controlled carrier before
+the next rule), then the observer rules (each applied to every observed carrier, on the
+statistics of its latest estimate, and not while a channel rule is gathering evidence on one
+of the carrier's sensors: a channel rule that sees the fault names it first). The first rule
+that fails in a cycle trips the fault. The output rules check each lane's command in
+:meth:`Supervisor.limit`. Arming asks the same channel rules whether every channel is fit.
 """
 
 from __future__ import annotations
