@@ -90,9 +90,10 @@ def parse_preempt_rt(sys_realtime: Optional[str], uname_version: str, kconfig: O
     if kconfig is not None:
         m = re.search(r"^CONFIG_PREEMPT_RT=y", kconfig, re.M)
         rt |= bool(m)
-        chosen = [k for k in ("PREEMPT_RT", "PREEMPT", "PREEMPT_VOLUNTARY", "PREEMPT_NONE")
+        chosen = [f"CONFIG_{k}=y" for k in ("PREEMPT_RT", "PREEMPT", "PREEMPT_LAZY", "PREEMPT_VOLUNTARY",
+                                              "PREEMPT_NONE", "PREEMPT_DYNAMIC")
                   if re.search(rf"^CONFIG_{k}=y", kconfig, re.M)]
-        evidence.append(f"kernel config: CONFIG_{chosen[0]}=y" if chosen else "kernel config: no preemption model")
+        evidence.append(f"kernel config: {' '.join(chosen)}" if chosen else "kernel config: no preemption model")
     return rt, ", ".join(evidence)
 
 
@@ -360,7 +361,7 @@ def check_ft_sensor(sensor, timeout_s: float = 0.5) -> Item:
         addr = socket.getaddrinfo(sensor.host, sensor.port, type=socket.SOCK_STREAM)[0][4][0]
     except OSError as e:
         return Item(name, FAIL, f"host {sensor.host} does not resolve ({e})",
-                    "fix the name (DNS, /etc/hosts) or put the sensor's address in the config")
+                    "make the name resolve (DNS, /etc/hosts) or put the sensor's address in the config")
     err = modbus_read(addr, sensor.port, sensor.unit_id, timeout_s)
     if err:
         return Item(name, FAIL, f"{sensor.host} ({addr}:{sensor.port}): {err}",
