@@ -56,10 +56,25 @@ def test_cyclictest_command():
                              hist_max_us=5000)
     assert cmd[0] == "/usr/bin/cyclictest"
     s = " ".join(cmd)
-    for part in ("-q", "-m", "-t 1", "-D 10", "-i 5000", "-h 5000", "-p 80", "--policy=fifo", "-a 1"):
+    for part in ("-q", "-m", "-t 1", "-D 10", "-i 5000", "-h 5000", "-p 80", "--policy=fifo", "-a 1", "--secaligned"):
         assert part in s
     bare = " ".join(cyclictest.command("c", duration_s=0.3, period_s=0.001, priority=None, cpu=None, hist_max_us=1000))
     assert "-D 1" in bare and "-i 1000" in bare and "-p" not in bare and "-a" not in bare
+
+
+def test_bare_loop_deadlines_at_the_phase():
+    """Half a period off the grid cyclictest wakes on (simulated time: no timing here)."""
+    from rig_runtime.app.bare_loop import bare_loop
+    from rig_runtime.clock import LockstepClock
+    deadlines = []
+    stats = bare_loop(LockstepClock(advance=deadlines.append, t0=1234.5671), 0.005, 0.1, phase_s=0.0025)
+    assert stats.cycles == 20 and stats.deadline_misses == 0 and len(deadlines) == 20
+    for t in deadlines:
+        assert abs((t - 0.0025) / 0.005 - round((t - 0.0025) / 0.005)) < 1e-6
+    assert deadlines[0] > 1234.5671
+    free = []
+    bare_loop(LockstepClock(advance=free.append, t0=1234.5671), 0.005, 0.1)
+    assert abs(free[0] - (1234.5671 + 0.005)) < 1e-9         # without a phase: one period from now
 
 
 def test_buckets_count_every_sample():

@@ -9,19 +9,24 @@ the next deadline, and the periods it overran are skipped, as the runtime's loop
 from __future__ import annotations
 
 import gc
+import math
 
 from ..clock import RealtimeClock
 from ..stats import CycleStats
 
 
-def bare_loop(clock: RealtimeClock, h: float, duration_s: float) -> CycleStats:
+def bare_loop(clock: RealtimeClock, h: float, duration_s: float, phase_s: float | None = None) -> CycleStats:
     """Run ``duration_s / h`` periods with the garbage collector frozen and off (as the
-    loop runs); returns the lateness/work histograms and the misses."""
+    loop runs); returns the lateness/work histograms and the misses. ``phase_s``: put the
+    deadlines at ``phase_s`` modulo ``h`` on the clock (a loop beside on the same CPU whose
+    wake-ups are on the grid of ``h`` then never falls into this one's spin)."""
     stats = CycleStats()
     n = int(duration_s / h)
     gc.collect(); gc.freeze(); gc.disable()
     try:
         t0 = clock.now() + h
+        if phase_s is not None:
+            t0 = (math.floor((t0 - phase_s) / h) + 1) * h + phase_s
         k = 0
         while k < n:
             t_k = t0 + k * h

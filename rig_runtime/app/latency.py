@@ -121,7 +121,8 @@ def cmd_latency(args: argparse.Namespace) -> int:
           f"at h = {h * 1e3:g} ms for {args.duration:g} s; config {cfg.source}")
     for line in report:
         print(f"realtime: {line}")
-    stats = bare_loop(RealtimeClock(rt.spin_us * 1e-6), h, args.duration)
+    # half a period off cyclictest's wake-ups (it wakes on the grid of h: --secaligned)
+    stats = bare_loop(RealtimeClock(rt.spin_us * 1e-6), h, args.duration, phase_s=h / 2 if peer else None)
     lat = stats.lateness
     p50, p99, p999 = lat.percentiles((50.0, 99.0, 99.9))
     loop = LoopFigures(n=lat.n, p50_us=p50 * 1e6, p99_us=p99 * 1e6, p999_us=p999 * 1e6, max_us=lat.max * 1e6,
