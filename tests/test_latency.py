@@ -56,10 +56,10 @@ def test_cyclictest_command():
                              hist_max_us=5000)
     assert cmd[0] == "/usr/bin/cyclictest"
     s = " ".join(cmd)
-    for part in ("-q", "-m", "-t 1", "-D 10", "-i 5000", "-h 5000", "-p 80", "--policy=fifo", "-a 1", "--secaligned"):
+    for part in ("-q", "-m", "-t 1", "-l 2000", "-i 5000", "-h 5000", "-p 80", "--policy=fifo", "-a 1", "--secaligned"):
         assert part in s
     bare = " ".join(cyclictest.command("c", duration_s=0.3, period_s=0.001, priority=None, cpu=None, hist_max_us=1000))
-    assert "-D 1" in bare and "-i 1000" in bare and "-p" not in bare and "-a" not in bare
+    assert "-l 300" in bare and "-i 1000" in bare and "-p" not in bare and "-a" not in bare
 
 
 def test_bare_loop_deadlines_at_the_phase():

@@ -37,12 +37,13 @@ def find() -> Optional[str]:
 
 def command(exe: str, *, duration_s: float, period_s: float, priority: Optional[int], cpu: Optional[int],
             hist_max_us: int) -> list[str]:
-    """One measuring thread at ``period_s`` for ``duration_s`` (whole seconds, at least 1),
-    memory locked, quiet, with a histogram up to ``hist_max_us``; its wake-ups aligned to
-    the full second (``--secaligned``), so on CLOCK_MONOTONIC's grid of the period
+    """One measuring thread at ``period_s`` for ``duration_s`` (as many periods: ``-l``,
+    so both loops count the same number of periods), memory locked, quiet, with a histogram
+    up to ``hist_max_us``; its wake-ups aligned to the full second (``--secaligned``, which
+    waits up to 2 s before the first), so on CLOCK_MONOTONIC's grid of the period
     (``rig latency`` puts its own half a period off it: neither falls into the other's run)."""
-    cmd = [exe, "-q", "-m", "-t", "1", "-D", f"{max(1, round(duration_s))}", "-i", f"{round(period_s * 1e6)}",
-           "-h", str(hist_max_us), "--secaligned"]
+    cmd = [exe, "-q", "-m", "-t", "1", "-l", str(max(1, round(duration_s / period_s))),
+           "-i", f"{round(period_s * 1e6)}", "-h", str(hist_max_us), "--secaligned"]
     if priority is not None:
         cmd += ["-p", str(priority), "--policy=fifo"]
     if cpu is not None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import subprocess
 import sys
 from dataclasses import dataclass, replace
 from typing import Optional
@@ -131,7 +132,7 @@ def cmd_latency(args: argparse.Namespace) -> int:
     if peer is not None:
         try:
             out, err = peer.communicate(timeout=args.duration + 30)
-        except Exception as e:      # a hung peer must not hide our own figures
+        except subprocess.TimeoutExpired as e:      # a hung peer must not hide our own figures
             peer.kill()
             out, err = peer.communicate()
             peer_error = f"did not finish ({type(e).__name__})"
