@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import gc
 import json
 import logging
 import os
@@ -40,6 +39,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):    #
 from rig_runtime import config  # noqa: E402
 from rig_runtime.clock import RealtimeClock, apply_realtime  # noqa: E402
 from rig_runtime.devices import RigDevices  # noqa: E402
+from rig_runtime.app.bare_loop import bare_loop as run_bare_loop  # noqa: E402
 from rig_runtime.app.runner import execute  # noqa: E402
 from rig_runtime.stats import CycleStats  # noqa: E402
 from sim_backend.launcher import start_sim_process  # noqa: E402
@@ -64,21 +64,7 @@ def rss_mb() -> float:
 
 
 def bare_loop(clock: RealtimeClock, h: float, duration: float) -> dict:
-    stats = CycleStats()
-    n = int(duration / h)
-    gc.collect(); gc.freeze(); gc.disable()
-    t0 = clock.now() + h
-    k = 0
-    while k < n:
-        t_k = t0 + k * h
-        t = clock.wait_until(t_k)
-        t_done = clock.now()
-        missed = t_done > t_k + h
-        k_next = int((t_done - t0) / h) + 1 if missed else k + 1
-        stats.update(t - t_k, t_done - t, missed, k_next - k - 1)
-        k = k_next
-    gc.enable(); gc.unfreeze()
-    s = stats.summary()
+    s = run_bare_loop(clock, h, duration).summary()
     s.pop("skipped_periods")
     return s
 

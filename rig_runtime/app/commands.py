@@ -199,9 +199,14 @@ def cmd_export(args: argparse.Namespace) -> int:
 @arg("--scenario", help="scenario name in configs/scenarios or a path (default: none, hold y_ref = 0)")
 @arg("--duration", type=float, help="seconds of RUNNING (default: the scenario's)")
 @arg("--log", help="the HDF5 log path to check (default: logs/run-<time>.h5)")
+@arg("--machine", action="store_true", help="also: is this machine ready for `rig run` with this config (kernel, "
+     "real-time limits, devices; default config: configs/rig.yaml); exit 2 if something would keep it from working")
 def cmd_check(args: argparse.Namespace) -> int:
     from .. import config
     from ..scenario import load_scenario
+    if args.machine:
+        from .machine_check import check_machine_command
+        return check_machine_command(args)
     cfg = config.load(args.config)
     scenario = load_scenario(args.scenario) if args.scenario else None
     log = Path(args.log) if args.log else default_log_path("run")
