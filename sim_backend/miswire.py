@@ -36,11 +36,11 @@ class Miswire:
                                   ("node_swap", [n for p in self.node_swap for n in p], WHEELS)):
             for n in names:
                 if n not in known:
-                    raise ConfigError(None, f"sim.miswire.{key}", f"one of {', '.join(known)}", n)
+                    raise ConfigError(None, key, f"one of {', '.join(known)}", n)
         for key, pairs in (("laser_swap", self.laser_swap), ("node_swap", self.node_swap)):
             flat = [n for p in pairs for n in p]
             if len(set(flat)) != len(flat):
-                raise ConfigError(None, f"sim.miswire.{key}", "pairs of two different names, each name once", list(pairs))
+                raise ConfigError(None, key, "pairs of two different names, each name once", list(pairs))
 
     @property
     def any(self) -> bool:

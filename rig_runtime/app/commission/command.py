@@ -78,7 +78,7 @@ def cmd_commission(args: argparse.Namespace) -> int:
         print(f"realtime: {line}", file=sys.stderr)
     rep = procedure.run(cfg, devices, RealtimeClock(cfg.realtime.spin_us * 1e-6), checks,
                         confirm=_confirm(args.yes), say=lambda s: print(f"rig commission: {s}", file=sys.stderr),
-                        passive_s=passive_s, stops=args.stops)
+                        passive_s=passive_s, stops=args.stops, log_prefix=report_path.with_suffix(""))
     if args.stops.requested:
         raise args.stops.interrupted("commissioning stopped: power stages off, nothing recorded")
     d = rep.as_dict()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable, Optional, Sequence
 
 from ...clock import Clock
@@ -67,9 +68,11 @@ class Report:
 
 def run(cfg: RigConfig, devices, clock: Clock, checks: Sequence[str] = CHECKS,
         confirm: Callable[[str], bool] = lambda text: True, say: Callable[[str], None] = lambda s: None,
-        passive_s: float = PASSIVE_S, stops=None) -> Report:
+        passive_s: float = PASSIVE_S, stops=None, log_prefix: Optional[Path] = None,
+        when_full: str = "drop") -> Report:
     """Configure the devices (no power), then each selected check in ``CHECKS`` order; the
-    devices are closed on every path. ``confirm(prompt)``: the operator's go (False: that
+    devices are closed on every path. Each bump is recorded as a normal log,
+    ``<log_prefix>-bump-<carrier>.h5`` (None: not recorded). ``confirm(prompt)``: the operator's go (False: that
     check is not run, and fails)."""
     h = cfg.controller.h
     items: list[Item] = []
@@ -97,7 +100,10 @@ def run(cfg: RigConfig, devices, clock: Clock, checks: Sequence[str] = CHECKS,
                 break
             u = 2 * BUMP_WIRE_A
             say(f"bump {c}: u = {u:+.2f} A ({BUMP_WIRE_A:+.2f} A / {-BUMP_WIRE_A:+.2f} A on the wire) for {BUMP_S} s")
-            rec, res = bump(cfg, devices, clock, c, u, BUMP_S, AFTER_S, stops=stops)
+            log = None if log_prefix is None else Path(f"{log_prefix}-bump-{c}.h5")
+            rec, res = bump(cfg, devices, clock, c, u, BUMP_S, AFTER_S, log_path=log, when_full=when_full, stops=stops)
+            res["log"] = str(log) if log is not None else None
+            devices.resume(clock.now())     # the stop left the drives pre-operational: back to configure()'s state
             sessions.append({"check": f"bump-{c}", **res})
             if res["final_state"] != "IDLE" or res["faults"]:
                 why = "; ".join(f"{f['device']} {f['check']}" for f in res["faults"]) or "; ".join(res["arm_blockers"][:3])
@@ -111,7 +117,8 @@ def run(cfg: RigConfig, devices, clock: Clock, checks: Sequence[str] = CHECKS,
 
 
 def run_lockstep(cfg: RigConfig, checks: Sequence[str] = CHECKS, *, seed: Optional[int] = None,
-                 passive_s: float = 2.2, prepare: Optional[Callable] = None) -> Report:
+                 passive_s: float = 2.2, prepare: Optional[Callable] = None,
+                 log_prefix: Optional[Path] = None) -> Report:
     """``run`` against the simulated rig in this process, on the lockstep clock (the
     simulated operator moves the vehicle: ``sim: {operator: commission}`` is set here).
     ``prepare(sim)`` runs before anything is configured (tests tap the CAN wire)."""
@@ -127,6 +134,7 @@ def run_lockstep(cfg: RigConfig, checks: Sequence[str] = CHECKS, *, seed: Option
         if prepare is not None:
             prepare(sim)
         devices = RigDevices(cfg, laser_ports=sim.laser_ports, can_bus=sim.runtime_bus(), ft_endpoints=sim.ft_endpoints)
-        return run(cfg, devices, LockstepClock(advance=sim.advance), checks, passive_s=passive_s)
+        return run(cfg, devices, LockstepClock(advance=sim.advance), checks, passive_s=passive_s,
+                   log_prefix=log_prefix, when_full="wait")
     finally:
         sim.close()

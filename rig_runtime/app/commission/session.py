@@ -10,13 +10,19 @@ pulse, zero current, STOPPING, IDLE (power stages off) — the same lifecycle as
 from __future__ import annotations
 
 import dataclasses
+import datetime as _dt
+import json
 import math
-from typing import Mapping
+from pathlib import Path
+from typing import Optional
 
-from ...clock import Clock
+from ... import __version__, schema
+
+from ...clock import Clock, helper_cpus
 from ...config import WHEELS, RigConfig
 from ...control import StepSequence
-from ...loop import ControlLoop
+from ...loop import ControlLoop, log_columns
+from ...recorder import Recorder
 from ...safety import State
 
 ZERO = {w: 0.0 for w in WHEELS}
@@ -66,11 +72,31 @@ class _Capture:
 
 
 def bump(cfg: RigConfig, devices, clock: Clock, carrier: str, u_A: float, pulse_s: float, after_s: float,
-         recorder=None, stops=None) -> tuple[dict[str, list[float]], dict]:
+         log_path: Optional[Path] = None, when_full: str = "drop", stops=None) -> tuple[dict[str, list[float]], dict]:
     """One pulse of ``u_A`` (differential, each wheel ±u/2) for ``pulse_s`` on ``carrier``,
     then zero current for ``after_s``, inside one armed session of the control loop
-    (devices configured by the caller). Returns (the captured series, the run's result)."""
+    (devices configured by the caller), recorded as a normal log at ``log_path`` (None: not
+    recorded). Returns (the captured series, the run's result)."""
     bump_cfg = dataclasses.replace(cfg, controlled=(carrier,))     # the one lane: this carrier, open loop
+    if log_path is None:
+        return _bump(bump_cfg, devices, clock, carrier, u_A, pulse_s, after_s, None, stops)
+    attrs = {"config": json.dumps(schema.to_dict(bump_cfg)), "software_version": __version__,
+             "start_time": _dt.datetime.now(_dt.timezone.utc).isoformat(), "h": cfg.controller.h,
+             "config_source": cfg.source, "scenario": f"commission bump-{carrier}", "scenario_source": "",
+             "experiment": "", "duration_s": float(pulse_s + after_s), "controlled": [carrier],
+             "mode": "commission"}
+    rec = Recorder(log_path, log_columns(bump_cfg, devices.channels(), devices.extra_columns, []), attrs=attrs,
+                   buffer_cycles=cfg.recorder.buffer_cycles, flush_s=cfg.recorder.flush_s, when_full=when_full,
+                   cpus=helper_cpus(cfg.realtime))
+    rec.open()
+    try:
+        return _bump(bump_cfg, devices, clock, carrier, u_A, pulse_s, after_s, rec, stops)
+    finally:
+        rec.close()
+
+
+def _bump(bump_cfg: RigConfig, devices, clock: Clock, carrier: str, u_A: float, pulse_s: float, after_s: float,
+          recorder, stops) -> tuple[dict[str, list[float]], dict]:
     u = StepSequence(((0.0, u_A), (pulse_s, 0.0)))
     loop = ControlLoop(bump_cfg, devices, clock, open_loop=(carrier, u), recorder=recorder,
                        mailbox=recorder.mailbox if recorder is not None else None)
