@@ -19,7 +19,7 @@ EXPECTED_LASER_SIGN = {"b_f": +1, "b_r": +1, "s_rl": +1, "s_rr": -1, "s_fl": -1,
 LASER_RESPONSE_M = 0.1e-3           # a laser "responds" when its reading moves by this much
 ENCODER_TOLERANCE = 0.2             # |ω| within ±20 % of v / r0
 PSI_RESPONSE_RAD = 0.5e-3           # a bump "moves the yaw angle" by at least this much
-DW_RESPONSE_RAD_S = 0.02            # an encoder "answers" a bump: Δω moves by this much
+DW_RESPONSE_RAD_S = 0.015           # an encoder "answers" a bump: Δω moves by this much
 RELATION4_BAND = (0.5, 1.5)         # measured Δω over the Δω relation (4) predicts
 
 
@@ -160,10 +160,14 @@ def judge_bump(carrier: str, u_A: float, rec: Mapping[str, Sequence[float]], cfg
             faults.append(f"drives {l} and {r} appear swapped: drive node {node_ids[l]} moves wheel {r} and node "
                           f"{node_ids[r]} wheel {l} (yaw moved {dpsi * 1e3:+.2f} mrad, Δω against relation (4))"
                           + lasers_hint)
-        else:
+        elif rolls:
             faults.append(f"the {carrier} yaw angle moved the wrong way ({dpsi * 1e3:+.2f} mrad for u = {u_A:+.2f} A) "
                           f"with Δω as (4) says: drives {l} and {r} both appear to have their current polarity "
                           f"inverted" + lasers_hint)
+        else:
+            faults.append(f"the {carrier} yaw angle moved the wrong way ({dpsi * 1e3:+.2f} mrad for u = {u_A:+.2f} A): "
+                          f"drives {l} and {r} appear swapped (node IDs {node_ids[l]}, {node_ids[r]}) or both have "
+                          f"their current polarity inverted (not rolling: Δω cannot tell which)" + lasers_hint)
     elif moved and not ratio_ok:
         faults.append(f"Δω of the {carrier} pair does not follow relation (4) (measured / predicted = {ratio:+.2f}): "
                       f"the encoders of {l} and {r} appear swapped or one reads with the wrong sign")
