@@ -22,7 +22,7 @@ PASSIVE_S = 8.0             # the operator's window for the passive motions
 
 
 def laser_prompt(seconds: float) -> str:
-    return (f"lasers (power stages off): within the next {seconds:.0f} s, one after the other, each by hand "
+    return (f"lasers (power stages off): within the next {seconds:g} s, one after the other, each by hand "
             "and let go again: push the vehicle about 2 mm to the left (+y, away from the lateral lasers); "
             "turn the rear carrier nose-left by a few mrad; turn the front carrier nose-right by a few mrad.")
 
