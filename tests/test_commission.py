@@ -68,6 +68,7 @@ def test_the_shipped_wiring_passes_and_the_tap_sees_power_only_in_the_bumps(tmp_
 @pytest.mark.parametrize("mw, fault", [
     ({"laser_sign": ["b_r"]}, "b_r reads with the wrong sign"),
     ({"laser_swap": [["s_fl", "s_fr"]]}, "s_fl and s_fr appear swapped"),
+    ({"laser_swap": [["s_fl", "s_rr"]]}, "s_fl and s_rr appear swapped (s_fl moves with the rear carrier"),
     ({"encoder_sign": ["rl"]}, "encoder rl reads with the wrong sign"),
     ({"current_sign": ["rl"]}, "drive rl or rr current polarity appears inverted"),
     ({"node_swap": [["rl", "rr"]]}, "drives rl and rr appear swapped: drive node 3 moves wheel rr"),

@@ -17,6 +17,7 @@ from ...lanes import CARRIER_WHEELS
 # s_rl grows, s_rr shrinks; front carrier nose-right: s_fl shrinks, s_fr grows)
 EXPECTED_LASER_SIGN = {"b_f": +1, "b_r": +1, "s_rl": +1, "s_rr": -1, "s_fl": -1, "s_fr": +1}
 LASER_RESPONSE_M = 0.1e-3           # a laser "responds" when its reading moves by this much
+YAW_PAIR_CORR = 0.5                 # one carrier's yaw lasers: |correlation| at least 0.5 (they move together)
 ENCODER_TOLERANCE = 0.2             # |ω| within ±20 % of v / r0
 PSI_RESPONSE_RAD = 0.5e-3           # a bump "moves the yaw angle" by at least this much
 DW_RESPONSE_RAD_S = 0.015           # an encoder "answers" a bump: Δω moves by this much
@@ -46,18 +47,51 @@ def deflection(series: Sequence[float]) -> float:
     return max((v - m for v in finite), key=abs)
 
 
+def _corr(a: Sequence[float], b: Sequence[float]) -> float:
+    pairs = [(x, y) for x, y in zip(a, b) if math.isfinite(x) and math.isfinite(y)]
+    if len(pairs) < 3:
+        return math.nan
+    ma = sum(x for x, _ in pairs) / len(pairs)
+    mb = sum(y for _, y in pairs) / len(pairs)
+    sab = sum((x - ma) * (y - mb) for x, y in pairs)
+    saa = sum((x - ma) ** 2 for x, _ in pairs)
+    sbb = sum((y - mb) ** 2 for _, y in pairs)
+    return sab / math.sqrt(saa * sbb) if saa > 0 and sbb > 0 else math.nan
+
+
+def _carriers_move_together(series: Mapping[str, Sequence[float]], front: tuple[str, str],
+                            rear: tuple[str, str]) -> bool:
+    """A turned carrier moves its two yaw lasers together (in opposite directions if both
+    read with the right sign: the signs are judged apart)."""
+    return all(abs(_corr(series.get(a, ()), series.get(b, ()))) >= YAW_PAIR_CORR for a, b in (front, rear))
+
+
 def judge_lasers(series: Mapping[str, Sequence[float]]) -> Item:
-    """Each laser moved, in the direction the prompt's motions give it (docs/conventions.md)."""
+    """Each laser moved, in the direction the prompt's motions give it (docs/conventions.md),
+    and each carrier's two yaw lasers moved together (moving the rear carrier changes s_rl
+    and s_rr, not s_fl and s_fr)."""
     dev = {r: deflection(series.get(r, ())) for r in EXPECTED_LASER_SIGN}
-    wrong, silent = [], []
-    for r, s in EXPECTED_LASER_SIGN.items():
-        d = dev[r]
-        if not math.isfinite(d) or abs(d) < LASER_RESPONSE_M:
-            silent.append(r)
-        elif math.copysign(1, d) != s:
-            wrong.append(r)
+    silent = [r for r in EXPECTED_LASER_SIGN if not math.isfinite(dev[r]) or abs(dev[r]) < LASER_RESPONSE_M]
     faults = [f"{r} does not respond (moved {dev[r] * 1e3:+.3f} mm, at least {LASER_RESPONSE_M * 1e3:.1f} mm expected)"
               for r in silent]
+    cross: set[str] = set()
+    yaw = ("s_fl", "s_fr", "s_rl", "s_rr")
+    if not silent or not set(silent) & set(yaw):
+        f, r = ("s_fl", "s_fr"), ("s_rl", "s_rr")
+        if not _carriers_move_together(series, f, r):
+            for a in f:
+                for b in r:
+                    ex = {**series, a: series.get(b, ()), b: series.get(a, ())}
+                    if not cross and _carriers_move_together(ex, f, r):
+                        faults.append(f"{a} and {b} appear swapped ({a} moves with the rear carrier, "
+                                      f"{b} with the front)")
+                        cross = {a, b}
+            if not cross:
+                faults.append("the yaw lasers of a carrier do not move together: s_fl/s_fr and s_rl/s_rr are "
+                              "not each one carrier's pair (check which laser looks at which carrier)")
+                cross = set(yaw)
+    wrong = [r for r, s in EXPECTED_LASER_SIGN.items()
+             if r not in silent and r not in cross and math.copysign(1, dev[r]) != s]
     left = list(wrong)
     # two wrong lasers whose expected directions are opposite: each reads what the other should
     for a in wrong:
@@ -158,18 +192,18 @@ def judge_bump(carrier: str, u_A: float, rec: Mapping[str, Sequence[float]], cfg
     elif moved and not psi_sign_ok:
         if ratio_neg:
             faults.append(f"drives {l} and {r} appear swapped: drive node {node_ids[l]} moves wheel {r} and node "
-                          f"{node_ids[r]} wheel {l} (yaw moved {dpsi * 1e3:+.2f} mrad, Δω against relation (4))"
-                          + lasers_hint)
+                          f"{node_ids[r]} wheel {l} (yaw moved {dpsi * 1e3:+.2f} mrad, Δω against relation (4))")
         elif rolls:
             faults.append(f"the {carrier} yaw angle moved the wrong way ({dpsi * 1e3:+.2f} mrad for u = {u_A:+.2f} A) "
                           f"with Δω as (4) says: drives {l} and {r} both appear to have their current polarity "
-                          f"inverted" + lasers_hint)
+                          f"inverted")
         else:
             faults.append(f"the {carrier} yaw angle moved the wrong way ({dpsi * 1e3:+.2f} mrad for u = {u_A:+.2f} A): "
                           f"drives {l} and {r} appear swapped (node IDs {node_ids[l]}, {node_ids[r]}) or both have "
-                          f"their current polarity inverted (not rolling: Δω cannot tell which)" + lasers_hint)
+                          f"their current polarity inverted (not rolling: Δω cannot tell which)")
     elif moved and not ratio_ok:
         faults.append(f"Δω of the {carrier} pair does not follow relation (4) (measured / predicted = {ratio:+.2f}): "
                       f"the encoders of {l} and {r} appear swapped or one reads with the wrong sign")
+    faults = [f + lasers_hint for f in faults]
     note = "" if rolls else f"{carrier} carrier not in rolling contact (plant.front_contact: false): relation (4) not checked"
     return Item(name, not faults, measured, tuple(faults), note)
