@@ -82,12 +82,12 @@ def run(cfg: RigConfig, devices, clock: Clock, checks: Sequence[str] = CHECKS,
         devices.configure()
         if "lasers" in checks:
             if confirm(laser_prompt(passive_s)):
-                items.append(judge_lasers(passive(devices, clock, h, passive_s, LASER_ROLES)))
+                items.append(judge_lasers(passive(devices, clock, h, passive_s, LASER_ROLES, stops)))
             else:
                 items.append(Item("lasers", False, {}, ("not run: the operator declined",)))
         if "encoders" in checks:
             if confirm(encoder_prompt(cfg)):
-                items.append(judge_encoders(passive(devices, clock, h, 1.0, WHEELS), cfg))
+                items.append(judge_encoders(passive(devices, clock, h, 1.0, WHEELS, stops), cfg))
             else:
                 items.append(Item("encoders", False, {}, ("not run: the operator declined",)))
         bumps = [c for c in ("rear", "front") if f"bump-{c}" in checks]

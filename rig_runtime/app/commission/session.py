@@ -28,12 +28,16 @@ from ...safety import State
 ZERO = {w: 0.0 for w in WHEELS}
 
 
-def passive(devices, clock: Clock, h: float, seconds: float, names: tuple[str, ...]) -> dict[str, list[float]]:
+def passive(devices, clock: Clock, h: float, seconds: float, names: tuple[str, ...],
+            stops=None) -> dict[str, list[float]]:
     """Every channel in ``names`` (laser roles, wheels) polled each period for ``seconds``,
-    power stages off: ``{name: [value per cycle]}`` (NaN until a channel has a value)."""
+    power stages off: ``{name: [value per cycle]}`` (NaN until a channel has a value). A stop
+    request (``stops``) ends the window early."""
     out: dict[str, list[float]] = {n: [] for n in names}
     t0 = clock.now() + h
     for k in range(max(1, int(round(seconds / h)))):
+        if stops is not None and stops.requested:
+            break
         t = clock.wait_until(t0 + k * h)
         r = devices.poll(t)
         devices.write(ZERO, t)
