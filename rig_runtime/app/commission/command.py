@@ -80,7 +80,7 @@ def cmd_commission(args: argparse.Namespace) -> int:
                         confirm=_confirm(args.yes), say=lambda s: print(f"rig commission: {s}", file=sys.stderr),
                         passive_s=passive_s, stops=args.stops, log_prefix=report_path.with_suffix(""))
     if args.stops.requested:
-        raise args.stops.interrupted("commissioning stopped: power stages off, no result on record")
+        raise args.stops.interrupted("during commissioning: power stages off, no result on record")
     d = rep.as_dict()
     d.update(config_source=cfg.source, config_hash=record.config_hash(cfg))
     report_path.write_text(json.dumps(d, indent=1, default=str) + "\n")
