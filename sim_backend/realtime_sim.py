@@ -94,7 +94,7 @@ class RealtimeSim:
         try:
             self.sim = SimulatedRig(cfg, scenario, seed=seed, drive_bus=drive_bus)
             if can_responder == "process":
-                self.can.configure(cfg.devices.can, self.sim.seed)
+                self.can.configure(self.sim.wired_can(), self.sim.seed)
             else:
                 self.can.attach(self.sim.drives)
         except BaseException:

@@ -39,7 +39,7 @@ from rig_runtime.errors import ConfigError
 from rig_runtime.geometry import ideal_readings, pose_from_carriers
 from rig_runtime.scenario import Scenario
 
-from . import virtual_drive, virtual_ft, virtual_laser
+from . import hands, miswire, virtual_drive, virtual_ft, virtual_laser
 from .lockstep_bus import LockstepBus
 from .plant import LiftedCarrier, Plant
 from .simconfig import sim_config
@@ -56,6 +56,7 @@ class SimulatedRig:
                  drive_bus: Optional[can.BusABC] = None):
         self.cfg = cfg
         self.sc = sim_config(cfg)
+        self.miswire = self.sc.miswire or miswire.NONE
         self.seed = self.sc.seed if seed is None else seed
         self.scenario = scenario
         self.h = cfg.controller.h
@@ -74,6 +75,7 @@ class SimulatedRig:
         self._drive_bus = drive_bus
         self._check_scenario()
         self.t_run0 = math.nan                  # scenario time 0 (simulated time); NaN: not started
+        self.powered_once = False               # every power stage was on at least once (the hands let go)
         self._events = self._schedule()
         self._active_faults: set[int] = set()
         self._stalls_done: set[int] = set()
@@ -110,7 +112,7 @@ class SimulatedRig:
         else:
             self.bus = self._new_bus()
             self._closers.append(self.bus.shutdown)
-        self.drives = VirtualDriveSet(cfg.devices.can, self.bus, seed=self.seed)
+        self.drives = VirtualDriveSet(self.wired_can(), self.bus, seed=self.seed)
         wd = [self.drives.drives.get(w) for w in WHEELS]
         self._wheel_drives = None if None in wd else wd     # None: current_A(wheel) raises for the missing one
         self._closers.append(self.drives.close)
@@ -124,6 +126,11 @@ class SimulatedRig:
         self.set_wheel_speeds()
         self._set_wrenches_when_due(0.0)
         self._laser_group.wait()
+
+    def wired_can(self):
+        """The drives as the simulated rig is wired (``sim.miswire.node_swap``), for the
+        virtual drives wherever they run."""
+        return miswire.drive_config(self.miswire, self.cfg.devices.can)
 
     @property
     def laser_ports(self) -> dict[str, str]:
@@ -188,6 +195,7 @@ class SimulatedRig:
         """Scenario time 0 is simulated time ``t`` (lockstep: called by :meth:`advance`)."""
         self.end_scenario()
         self.t_run0 = t
+        self.powered_once = True
 
     def end_scenario(self) -> None:
         """Clear the active faults, stop disturbances and scenario time (``rig sim``: a
@@ -272,6 +280,8 @@ class SimulatedRig:
             forces = self._forces(tau)
         else:
             forces = _NO_FORCES
+        if self.miswire.current_sign:
+            currents = miswire.motor_currents(self.miswire, currents)
         fl, fr, rl, rr = currents
         self.plant.step(dt, fl - fr, rl - rr, *forces)
         self.t += dt
@@ -331,8 +341,18 @@ class SimulatedRig:
     def set_laser_distances(self) -> None:
         """The distances the six lasers see for the plant's pose (no frames are emitted)."""
         p, geo = self.plant, self.cfg.geometry
-        pose = pose_from_carriers(p.y_f, p.y_r, p.psi_af, p.psi_ar, geo)
+        hand = hands.offset(self.t) if self.sc.operator == "commission" and not self.powered_once else hands.NO_HANDS
+        pose = pose_from_carriers(p.y_f + hand.dy, p.y_r + hand.dy, p.psi_af + hand.dpsi_af,
+                                  p.psi_ar + hand.dpsi_ar, geo)
         r = ideal_readings(pose, geo, s0=0.0)
+        mw = self.miswire
+        if mw.laser_sign or mw.laser_swap:
+            vals = {role: v + s0 for role, (_, s0), v in zip(LASER_ROLES, self._laser_targets,
+                                                             (r.b_f, r.b_r, r.s_fl, r.s_fr, r.s_rl, r.s_rr))
+                    if role in self.lasers}
+            for role, v in miswire.laser_values(mw, vals, self.s0).items():
+                self.lasers[role].set_distance(v)
+            return
         for (vl, s0), v in zip(self._laser_targets, (r.b_f, r.b_r, r.s_fl, r.s_fr, r.s_rl, r.s_rr)):
             if vl is not None:
                 vl.set_distance(v + s0)
@@ -342,8 +362,8 @@ class SimulatedRig:
         p = self.plant
         g = self._rng.gauss
         en = self.sc.encoder_noise_rad_s
-        self.drives.set_wheel_speeds([om + (g(0.0, en) if en else 0.0)
-                                      for om in (p.omega_fl, p.omega_fr, p.omega_rl, p.omega_rr)])
+        om = [w + (g(0.0, en) if en else 0.0) for w in (p.omega_fl, p.omega_fr, p.omega_rl, p.omega_rr)]
+        self.drives.set_wheel_speeds(miswire.wheel_speeds(self.miswire, om) if self.miswire.encoder_sign else om)
 
     def set_wrenches(self) -> None:
         """The plant's force–torque readings, with noise on the forces, to the Modbus servers."""

@@ -9,6 +9,8 @@ from rig_runtime import schema
 from rig_runtime.config import RigConfig
 from rig_runtime.schema import check, nonneg, positive
 
+from .miswire import Miswire
+
 
 @dataclass(frozen=True, kw_only=True)
 class SimConfig:
@@ -26,6 +28,11 @@ class SimConfig:
     # its contact-free damping and offset (Table 3, first row)
     lifted_D: float = check(positive, default=0.28)
     lifted_psi_off: float = 1.7e-3
+    # what a miswired rig sends (sim_backend/miswire.py, docs/commissioning.md); None: wired as configured
+    miswire: Optional[Miswire] = None
+    # "commission": the simulated operator moves the vehicle by hand as `rig commission`'s
+    # passive prompt asks, until the power stages are first on (sim_backend/hands.py)
+    operator: Literal["none", "commission"] = "none"
 
 
 def sim_config(cfg: RigConfig) -> SimConfig:

@@ -170,6 +170,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     log = Path(args.log) if args.log else default_log_path("run")
     preflight.check_run(cfg, scenario, args.duration, log=log, log_is_default=not args.log)
     outputs = _live_outputs(args, realtime=True)
+    from .commission.record import config_hash, default_path, passed_on_record
+    if not passed_on_record(cfg):       # a warning only: the checks of issue 21 are the operator's call
+        print(f"rig run: warning: no passed commissioning on record for this config (hash {config_hash(cfg)} in "
+              f"{default_path()}); run `rig commission` before the first closed loop (docs/commissioning.md)",
+              file=sys.stderr)
     devices = RigDevices(cfg)
     rt_report = apply_realtime(cfg.realtime)
     if not args.json:

@@ -1,0 +1,112 @@
+"""What the commissioning session observes, against any device set and clock (the rig's
+devices on the real-time clock, or the simulated rig in lockstep).
+
+Passive windows poll the devices with the power stages off (nothing is ever activated:
+zero current is written only to keep the drives' SYNC and heartbeat going, as the loop's
+IDLE does). A bump is one ordinary session of the control loop with an open-loop input on
+one carrier: warm-up, the supervisor's ARM (the only way the power stages come on), the
+pulse, zero current, STOPPING, IDLE (power stages off) — the same lifecycle as ``rig run``."""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import json
+import math
+from pathlib import Path
+from typing import Optional
+
+from ... import __version__, schema
+
+from ...clock import Clock, helper_cpus
+from ...config import WHEELS, RigConfig
+from ...control import StepSequence
+from ...loop import ControlLoop, log_columns
+from ...recorder import Recorder
+from ...safety import State
+
+ZERO = {w: 0.0 for w in WHEELS}
+
+
+def passive(devices, clock: Clock, h: float, seconds: float, names: tuple[str, ...],
+            stops=None) -> dict[str, list[float]]:
+    """Every channel in ``names`` (laser roles, wheels) polled each period for ``seconds``,
+    power stages off: ``{name: [value per cycle]}`` (NaN until a channel has a value). A stop
+    request (``stops``) ends the window early."""
+    out: dict[str, list[float]] = {n: [] for n in names}
+    t0 = clock.now() + h
+    for k in range(max(1, int(round(seconds / h)))):
+        if stops is not None and stops.requested:
+            break
+        t = clock.wait_until(t0 + k * h)
+        r = devices.poll(t)
+        devices.write(ZERO, t)
+        for n in names:
+            s = r.samples.get(n)
+            v = r.values.get(n, math.nan)
+            out[n].append(v if s is None or math.isfinite(s.t) else math.nan)   # NaN: no value yet
+    return out
+
+
+class _Capture:
+    """The loop's status hook, called every cycle: what the bump's judgement needs."""
+
+    def __init__(self) -> None:
+        self.rec: dict[str, list[float]] = {k: [] for k in (
+            "t", "running", "enabled", *(f"{q}_{c}" for q in ("psi", "dw", "y", "u") for c in ("front", "rear")),
+            *(f"i_{w}" for w in WHEELS))}
+
+    def __call__(self, loop: ControlLoop) -> None:
+        m = loop.last_measurement
+        if m is None:
+            return
+        r = self.rec
+        r["t"].append(loop.cycle.t)
+        r["running"].append(1.0 if loop.supervisor.state is State.RUNNING else 0.0)
+        r["enabled"].append(1.0 if loop.supervisor.state in (State.ARMED, State.RUNNING, State.STOPPING) else 0.0)
+        for c in ("front", "rear"):
+            y, psi, dw = m.carrier(c)
+            r[f"y_{c}"].append(y)
+            r[f"psi_{c}"].append(psi)
+            r[f"dw_{c}"].append(dw)
+            r[f"u_{c}"].append(next((l.u for l in loop.lanes if l.carrier == c), 0.0))
+        cur = loop.currents
+        for w in WHEELS:
+            r[f"i_{w}"].append(cur.get(w, 0.0))
+
+
+def bump(cfg: RigConfig, devices, clock: Clock, carrier: str, u_A: float, pulse_s: float, after_s: float,
+         log_path: Optional[Path] = None, when_full: str = "drop", stops=None) -> tuple[dict[str, list[float]], dict]:
+    """One pulse of ``u_A`` (differential, each wheel ±u/2) for ``pulse_s`` on ``carrier``,
+    then zero current for ``after_s``, inside one armed session of the control loop
+    (devices configured by the caller), recorded as a normal log at ``log_path`` (None: not
+    recorded). Returns (the captured series, the run's result)."""
+    bump_cfg = dataclasses.replace(cfg, controlled=(carrier,))     # the one lane: this carrier, open loop
+    if log_path is None:
+        return _bump(bump_cfg, devices, clock, carrier, u_A, pulse_s, after_s, None, stops)
+    attrs = {"config": json.dumps(schema.to_dict(bump_cfg)), "software_version": __version__,
+             "start_time": _dt.datetime.now(_dt.timezone.utc).isoformat(), "h": cfg.controller.h,
+             "config_source": cfg.source, "scenario": f"commission bump-{carrier}", "scenario_source": "",
+             "experiment": "", "duration_s": float(pulse_s + after_s), "controlled": [carrier],
+             "mode": "commission"}
+    rec = Recorder(log_path, log_columns(bump_cfg, devices.channels(), devices.extra_columns, []), attrs=attrs,
+                   buffer_cycles=cfg.recorder.buffer_cycles, flush_s=cfg.recorder.flush_s, when_full=when_full,
+                   cpus=helper_cpus(cfg.realtime))
+    rec.open()
+    try:
+        return _bump(bump_cfg, devices, clock, carrier, u_A, pulse_s, after_s, rec, stops)
+    finally:
+        rec.close()
+
+
+def _bump(bump_cfg: RigConfig, devices, clock: Clock, carrier: str, u_A: float, pulse_s: float, after_s: float,
+          recorder, stops) -> tuple[dict[str, list[float]], dict]:
+    u = StepSequence(((0.0, u_A), (pulse_s, 0.0)))
+    loop = ControlLoop(bump_cfg, devices, clock, open_loop=(carrier, u), recorder=recorder,
+                       mailbox=recorder.mailbox if recorder is not None else None)
+    if stops is not None:           # a signal: the loop's own clean stop (ramp, power stages off)
+        stops.on_stop(lambda: setattr(loop, "stop_requested", True))
+    cap = _Capture()
+    result = loop.run(pulse_s + after_s, status=cap, status_period_s=0.0)
+    return cap.rec, {"final_state": result.final_state, "faults": result.faults,
+                     "arm_blockers": list(result.arm_blockers), "max_abs_current_A": result.max_abs_current_A}
