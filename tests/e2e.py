@@ -164,3 +164,18 @@ def realtime_sim_config(directory: Path) -> Path:
     """configs/sim.yaml with the stated tolerance, for ``rig sim --config``: the simulated
     drives take their RPDO watchdog from the simulator's config, not from the runtime."""
     return realtime_config(config.CONFIG_DIR / "sim.yaml", Path(directory) / "sim-tolerant.yaml")
+
+
+def read_with_truth(path: Path) -> tuple[dict, dict, dict, list[str]]:
+    """A dry run's log with the simulated truth: (columns, truth columns, the truth group's
+    attributes, event messages)."""
+    import h5py
+    from rig_runtime.app.dryrun import TRUTH_GROUP
+    with h5py.File(path, "r") as f:
+        cols = [c.decode() if isinstance(c, bytes) else c for c in f["cycles"].attrs["columns"]]
+        data = {c: f["cycles"][c][:] for c in cols}
+        truth = {k: f[TRUTH_GROUP][k][:] for k in f[TRUTH_GROUP]}
+        attrs = dict(f[TRUTH_GROUP].attrs)
+        messages = [m.decode() if isinstance(m, bytes) else str(m) for m in f["events"]["message"][:]]
+    return data, truth, attrs, messages
+

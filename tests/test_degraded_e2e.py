@@ -7,14 +7,15 @@ from __future__ import annotations
 
 import dataclasses
 
-import h5py
 import numpy as np
 import pytest
 
 from rig_runtime import config
-from rig_runtime.app.dryrun import TRUTH_GROUP, run_lockstep
+from rig_runtime.app.dryrun import run_lockstep
 from rig_runtime.config import ConfigError
 from rig_runtime.scenario import load_scenario
+
+from .e2e import read_with_truth
 
 
 @pytest.fixture(scope="module")
@@ -23,11 +24,7 @@ def ocfg():
 
 
 def _log(path):
-    with h5py.File(path, "r") as f:
-        cols = [c.decode() if isinstance(c, bytes) else c for c in f["cycles"].attrs["columns"]]
-        data = {c: f["cycles"][c][:] for c in cols}
-        truth = {k: f[TRUTH_GROUP][k][:] for k in f[TRUTH_GROUP]}
-        messages = [m.decode() if isinstance(m, bytes) else str(m) for m in f["events"]["message"][:]]
+    data, truth, _, messages = read_with_truth(path)
     idx = np.clip(np.searchsorted(truth["t"], data["t"] - 1e-9), 0, len(truth["t"]) - 1)
     return data, truth["y_r"][idx], messages
 

@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import dataclasses
 
-import h5py
 import numpy as np
 import pytest
 
 from rig_runtime import config
-from rig_runtime.app.dryrun import TRUTH_GROUP, run_lockstep
+from rig_runtime.app.dryrun import run_lockstep
 from rig_runtime.scenario import SCENARIO_DIR, load_scenario
+
+from .e2e import read_with_truth
 
 
 @pytest.fixture(scope="module")
@@ -23,12 +24,8 @@ def ocfg():
 
 
 def _log(path):
-    with h5py.File(path, "r") as f:
-        cols = [c.decode() if isinstance(c, bytes) else c for c in f["cycles"].attrs["columns"]]
-        data = {c: f["cycles"][c][:] for c in cols}
-        truth = {k: f[TRUTH_GROUP][k][:] for k in f[TRUTH_GROUP]}
-        marked = f[TRUTH_GROUP].attrs["simulation"]
-    return data, truth, marked
+    data, truth, attrs, _ = read_with_truth(path)
+    return data, truth, attrs["simulation"]
 
 
 def test_estimate_follows_the_truth_and_no_false_alarm(tmp_path, ocfg):

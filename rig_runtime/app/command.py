@@ -31,3 +31,41 @@ def arg(*a, **kw):
         fn._args = [(a, kw)] + getattr(fn, "_args", [])
         return fn
     return deco
+
+
+class Actions:
+    """A subcommand whose actions take their own arguments (``rig log info|plot|…``,
+    ``rig campaign run|report``): ``@actions.action(name, help, actions.arg(...), …)`` fills
+    the table, :meth:`install` makes the subcommand's parser take them as sub-parsers and
+    :meth:`dispatch` runs the one asked for."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self._dest = f"_{name}_action_fn"
+        self._table: dict[str, tuple[Command, str, list]] = {}
+
+    def action(self, name: str, help: str, *args: tuple[tuple, dict]):
+        def deco(fn):
+            self._table[name] = (fn, help, list(args))
+            return fn
+        return deco
+
+    @staticmethod
+    def arg(*a, **kw) -> tuple[tuple, dict]:
+        return a, kw
+
+    def _add(self, p: argparse.ArgumentParser) -> None:
+        sub = p.add_subparsers(dest=f"{self.name}_action", required=True, metavar="ACTION")
+        for name, (fn, help, args) in self._table.items():
+            q = sub.add_parser(name, help=help, description=help)
+            for a, kw in args:
+                q.add_argument(*a, **kw)
+            q.set_defaults(**{self._dest: fn})
+
+    def dispatch(self, args: argparse.Namespace) -> int:
+        return getattr(args, self._dest)(args)
+
+    def install(self) -> None:
+        """The registered subcommand ``name`` parses its actions (call after ``@command``)."""
+        fn, _, help = COMMANDS[self.name]
+        COMMANDS[self.name] = (fn, self._add, help)

@@ -12,44 +12,24 @@ import argparse
 import json
 import math
 from pathlib import Path
-from typing import Callable
 
 from ..errors import ConfigError
 from . import preflight
-from .command import COMMANDS, command
+from .command import Actions, command
 from .metrics import clean
 
 EXIT_OK = 0
-_ACTIONS: dict[str, tuple[Callable[[argparse.Namespace], int], str, list]] = {}
-
-
-def _action(name: str, help: str, *args: tuple[tuple, dict]):
-    def deco(fn):
-        _ACTIONS[name] = (fn, help, list(args))
-        return fn
-    return deco
-
-
-def _a(*a, **kw) -> tuple[tuple, dict]:
-    return a, kw
-
-
-def _add_actions(p: argparse.ArgumentParser) -> None:
-    sub = p.add_subparsers(dest="log_action", required=True, metavar="ACTION")
-    for name, (fn, help, args) in _ACTIONS.items():
-        q = sub.add_parser(name, help=help, description=help)
-        for a, kw in args:
-            q.add_argument(*a, **kw)
-        q.set_defaults(_log_fn=fn)
+ACTIONS = Actions("log")
+_action, _a = ACTIONS.action, ACTIONS.arg
 
 
 @command("log", "look at a recorded log: info, plot, compare, export (any log: rig run, dry runs, FAULT runs)")
 def cmd_log(args: argparse.Namespace) -> int:
-    return args._log_fn(args)
+    return ACTIONS.dispatch(args)
 
 
 # ``rig log`` takes actions with their own arguments: its parser gets sub-parsers
-COMMANDS["log"] = (cmd_log, _add_actions, COMMANDS["log"][2])
+ACTIONS.install()
 
 
 def _out_dir(path: str) -> Path:

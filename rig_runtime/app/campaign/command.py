@@ -10,40 +10,20 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Callable
 
 from ...errors import ConfigError
-from ..command import COMMANDS, command
+from ..command import Actions, command
 
-_ACTIONS: dict[str, tuple[Callable[[argparse.Namespace], int], str, list]] = {}
-
-
-def _action(name: str, help: str, *args: tuple[tuple, dict]):
-    def deco(fn):
-        _ACTIONS[name] = (fn, help, list(args))
-        return fn
-    return deco
-
-
-def _a(*a, **kw) -> tuple[tuple, dict]:
-    return a, kw
-
-
-def _add_actions(p: argparse.ArgumentParser) -> None:
-    sub = p.add_subparsers(dest="campaign_action", required=True, metavar="ACTION")
-    for name, (fn, help, args) in _ACTIONS.items():
-        q = sub.add_parser(name, help=help, description=help)
-        for a, kw in args:
-            q.add_argument(*a, **kw)
-        q.set_defaults(_campaign_fn=fn)
+ACTIONS = Actions("campaign")
+_action, _a = ACTIONS.action, ACTIONS.arg
 
 
 @command("campaign", "Monte Carlo and sweeps of lockstep dry runs on Dask: run a spec, report on it", stops=True)
 def cmd_campaign(args: argparse.Namespace) -> int:
-    return args._campaign_fn(args)
+    return ACTIONS.dispatch(args)
 
 
-COMMANDS["campaign"] = (cmd_campaign, _add_actions, COMMANDS["campaign"][2])
+ACTIONS.install()
 
 
 def _workers(value: str) -> int:
