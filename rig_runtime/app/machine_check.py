@@ -415,21 +415,10 @@ def describe(items: list[Item]) -> list[str]:
                                                                    else "") for i in items]
 
 
-def check_machine_command(args) -> int:
-    """``rig check --machine``: ``rig check``'s own checks first (a bad config is one line,
-    exit 2, as always), then every readiness item; exit 2 with one line per failing item."""
+def report_machine(cfg) -> int:
+    """``rig check --machine`` after ``rig check``'s own checks passed (``commands.cmd_check``):
+    every readiness item; exit 2 with one line per failing item."""
     import sys
-    from .. import config
-    from ..scenario import load_scenario
-    from . import preflight
-    from .runner import default_log_path
-    cfg = config.load(args.config or config.CONFIG_DIR / "rig.yaml")
-    scenario = load_scenario(args.scenario) if args.scenario else None
-    log = Path(args.log) if args.log else default_log_path("run")
-    plan = preflight.check_run(cfg, scenario, args.duration, log=log, log_is_default=not args.log)
-    for line in preflight.describe(plan):
-        print(line)
-    print("ok: every check of `rig check` passed")
     items = check_machine(cfg)
     print(f"machine readiness for `rig run --config {cfg.source}`:")
     for line in describe(items):
