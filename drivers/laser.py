@@ -7,11 +7,8 @@ with health.
 
 from __future__ import annotations
 
-import errno
-import fcntl
 import math
 import os
-import termios
 from typing import NamedTuple
 
 import serial
@@ -20,13 +17,12 @@ from rig_runtime.config import LaserDevice
 from rig_runtime.errors import DeviceInitError, DeviceIOError
 from rig_runtime.hardware import Driver, Freshness, Health, health
 
+from .tty import HangUp, bytes_waiting
 from .optoncdt import MAX_DISTANCE_X, X_PER_PERCENT, Decoded, FrameDecoder, error_reason
 
 __all__ = ["LaserReading", "LaserDriver"]
 
 _os_read = os.read              # module-level so a test can make the port fail
-_ioctl = fcntl.ioctl
-_FIONREAD = termios.FIONREAD    # = TIOCINQ: bytes in the line discipline, without waiting
 _NO_VALUES = Decoded(b"", [])
 _NO_DATA = "no data yet"        # FRESH's note before the first valid value (t is NaN)
 
@@ -126,23 +122,12 @@ class LaserDriver(Driver):
                 pass
 
     def _pending(self, fd: int) -> int:
-        """Bytes the line discipline holds for us (``TIOCINQ``); a hang-up raises.
-
-        Asked instead of reading blind because an empty tty's ``read(2)``/``poll(2)`` first
-        waits for the kernel's flip-buffer work (``n_tty_read``/``n_tty_poll`` →
-        ``tty_buffer_flush_work``), run by an ordinary-priority kworker — a real-time loop
-        would wait for it. ``TIOCINQ`` only counts, so bytes the kworker has not moved yet
-        are read one poll later. A hung-up tty (the device end gone: pty master closed,
-        USB adapter unplugged) answers every ioctl with EIO.
-        """
-        b = self._inq
+        """Bytes the line discipline holds for us (:func:`drivers.tty.bytes_waiting`: asked,
+        not read blind, so the loop never waits for the kernel's worker); a hang-up raises."""
         try:
-            _ioctl(fd, _FIONREAD, b, True)
-        except OSError as exc:
-            if exc.errno == errno.EIO:
-                raise DeviceIOError(self.name, "device disconnected (hang-up on the port)") from exc
-            raise
-        return int.from_bytes(b, "little", signed=True)
+            return bytes_waiting(fd, self._inq)
+        except HangUp as exc:
+            raise DeviceIOError(self.name, "device disconnected (hang-up on the port)") from exc
 
     # ------------------------------------------------------------------ cycle
     def poll(self, now: float) -> LaserReading:

@@ -15,11 +15,8 @@ USB-SLCAN adapters as well as with the adapter ``rig sim`` emulates on a pty.
 from __future__ import annotations
 
 import collections
-import errno
-import fcntl
 import os
 import select
-import termios
 import time
 from typing import Any, Optional, Sequence
 
@@ -27,6 +24,7 @@ import can
 import serial
 
 from .slcan_codec import FRAME_START, encode_frame, parse_frame  # noqa: F401 - one codec for both ends
+from .tty import HangUp, bytes_waiting
 
 _os_read = os.read              # module-level so a test can watch the port's reads
 
@@ -89,23 +87,16 @@ class SlcanBus(can.BusABC):
             raise can.CanOperationError("SLCAN write incomplete (port buffer full)")
 
     def _drain(self) -> None:
-        """Read the bytes the line discipline holds (``TIOCINQ``), queue the frames they end.
-
-        Nothing is read while ``TIOCINQ`` says 0: an empty tty's ``read(2)`` first waits for
-        the kernel's flip-buffer work (``n_tty_read`` → ``tty_buffer_flush_work``), run by
-        an ordinary-priority kworker, which would stall a real-time caller of ``recv(0)``;
-        bytes the kworker has not moved yet are read by a later ``recv``. A hung-up port
-        (adapter unplugged, pty master closed) answers the ioctl with EIO.
-        """
+        """Read the bytes the line discipline holds (:func:`drivers.tty.bytes_waiting`),
+        queue the frames they end; nothing is read while it says 0 (a real-time caller of
+        ``recv(0)`` never waits for the kernel's worker)."""
         fd = self._fd
-        b = self._inq
         try:
-            fcntl.ioctl(fd, termios.FIONREAD, b, True)
+            n = bytes_waiting(fd, self._inq)
+        except HangUp as e:
+            raise can.CanOperationError("SLCAN adapter disconnected (hang-up on the port)") from e
         except OSError as e:
-            if e.errno == errno.EIO:
-                raise can.CanOperationError("SLCAN adapter disconnected (hang-up on the port)") from e
             raise can.CanOperationError(f"SLCAN read failed: {e}") from e
-        n = int.from_bytes(b, "little", signed=True)
         if n <= 0:
             return
         try:
