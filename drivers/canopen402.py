@@ -470,8 +470,8 @@ class DriveBus(Driver):
         send_many = self._send_many
         if send_many is None:
             sent = self._send(out[0], now)     # the SYNC
-            for msg in out[1:]:
-                self._send(msg, now)
+            for i in range(1, len(out)):       # no slice: nothing allocated per cycle
+                self._send(out[i], now)
         else:
             try:
                 send_many(out)

@@ -152,3 +152,12 @@ def as_background_thread() -> bool:
         return os.sched_getscheduler(0) == os.SCHED_OTHER
     except (OSError, AttributeError):
         return False
+
+
+def next_release(t0: float, k: int, h: float, t_done: float) -> tuple[bool, int]:
+    """For a cycle released at ``t0 + k·h`` and done at ``t_done``: whether it ran past its
+    period, and the index of the next release still ahead — missed periods are skipped,
+    not caught up (the control loop and the bare loop of ``rig latency``)."""
+    missed = t_done > t0 + (k + 1) * h
+    return missed, (int((t_done - t0) / h) + 1 if missed else k + 1)
+

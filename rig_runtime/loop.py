@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from operator import attrgetter
 from typing import Callable, Iterable, Mapping, Optional, Sequence
 
-from .clock import Clock
+from .clock import Clock, next_release
 from .config import WHEELS, RigConfig
 from .control import PIPDInternals
 from .gains import TuningError, admissible
@@ -380,9 +380,7 @@ class ControlLoop:
 
     def _account(self, t0: float, k: int, t: float, t_done: float) -> int:
         """Time this cycle; the next release index (missed periods are skipped, not caught up)."""
-        h = self.h
-        missed = t_done > t0 + (k + 1) * h
-        k_next = int((t_done - t0) / h) + 1 if missed else k + 1  # next release still ahead
+        missed, k_next = next_release(t0, k, self.h, t_done)
         self.stats.update(self.cycle.lateness, t_done - t, missed, k_next - k - 1)
         return k_next
 

@@ -183,3 +183,11 @@ class Observer:
         """This cycle's values in ``LOG_FIELDS`` order."""
         return (self.y, self.psi, self.rate, self.nu_lat, self.nu_psi, self.nu_dw,
                 self.T_lat, self.T_psi, self.T_dw, self.lat_used, self.degraded)
+
+
+def dw_row(cfg) -> tuple[float, float, float]:
+    """(∂Δω/∂y, ∂Δω/∂ψ̇, ∂Δω/∂u) of relation (4) for the configured plant (``cfg``: a
+    RigConfig): Δω = Γvb/(2r0²)·y + b/(2r0)·ψ̇ + v k_τ/(r0² c̄11)·u."""
+    p = cfg.plant
+    return (p.Gamma * p.v * p.b / (2 * p.r0 ** 2), p.b / (2 * p.r0), p.v * p.k_tau / (p.r0 ** 2 * p.c11))
+

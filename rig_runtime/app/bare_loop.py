@@ -11,7 +11,7 @@ from __future__ import annotations
 import gc
 import math
 
-from ..clock import RealtimeClock
+from ..clock import RealtimeClock, next_release
 from ..stats import CycleStats
 
 
@@ -32,8 +32,7 @@ def bare_loop(clock: RealtimeClock, h: float, duration_s: float, phase_s: float 
             t_k = t0 + k * h
             t = clock.wait_until(t_k)
             t_done = clock.now()
-            missed = t_done > t_k + h
-            k_next = int((t_done - t0) / h) + 1 if missed else k + 1
+            missed, k_next = next_release(t0, k, h, t_done)
             stats.update(t - t_k, t_done - t, missed, k_next - k - 1)
             k = k_next
     finally:

@@ -40,7 +40,7 @@ def _print_summary(summary: dict, as_json: bool) -> None:
     if summary.get("stopped_by"):
         print(f"stopped by {summary['stopped_by']} (operator stop: current ramped to zero, power stages off)")
     print(f"final state: {summary['final_state']}   cycles: {summary['cycles']}   log: {summary['log']}")
-    wire = summary.get("max_abs_wire_current_A", 0.5 * summary["max_abs_current_A"])
+    wire = summary["max_abs_wire_current_A"]
     print(f"currents: max |u| (differential current per carrier) {summary['max_abs_current_A']:.3f} A, "
           f"max |i| per wheel (wire current, ±u/2) {wire:.3f} A")
     for f in summary["faults"]:

@@ -371,10 +371,10 @@ def check_ft_sensor(sensor, timeout_s: float = 0.5) -> Item:
 
 def modbus_read(host: str, port: int, unit_id: int, timeout_s: float) -> Optional[str]:
     """One read of the F/T wrench registers with pymodbus; None if it answered, else why not."""
-    import logging
     from pymodbus.client import ModbusTcpClient
     from drivers.ft_codec import REG_COUNT, REG_START
-    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    from .quiet import quiet_device_libraries
+    quiet_device_libraries()
     client = ModbusTcpClient(host, port=port, timeout=timeout_s, retries=0)
     try:
         if not client.connect():

@@ -19,7 +19,7 @@ from scipy.linalg import expm, solve_discrete_are
 from ..config import Observer as ObserverConfig
 from ..config import RigConfig
 from ..lanes import CARRIER_WHEELS
-from ..observer import ObserverDesign
+from ..observer import ObserverDesign, dw_row
 
 _SCALE = 1e3        # solve in mm, mrad: the covariances are ~1e-12 in SI
 
@@ -49,12 +49,6 @@ def continuous_model(cfg: RigConfig, carrier: str, D: float) -> tuple[np.ndarray
     A = np.array([[a_own, cyv, 0.0], [0.0, 0.0, 1.0], [0.0, -w2, -2 * D * w0]])
     Bc = np.array([[0.0, a_other, fy, off], [0.0, 0.0, 0.0, 0.0], [p.K * w2, 0.0, 0.0, w2 * p.psi_off]])
     return A, Bc
-
-
-def dw_row(cfg: RigConfig) -> tuple[float, float, float]:
-    """(∂Δω/∂y, ∂Δω/∂ψ̇, ∂Δω/∂u) of relation (4)."""
-    p = cfg.plant
-    return (p.Gamma * p.v * p.b / (2 * p.r0 ** 2), p.b / (2 * p.r0), p.v * p.k_tau / (p.r0 ** 2 * p.c11))
 
 
 def discretise(A: np.ndarray, Bc: np.ndarray, Qc: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

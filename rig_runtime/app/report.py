@@ -15,7 +15,7 @@ def write_report(log: Path, out_dir, scenario, summary: dict) -> list[Path]:
     files = figures.write_all(figures.log_figures(run, ol, title=f"{name}: y, ψ, Δω, u (Figs. 15/16 style)"), out_dir)
     out = Path(out_dir)
     md = out / "summary.md"
-    wire = summary.get("max_abs_wire_current_A", 0.5 * summary["max_abs_current_A"])
+    wire = summary["max_abs_wire_current_A"]
     lines = [f"# Dry run: {name}", "",
              f"- final state: **{summary['final_state']}**, cycles: {summary['cycles']}",
              f"- max |u| (differential current per carrier): {summary['max_abs_current_A']:.3f} A; "

@@ -11,6 +11,7 @@ from typing import Mapping, Optional, Sequence
 
 from ...config import RigConfig
 from ...lanes import CARRIER_WHEELS
+from ...observer import dw_row
 
 # what the passive prompt asks for: the sign each laser's reading must move with
 # (push left: the vehicle moves away from the lateral lasers; rear carrier nose-left:
@@ -157,9 +158,7 @@ def judge_bump(carrier: str, u_A: float, rec: Mapping[str, Sequence[float]], cfg
     ddw_other = max((rec[f"dw_{other}"][i] - base[f"dw_{other}"] for i in idx), key=abs)
     h = cfg.controller.h
     # relation (4) over the pulse and after it: the prediction from the measured y, ψ̇ and u
-    gvb = p.Gamma * p.v * p.b / (2 * p.r0 ** 2)
-    b2r = p.b / (2 * p.r0)
-    vk = p.v * p.k_tau / (p.r0 ** 2 * p.c11)
+    gvb, b2r, vk = dw_row(cfg)
     psi = rec[f"psi_{carrier}"]
     pred, meas = [], []
     for i in idx:

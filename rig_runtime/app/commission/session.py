@@ -63,7 +63,7 @@ class _Capture:
         r = self.rec
         r["t"].append(loop.cycle.t)
         r["running"].append(1.0 if loop.supervisor.state is State.RUNNING else 0.0)
-        r["enabled"].append(1.0 if loop.supervisor.state in (State.ARMED, State.RUNNING, State.STOPPING) else 0.0)
+        r["enabled"].append(1.0 if loop.supervisor.active else 0.0)
         for c in ("front", "rear"):
             y, psi, dw = m.carrier(c)
             r[f"y_{c}"].append(y)
