@@ -53,6 +53,29 @@ class StatusLine:
         self.stream.flush()
 
 
+def run_attrs(cfg: RigConfig, scenario: Optional[Scenario], duration_s: float, extra: dict | None = None) -> dict:
+    """The attributes every run's log carries (docs/log-format.md)."""
+    attrs = {"config": json.dumps(schema.to_dict(cfg)), "software_version": __version__,
+             "start_time": _dt.datetime.now(_dt.timezone.utc).isoformat(), "h": cfg.controller.h,
+             "config_source": cfg.source, "scenario": scenario.name if scenario else "",
+             "scenario_source": scenario.source if scenario else "",
+             "experiment": (scenario.experiment or "") if scenario else "",
+             "duration_s": float(duration_s), "controlled": list(cfg.controlled)}
+    attrs.update(extra or {})
+    return attrs
+
+
+def open_recorder(cfg: RigConfig, devices, log_path: Path, attrs: dict, *, observed: Sequence[str] = (),
+                  outputs: Sequence[tuple[str, dict]] = (), when_full: str = "drop") -> Recorder:
+    """A run's recorder, open (its sidecar started): the log's columns for this config and
+    device set, the recorder settings of the config, the helper CPUs off the loop's."""
+    rec = Recorder(log_path, log_columns(cfg, devices.channels(), devices.extra_columns, list(observed)),
+                   attrs=attrs, buffer_cycles=cfg.recorder.buffer_cycles, flush_s=cfg.recorder.flush_s,
+                   outputs=outputs, when_full=when_full, cpus=helper_cpus(cfg.realtime))
+    rec.open()
+    return rec
+
+
 def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenario], duration_s: Optional[float],
             log_path: Path | None, status: bool, extra_attrs: dict | None = None, arm_timeout_s: float = 2.0,
             stops: StopSignals | None = None, outputs: Sequence[tuple[str, dict]] = (),
@@ -87,18 +110,8 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     phase = "before the log was opened"
     try:
         if not stops.requested and log_path is not None:
-            attrs = {"config": json.dumps(schema.to_dict(cfg)), "software_version": __version__,
-                     "start_time": _dt.datetime.now(_dt.timezone.utc).isoformat(), "h": cfg.controller.h,
-                     "config_source": cfg.source, "scenario": scenario.name if scenario else "",
-                     "scenario_source": scenario.source if scenario else "",
-                     "experiment": (scenario.experiment or "") if scenario else "",
-                     "duration_s": float(duration), "controlled": list(cfg.controlled)}
-            attrs.update(extra_attrs or {})
-            columns = log_columns(cfg, devices.channels(), devices.extra_columns, list(observers))
-            rec = Recorder(log_path, columns, attrs=attrs, buffer_cycles=cfg.recorder.buffer_cycles,
-                           flush_s=cfg.recorder.flush_s, outputs=outputs, when_full=recorder_when_full,
-                           cpus=helper_cpus(cfg.realtime))
-            rec.open()
+            rec = open_recorder(cfg, devices, log_path, run_attrs(cfg, scenario, duration, extra_attrs),
+                                observed=list(observers), outputs=outputs, when_full=recorder_when_full)
         # the mailbox carries operator commands, if an output (rig ctl's server) sends any
         loop = ControlLoop(cfg, devices, clock, reference=reference, open_loop=open_loop, recorder=rec,
                            mailbox=rec.mailbox if rec is not None else None, observers=observers)

@@ -10,20 +10,16 @@ pulse, zero current, STOPPING, IDLE (power stages off) — the same lifecycle as
 from __future__ import annotations
 
 import dataclasses
-import datetime as _dt
-import json
 import math
 from pathlib import Path
 from typing import Optional
 
-from ... import __version__, schema
-
-from ...clock import Clock, helper_cpus
+from ...clock import Clock
 from ...config import WHEELS, RigConfig
 from ...control import StepSequence
-from ...loop import ControlLoop, log_columns
-from ...recorder import Recorder
+from ...loop import ControlLoop
 from ...safety import State
+from ..runner import open_recorder, run_attrs
 
 ZERO = {w: 0.0 for w in WHEELS}
 
@@ -84,15 +80,8 @@ def bump(cfg: RigConfig, devices, clock: Clock, carrier: str, u_A: float, pulse_
     bump_cfg = dataclasses.replace(cfg, controlled=(carrier,))     # the one lane: this carrier, open loop
     if log_path is None:
         return _bump(bump_cfg, devices, clock, carrier, u_A, pulse_s, after_s, None, stops)
-    attrs = {"config": json.dumps(schema.to_dict(bump_cfg)), "software_version": __version__,
-             "start_time": _dt.datetime.now(_dt.timezone.utc).isoformat(), "h": cfg.controller.h,
-             "config_source": cfg.source, "scenario": f"commission bump-{carrier}", "scenario_source": "",
-             "experiment": "", "duration_s": float(pulse_s + after_s), "controlled": [carrier],
-             "mode": "commission"}
-    rec = Recorder(log_path, log_columns(bump_cfg, devices.channels(), devices.extra_columns, []), attrs=attrs,
-                   buffer_cycles=cfg.recorder.buffer_cycles, flush_s=cfg.recorder.flush_s, when_full=when_full,
-                   cpus=helper_cpus(cfg.realtime))
-    rec.open()
+    attrs = run_attrs(bump_cfg, None, pulse_s + after_s, {"scenario": f"commission bump-{carrier}", "mode": "commission"})
+    rec = open_recorder(bump_cfg, devices, log_path, attrs, when_full=when_full)
     try:
         return _bump(bump_cfg, devices, clock, carrier, u_A, pulse_s, after_s, rec, stops)
     finally:
