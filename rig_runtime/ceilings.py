@@ -39,6 +39,7 @@ class Ceilings:
     stop_ramp_s: float = _check(nonneg)        # s: longest ramp to zero current on a clean stop
     drive_watchdog_ms: float = _check(positive)     # ms: drive cuts its current without SYNC/RPDO
     heartbeat_timeout_ms: float = _check(positive)  # ms: longest heartbeat silence either side tolerates
+    v_max: float = _check(positive, default=2.0)    # m/s: the rollers' top surface speed, either direction
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -94,6 +95,11 @@ def bounds(cfg: Any) -> Iterator[Bound]:
     yield Bound("limits.overrun_burst", lim.overrun_burst, periods(c.overrun_s), per,
                 f"{hk}overrun_s = {_fmt(c.overrun_s)} s / h")
     yield Bound("limits.stop_ramp_s", lim.stop_ramp_s, c.stop_ramp_s, "s", hk + "stop_ramp_s")
+    yield Bound("|plant.v|", abs(cfg.plant.v), c.v_max, "m/s", hk + "v_max")
+    sch = cfg.controller.schedule
+    if sch is not None:
+        yield Bound("|controller.schedule.v_range|", max(abs(v) for v in sch.v_range), c.v_max, "m/s",
+                    hk + "v_max")
     yield Bound("devices.can.watchdog_ms", can.watchdog_ms, c.drive_watchdog_ms, "ms", hk + "drive_watchdog_ms")
     # the drives' heartbeat consumer time (how long a drive runs on after the runtime died)
     # and the runtime's timeout for each drive's heartbeat: producer time x factor

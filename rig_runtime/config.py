@@ -53,8 +53,41 @@ class BoucWen:
 
 
 @dataclass(frozen=True, kw_only=True)
+class CarrierPlant:
+    """One carrier's own values of the plant parameters (``plant.front:`` / ``plant.rear:``):
+    each key given here replaces the common value for that carrier; a key left out keeps it.
+    The carriers are identified separately (Sec. 4.1.1) and may differ ("varying open-loop
+    stability"); the speed and the contact set-up are the rig's, not a carrier's."""
+
+    b: Optional[float] = check(positive, default=None)
+    r0: Optional[float] = check(positive, default=None)
+    delta0: Optional[float] = check(positive, default=None)
+    l0: Optional[float] = check(positive, default=None)
+    y_off: Optional[float] = None
+    c11: Optional[float] = check(positive, default=None)
+    J_x: Optional[float] = check(positive, default=None)
+    k_tau: Optional[float] = check(positive, default=None)
+    omega0: Optional[float] = check(positive, default=None)
+    K: Optional[float] = check(positive, default=None)
+    D_min: Optional[float] = check(positive, default=None)
+    D_max: Optional[float] = check(positive, default=None)
+    c_udot_max: Optional[float] = check(positive, default=None)
+    u_filter_hz: Optional[float] = check(positive, default=None)
+    psi_off: Optional[float] = None
+    bouc_wen: Optional[BoucWen] = None
+
+    def overrides(self) -> dict[str, Any]:
+        """The keys this carrier sets (name → value)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if getattr(self, f.name) is not None}
+
+
+CARRIERS = ("front", "rear")
+
+
+@dataclass(frozen=True, kw_only=True)
 class Plant:
-    """Plant parameters (Sec. 4; Table 3, Table 1 quantities as estimates)."""
+    """Plant parameters (Sec. 4; Table 3, Table 1 quantities as estimates): the common values,
+    with per-carrier overrides in ``front`` / ``rear`` (``carrier(name)`` resolves them)."""
 
     v: float                                  # roller surface speed, m/s (sign = direction)
     b: float = check(positive)                # track width (contact-point spacing), m
@@ -74,12 +107,35 @@ class Plant:
     psi_off: float = 0.0                      # yaw offset, rad
     bouc_wen: Optional[BoucWen] = None        # hysteresis (8)/(9); None = linear
     front_contact: bool = False               # front carrier on the rollers (else lifted, y_f = 0)
+    front: Optional[CarrierPlant] = None      # the front carrier's own values (None: the common ones)
+    rear: Optional[CarrierPlant] = None       # the rear carrier's own values
 
     def __post_init__(self) -> None:
         if self.D_max < self.D_min:
             raise ConfigError(None, "D_max", f"a damping >= D_min ({self.D_min})", self.D_max)
         if not self.delta0 < math.pi / 4:
             raise ConfigError(None, "delta0", "a conicity angle below pi/4 rad", self.delta0)
+        for name in CARRIERS:
+            own = getattr(self, name)
+            if own is None:
+                continue
+            try:
+                self.carrier(name)
+            except ConfigError as e:
+                raise ConfigError(None, f"{name}.{e.key_path}", e.expected, e.got) from None
+
+    def carrier(self, name: str) -> "Plant":
+        """The parameters of carrier ``name`` ("front" / "rear"): the common values with that
+        carrier's overrides applied (a Plant without overrides of its own)."""
+        if name not in CARRIERS:
+            raise ValueError(f"carrier: expected 'front' or 'rear', got {name!r}")
+        own = getattr(self, name)
+        return dataclasses.replace(self, front=None, rear=None, **(own.overrides() if own else {}))
+
+    @property
+    def per_carrier(self) -> bool:
+        """Whether a carrier has values of its own."""
+        return self.front is not None or self.rear is not None
 
     @property
     def c_y(self) -> float:
@@ -115,10 +171,37 @@ TUNABLE_GAINS = PIPD_GAINS + P_GAINS                                # what `rig 
 
 
 @dataclass(frozen=True, kw_only=True)
+class Schedule:
+    """Gain scheduling on the measured speed (docs/vehicle.md). The outer PI's gains are scaled
+    by ``v_design / v̂`` (sign included), so that the lateral input gain c̄_y v times the gain
+    stays what the gains were designed for at ``v_design``; the inner PD is not scheduled (the
+    yaw dynamics (6) are taken as speed independent). Below ``v_min`` in |v̂| the lateral loop
+    holds: the integrator is frozen and ψ_ref goes to 0 over ``hold_ramp_s``; it resumes
+    bumplessly above. ``v_range`` is the speed range the analysis and the stability gate cover."""
+
+    v_design: Optional[float] = None                # m/s the gains were designed for (None: plant.v)
+    v_min: float = check(positive, default=0.2)     # m/s, ESTIMATE: the standstill band |v̂| < v_min
+    v_range: tuple[float, float]                    # m/s [lo, hi] the rig runs at (both signs allowed)
+    hold_ramp_s: float = check(positive, default=1.0)   # s, ψ_ref to 0 on entering the band
+    v_filter_hz: float = check(positive, default=2.0)   # Hz, low-pass of the measured speed
+
+    def __post_init__(self) -> None:
+        lo, hi = self.v_range
+        if not lo < hi:
+            raise ConfigError(None, "v_range", "[lo, hi] with lo < hi (m/s)", list(self.v_range))
+        if self.v_design is not None and not abs(self.v_design) >= self.v_min:
+            raise ConfigError(None, "v_design", f"a speed outside the standstill band (|v| >= v_min = "
+                              f"{self.v_min:g} m/s)", self.v_design)
+
+
+@dataclass(frozen=True, kw_only=True)
 class Controller:
     h: float = check(positive)                      # sample time, s
     law: Literal["pipd", "p"] = "pipd"
     pipd: PIPDGains = field(default=None)  # type: ignore[assignment]
+    front: Optional[PIPDGains] = None               # the front carrier's own gains (None: pipd)
+    rear: Optional[PIPDGains] = None                # the rear carrier's own gains (None: pipd)
+    schedule: Optional[Schedule] = None             # None: fixed gains (the paper's set-up, v fixed)
     K_P: float = 500.0                              # P baseline (Sec. 5.1), A/m
     discretization: Literal["tustin", "zoh"] = "tustin"
     # live tuning (`rig ctl set`): [lo, hi] per gain; a gain without bounds is not tunable. The
@@ -134,6 +217,12 @@ class Controller:
                 raise ConfigError(None, key, "a tunable gain (one of " + ", ".join(TUNABLE_GAINS) + ")")
             if not 0 < lo <= hi:
                 raise ConfigError(None, key, "bounds [lo, hi] with 0 < lo <= hi", [lo, hi])
+
+    def gains(self, carrier: str) -> PIPDGains:
+        """The PI-PD gains of carrier ``carrier`` (its own, else the common ``pipd``)."""
+        if carrier not in CARRIERS:
+            raise ValueError(f"carrier: expected 'front' or 'rear', got {carrier!r}")
+        return getattr(self, carrier) or self.pipd
 
 
 # --------------------------------------------------------------------------- limits / safety
@@ -157,6 +246,8 @@ class Limits:
     innovation_chi2: Optional[float] = check(positive, default=None)  # observer: χ²(1) of a measurement's window-mean
                                                     # normalised innovation above this -> the sensor disagrees (None: off)
     innovation_window: int = check(positive, default=200)   # cycles in that window
+    v_disagree_max: float = check(positive, default=0.05)   # m/s: carriers in contact whose encoders'
+                                                    # speeds differ by more -> the encoders disagree about v (ESTIMATE)
 
     def __post_init__(self) -> None:
         if self.psi_ref_max is not None and self.psi_ref_max > self.psi_max:

@@ -9,7 +9,7 @@ plant also applies the disturbances and fault injections. The profile is mm at t
 from __future__ import annotations
 
 import bisect
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -27,6 +27,13 @@ class RefPoint:
     t: float = check(nonneg)
     y_mm: float
     ramp_s: float = check(nonneg, default=0.0)   # 0 = step at t; else a ramp from the previous value
+
+
+@dataclass(frozen=True, kw_only=True)
+class SpeedPoint:
+    t: float = check(nonneg)
+    v: float                                     # roller surface speed, m/s (sign = running direction)
+    ramp_s: float = check(nonneg, default=0.0)   # 0 = jump at t; else a ramp from the previous value
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -77,13 +84,16 @@ class Scenario:
     description: str = ""
     duration_s: float = check(positive)
     reference: tuple[RefPoint, ...] = (RefPoint(t=0.0, y_mm=0.0),)
+    # per-carrier references: in YAML `reference: {front: [...], rear: [...]}` (a list = every carrier)
+    references: dict[Literal["front", "rear"], tuple[RefPoint, ...]] = field(default_factory=dict)
+    speed: tuple[SpeedPoint, ...] = ()   # the roller speed profile (empty: the plant's fixed v)
     open_loop: Optional[OpenLoop] = None
     disturbances: tuple[Disturbance, ...] = ()
     faults: tuple[FaultInjection, ...] = ()
     expect_fault: Optional[str] = None   # for fault scenarios: the check expected to trip
     # identification experiments (Sec. 4; docs/identification.md): the kind is stored in the log
     experiment: Optional[Literal["free-response", "steps", "sine", "open-loop-steps"]] = None
-    lifted_carrier: Optional[Literal["rear"]] = None   # simulator: the carrier off the rollers (Sec. 4.3.2)
+    lifted_carrier: Optional[Literal["rear", "front"]] = None   # simulator: the carrier off the rollers (Sec. 4.3.2)
     initial_psi_mrad: Optional[float] = None   # simulator: the open-loop carrier's yaw angle at the start
     source: str = ""
 
@@ -91,6 +101,22 @@ class Scenario:
         if not self.reference:
             raise ConfigError(None, "reference", "at least one point {t, y_mm}")
         _increasing([p.t for p in self.reference], "reference", "points in increasing time order")
+        for carrier, points in self.references.items():
+            if not points:
+                raise ConfigError(None, f"reference.{carrier}", "at least one point {t, y_mm}")
+            _increasing([p.t for p in points], f"reference.{carrier}", "points in increasing time order")
+        _increasing([p.t for p in self.speed], "speed", "points {t, v, ramp_s} in increasing time order")
+
+    def reference_for(self, carrier: str) -> tuple[RefPoint, ...]:
+        """The reference points of ``carrier``: its own, else the common list."""
+        return self.references.get(carrier, self.reference)
+
+    def speed_profile(self, v0: float) -> "Profile":
+        """The roller speed v(t) (m/s) over scenario time; the constant ``v0`` (the plant's v)
+        without a ``speed:`` profile."""
+        if not self.speed:
+            return Profile([0.0], [v0], [0.0])
+        return Profile([p.t for p in self.speed], [p.v for p in self.speed], [p.ramp_s for p in self.speed])
 
 
 def _increasing(ts: list[float], key: str, expected: str) -> None:
@@ -109,20 +135,23 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         known = ", ".join(sorted(q.stem for q in SCENARIO_DIR.glob("*.yaml")))
         raise ConfigError(str(p), "", f"an existing scenario file (known scenarios: {known})")
     data = _read_yaml(p)
+    if isinstance(data.get("reference"), dict):      # per-carrier references
+        data = {**data, "references": data["reference"]}
+        del data["reference"]
     try:
         sc = schema.build(Scenario, data, "", str(p.resolve()))
     except ConfigError as e:
-        raise ConfigError(str(p.resolve()), e.key_path, e.expected, e.got) from None
+        key = e.key_path.replace("references", "reference", 1) if e.key_path.startswith("references") else e.key_path
+        raise ConfigError(str(p.resolve()), key, e.expected, e.got) from None
     return Scenario(**{**{f: getattr(sc, f) for f in sc.__dataclass_fields__}, "source": str(p.resolve())})
 
 
-class Reference:
-    """y_ref(t) in metres from the scenario's points (steps and ramps)."""
+class Profile:
+    """A piecewise profile x(t): at each point a jump (``ramp_s`` 0) or a ramp from the
+    previous value; before the first point, the first value."""
 
-    def __init__(self, points: tuple[RefPoint, ...]):
-        self.t = [p.t for p in points]
-        self.y = [p.y_mm * 1e-3 for p in points]
-        self.ramp = [p.ramp_s for p in points]
+    def __init__(self, t: list[float], x: list[float], ramp: list[float]):
+        self.t, self.y, self.ramp = t, x, ramp
 
     def __call__(self, t: float) -> float:
         i = bisect.bisect_right(self.t, t) - 1
@@ -133,6 +162,13 @@ class Reference:
             y0 = self.y[i - 1]
             return y0 + (self.y[i] - y0) * (t - self.t[i]) / r
         return self.y[i]
+
+
+class Reference(Profile):
+    """y_ref(t) in metres from the scenario's points (steps and ramps)."""
+
+    def __init__(self, points: tuple[RefPoint, ...]):
+        super().__init__([p.t for p in points], [p.y_mm * 1e-3 for p in points], [p.ramp_s for p in points])
 
     def steps(self) -> list[tuple[float, float, float]]:
         """(t0, from_m, to_m) for every change of the reference (step or ramp start)."""
