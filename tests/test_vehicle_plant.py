@@ -305,3 +305,83 @@ def test_lifted_front_free_response_mirrors_the_lifted_rear(P):
         assert pl.psi_af == rear.psi_ar
     assert pl.y_f == 1e-3 and pl.dw_f == 0.0 and pl.z_f == 0.0 and pl.y_r == 0.0
     assert pl.ft_readings()["fl"][2] == 0.0 and pl.ft_loads()["fl"][2] == 0.0
+
+
+# --------------------------------------------------------------------------- the simulated rig
+def _rig_cfg(plant=None, **sim):
+    import dataclasses
+    cfg = load()
+    return dataclasses.replace(cfg, plant=plant or cfg.plant, sim={**(cfg.sim or {}), **sim})
+
+
+def test_simulated_rig_applies_the_speed_profile_and_the_encoders_show_it():
+    """v = +1 for 0.1 s, then a ramp to -1 over 0.4 s (through standstill): the plant's speed
+    is the profile at each step's start (ZOH) and the wheel speeds are v/r0 ± Δω/2."""
+    from rig_runtime.scenario import Scenario as Sc, SpeedPoint
+    from sim_backend.rig import SimulatedRig
+    cfg = _rig_cfg(replace(load().plant, front_contact=True, front=CarrierPlant(r0=0.08)), encoder_noise_rad_s=0.0)
+    sc = Sc(name="reversal", duration_s=1.0, speed=(SpeedPoint(t=0.0, v=1.0), SpeedPoint(t=0.1, v=-1.0, ramp_s=0.4)))
+    with SimulatedRig(cfg, sc, seed=0) as sim:
+        assert sim.plant.v == 1.0
+        sim.start_scenario(sim.t)
+        seen = []
+        for k in range(120):
+            tau = sim.t - sim.t_run0
+            sim.step(H, [0.3, -0.3, 0.2, -0.2])
+            assert sim.plant.v == sc.speed_profile(cfg.plant.v)(tau)
+            seen.append(sim.plant.v)
+            p = sim.plant
+            assert p.omega_fl == pytest.approx(p.v / 0.08 + p.dw_f / 2, rel=1e-14, abs=1e-14)
+            assert p.omega_rr == pytest.approx(p.v / 0.075 - p.dw_r / 2, rel=1e-14, abs=1e-14)
+        assert min(seen) == -1.0 and min(map(abs, seen)) < 0.02 and seen[0] == 1.0
+        sim.set_wheel_speeds()
+        om = [sim.drives.drives[w].omega for w in ("fl", "fr", "rl", "rr")]
+        assert om == [p.omega_fl, p.omega_fr, p.omega_rl, p.omega_rr]
+        assert sum(om) < -4 * 0.99 / 0.08
+
+
+def test_simulated_rig_refuses_what_it_cannot_simulate():
+    from rig_runtime.errors import ConfigError
+    from rig_runtime.scenario import Scenario as Sc, SpeedPoint
+    from sim_backend.rig import SimulatedRig
+    P = load().plant
+    rev = Sc(name="rev", duration_s=1.0, speed=(SpeedPoint(t=0.0, v=1.0), SpeedPoint(t=0.5, v=-1.0)))
+    with pytest.raises(ConfigError, match="wheel_dynamics"):
+        SimulatedRig(_rig_cfg(wheel_dynamics="dynamic"), rev, seed=0)
+    lift_front = Sc(name="lift-front", duration_s=1.0, lifted_carrier="front")
+    with pytest.raises(ConfigError, match="plant.rear_contact"):
+        SimulatedRig(_rig_cfg(), lift_front, seed=0)
+    lift_rear = Sc(name="lift-rear", duration_s=1.0, lifted_carrier="rear")
+    with pytest.raises(ConfigError, match="plant.front_contact"):
+        SimulatedRig(_rig_cfg(replace(P, front_contact=True)), lift_rear, seed=0)
+
+
+def test_simulated_rig_mirrored_set_ups():
+    """``plant: {front_contact: true, rear_contact: false}`` at v = -1: the front rolls alone,
+    at its rest position; with ``lifted_carrier: front`` (and the front lifted) the front swings
+    from ``initial_psi_mrad`` with the contact-free damping."""
+    from rig_runtime.scenario import OpenLoop, Scenario as Sc
+    from sim_backend.rig import SimulatedRig
+    P = replace(load().plant, front_contact=True, rear_contact=False, v=-1.0)
+    steps = Sc(name="mirrored-steps", duration_s=1.0, open_loop=OpenLoop(carrier="front", steps=((0.0, 0.5),)))
+    with SimulatedRig(_rig_cfg(P), steps, seed=0) as sim:
+        p = sim.plant
+        assert p.front_contact and not p.rear_contact
+        assert p.y_f == pytest.approx(-2 * P.l0 * P.psi_off, rel=1e-12) and p.y_r == 0.0   # mirror of y_r
+        sim.start_scenario(sim.t)
+        for _ in range(100):
+            sim.step(H, [0.25, -0.25, 0.0, 0.0])
+        assert p.y_r == 0.0 and p.dw_r == 0.0 and p.dw_f != 0.0 and p.psi_af > P.psi_off
+    free = Sc(name="front-free", duration_s=1.0, lifted_carrier="front", initial_psi_mrad=8.0)
+    with SimulatedRig(_rig_cfg(P, lifted_D=0.3, lifted_psi_off=1e-3), free, seed=0) as sim:
+        p = sim.plant
+        assert p.front_lifted is not None and not p.front_contact and p.psi_af == 8e-3
+        sim.start_scenario(sim.t)
+        low = []
+        for _ in range(60):
+            sim.step(H, [0.0, 0.0, 0.0, 0.0])
+            low.append(p.psi_af)
+        assert p.dw_f == 0.0 and p.z_f == 0.0
+        # swung through its offset (1 mrad): the undershoot of D = 0.3, 0.37 of the 7 mrad start
+        assert min(low) == pytest.approx(1e-3 - 7e-3 * math.exp(-math.pi * 0.3 / math.sqrt(1 - 0.09)), rel=0.02)
+        assert p.ft_readings()["fl"][2] == 0.0
