@@ -385,3 +385,60 @@ def test_simulated_rig_mirrored_set_ups():
         # swung through its offset (1 mrad): the undershoot of D = 0.3, 0.37 of the 7 mrad start
         assert min(low) == pytest.approx(1e-3 - 7e-3 * math.exp(-math.pi * 0.3 / math.sqrt(1 - 0.09)), rel=0.02)
         assert p.ft_readings()["fl"][2] == 0.0
+
+
+# --------------------------------------------------------------------------- configs/vehicle-plant.yaml
+def _vehicle_cfg(tmp_path):
+    """configs/vehicle-plant.yaml with the rest of the simulated rig (sim.yaml's devices),
+    without configs/vehicle.yaml's controller (h-run's): the plant part on its own."""
+    import yaml
+    from rig_runtime.config import CONFIG_DIR
+    devices = yaml.safe_load((CONFIG_DIR / "sim.yaml").read_text())["devices"]
+    p = tmp_path / "vehicle-plant-check.yaml"
+    p.write_text(yaml.safe_dump({"include": [str(CONFIG_DIR / f) for f in
+                                             ("hardware.yaml", "vehicle-plant.yaml", "controller.yaml", "geometry.yaml")],
+                                 "devices": devices}))
+    return load(p)
+
+
+def test_vehicle_plant_config_has_both_carriers_in_contact_and_a_front_of_its_own(tmp_path):
+    cfg = _vehicle_cfg(tmp_path)
+    P = cfg.plant
+    assert P.front_contact and P.rear_contact and P.rear is None
+    Pf, Pr = P.carrier("front"), P.carrier("rear")
+    assert Pr == replace(load().plant, front_contact=True)           # the rear: the paper's carrier
+    for k in ("delta0", "l0", "K", "omega0", "D_min"):
+        assert 0.02 <= abs(getattr(Pf, k) / getattr(Pr, k) - 1) <= 0.06, k   # "a few % off"
+    pl = Plant(P)
+    assert pl.a_f - pl.a_r == pytest.approx(0.050, abs=0.002)               # the docs' numbers
+    assert cfg.sim == load().sim                                            # sim.yaml's sim: section
+
+
+def test_open_loop_vehicle_drifts_as_the_coupled_model_says(tmp_path):
+    """A lockstep dry run with configs/vehicle-plant.yaml, zero input on both carriers: the
+    log's sim_truth group holds both carriers' true y and psi, the yaw stays at rest and the
+    lateral pair drifts exactly as (2a)/(2b) solved in closed form (the matrix exponential of
+    [[M, g], [0, 0]]): psi_m = (y_f - y_r)/(2 l0) is not at rest, y_f grows quadratically."""
+    import h5py
+    from rig_runtime.app.dryrun import run_lockstep
+    from rig_runtime.scenario import OpenLoop, Scenario as Sc
+    cfg = _vehicle_cfg(tmp_path)
+    sc = Sc(name="vehicle-drift", duration_s=1.5, open_loop=OpenLoop(carrier="rear", steps=((0.0, 0.0),)))
+    log = tmp_path / "drift.h5"
+    summary, code = run_lockstep(cfg, sc, log)
+    assert code == 0 and summary["max_abs_current_A"] == 0.0
+    with h5py.File(log) as f:
+        g = f["sim_truth"]
+        t, yf, yr, pf, pr = (g[k][:] for k in ("t", "y_f", "y_r", "psi_af", "psi_ar"))
+    Pf, Pr = cfg.plant.carrier("front"), cfg.plant.carrier("rear")
+    assert np.all(pf == Pf.psi_off) and np.all(pr == Pr.psi_off)             # yaw at rest, z = psi
+    pl = Plant(cfg.plant)
+    a_f, a_r = pl.a_f, pl.a_r
+    A = np.array([[a_f, -a_f, Pf.c_y * Pf.psi_off], [a_r, -a_r, Pr.c_y * Pr.psi_off], [0.0, 0.0, 0.0]])
+    x0 = np.array([yf[0], yr[0], 1.0])
+    pred = np.array([expm(A * (tk - t[0])) @ x0 for tk in t])
+    np.testing.assert_allclose(yf, pred[:, 0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(yr, pred[:, 1], rtol=0, atol=1e-12)
+    assert abs(yf[-1] - yf[0]) > 5e-4 and np.ptp(yf - yr) > 1e-4                # psi_m moves: > 0.2 mrad
+    rate = np.diff(yf) / np.diff(t)
+    assert rate[-1] > 1.5 * rate[0] > 0                                       # speeding up: not a stable pole
