@@ -150,26 +150,11 @@ def _hermite_weights(lam: float, h: float) -> tuple[float, float, float, float, 
     """Exact step of y' = -lam y + g(t) over [0, h] with g the cubic Hermite interpolant of
     (g0, g0', g1, g1'):  y(h) = phi y0 + w0 g0 + w1 g0' + w2 g1 + w3 g1'.
 
-    Uses J_j = int_0^1 exp(-x (1-s)) s^j ds, x = lam h: a series for |x| < 0.5, else the
-    recursion J_j = (1 - j J_{j-1})/x.  Pure math: cheap enough to redo whenever dt changes.
+    Uses J_j = int_0^1 exp(-x (1-s)) s^j ds, x = lam h (``_exp_ints``).  Pure math, about a
+    microsecond: cheap enough to redo whenever dt or the speed changes.
     """
     x = lam * h
-    if abs(x) < 0.5:
-        J = []
-        for j in range(4):
-            acc, term, k = 0.0, 1.0 / math.factorial(j + 1), 0
-            while True:                           # j! sum_k (-x)^k/(j+k+1)!
-                acc += term
-                k += 1
-                term *= -x / (j + k + 1)
-                if abs(term) < 1e-18 * abs(acc) or k > 40:
-                    break
-            J.append(math.factorial(j) * acc)
-    else:
-        J = [-expm1(-x) / x]
-        for j in range(1, 4):
-            J.append((1.0 - j * J[-1]) / x)
-    J0, J1, J2, J3 = J
+    (J0, J1, J2, J3), _ = _exp_ints(x)
     return (exp(-x), h * (J0 - 3.0 * J2 + 2.0 * J3), h * h * (J1 - 2.0 * J2 + J3),
             h * (3.0 * J2 - 2.0 * J3), h * h * (J3 - J2))
 
@@ -214,22 +199,20 @@ def _hermite_weights_coupled(a_f: float, h: float, a_r: Optional[float] = None) 
     """
     if a_r is None:
         a_r = a_f
-    M = ((a_f, -a_f), (a_r, -a_r))
-    I = ((1.0, 0.0), (0.0, 1.0))
     mu = a_f - a_r
-    c_int = (h / 2, h * h / 12, h / 2, -h * h / 12)                       # for G0, G0', G1, G1'
+    h2 = h * h
+    c = (h / 2, h2 / 12, h / 2, -h2 / 12)                                  # int H_k, for G0, G0', G1, G1'
     if mu == 0.0:
         s = h
-        c_mom = (0.35 * h * h, h ** 3 / 20, 0.15 * h * h, -h ** 3 / 30)
+        d = (0.35 * h2, h ** 3 / 20, 0.15 * h2, -h ** 3 / 30)
     else:
         (J0, _, _, _), (K0, K1, K2, K3) = _exp_ints(-mu * h)
         s = h * J0                                                         # (e^{mu h} - 1)/mu
-        h2, h3 = h * h, h * h * h
-        c_mom = (h2 * (K0 - 3.0 * K2 + 2.0 * K3), h3 * (K1 - 2.0 * K2 + K3),
-                 h2 * (3.0 * K2 - 2.0 * K3), h3 * (K3 - K2))
-    phi = [[I[i][j] + s * M[i][j] for j in range(2)] for i in range(2)]
-    W = [[[c_int[k] * I[i][j] + c_mom[k] * M[i][j] for j in range(2)] for i in range(2)]
-         for k in range(4)]
+        h3 = h2 * h
+        d = (h2 * (K0 - 3.0 * K2 + 2.0 * K3), h3 * (K1 - 2.0 * K2 + K3),
+             h2 * (3.0 * K2 - 2.0 * K3), h3 * (K3 - K2))
+    phi = [[1.0 + s * a_f, -(s * a_f)], [s * a_r, 1.0 - s * a_r]]          # I + s M
+    W = [[[ck + dk * a_f, -(dk * a_f)], [dk * a_r, ck - dk * a_r]] for ck, dk in zip(c, d)]   # c_k I + d_k M
     return phi, W
 
 
@@ -594,6 +577,10 @@ class Plant:
         self._l0_f, self._l0_r = Pf.l0, Pr.l0
         self._c22_f, self._c22_r = Pf.c11, Pr.c11                # ESTIMATE: c22 ~ c11
         self._b2r_f, self._b2r_r = Pf.b / (2.0 * Pf.r0), Pr.b / (2.0 * Pr.r0)
+        # per unit speed: (c̄_y/(2 l0), 1/(2 l0) y_off, 1/(2 c22), Γ b/(2 r0²), k_τ/(r0² c̄11), 1/r0)
+        self._per_v = tuple((Pc.c_y / (2 * Pc.l0), Pc.y_off / (2.0 * Pc.l0), 1.0 / (2.0 * Pc.c11),
+                             Pc.Gamma * Pc.b / (2.0 * Pc.r0 ** 2), Pc.k_tau / (Pc.r0 ** 2 * Pc.c11), 1.0 / Pc.r0)
+                            for Pc in (Pf, Pr))
         # public constants of the rear carrier (the paper's); per carrier: carrier_params
         self.cy = Pr.c_y
         self.Gamma = Pr.Gamma
@@ -632,20 +619,16 @@ class Plant:
                              f"unstable for v < 0), got {v}")
         self._v = v
         av = abs(v)
-        Pf, Pr = self.carrier_params["front"], self.carrier_params["rear"]
-        self._a_f = self._cy_f * v / (2 * self._l0_f)
-        self._a_r = self._cy_r * v / (2 * self._l0_r)
+        (af, of, ff, gf, kf, wf), (ar, o_r, fr, gr, kr, wr) = self._per_v
+        self._a_f, self._a_r = af * v, ar * v
         self._cyv_f, self._cyv_r = self._cy_f * v, self._cy_r * v
-        self._off_f = v / (2.0 * Pf.l0) * Pf.y_off                # paper Sec. 4.1.2: (v/(2 l0)) y_off
-        self._off_r = v / (2.0 * Pr.l0) * Pr.y_off
-        self._fy_f = av / (2.0 * self._c22_f)                     # lateral creep velocity per N
-        self._fy_r = av / (2.0 * self._c22_r)
-        self._gvb_f = Pf.Gamma * v * Pf.b / (2.0 * Pf.r0 ** 2)
-        self._gvb_r = Pr.Gamma * v * Pr.b / (2.0 * Pr.r0 ** 2)
-        self._vk_f = av * Pf.k_tau / (Pf.r0 ** 2 * Pf.c11)
-        self._vk_r = av * Pr.k_tau / (Pr.r0 ** 2 * Pr.c11)
-        self._w_nom_f, self._w_nom_r = v / Pf.r0, v / Pr.r0
+        self._off_f, self._off_r = of * v, o_r * v            # paper Sec. 4.1.2: (v/(2 l0)) y_off
+        self._fy_f, self._fy_r = ff * av, fr * av              # lateral creep velocity per N
+        self._gvb_f, self._gvb_r = gf * v, gr * v
+        self._vk_f, self._vk_r = kf * av, kr * av
+        self._w_nom_f, self._w_nom_r = wf * v, wr * v
         if self.dynamic:
+            Pf, Pr = self.carrier_params["front"], self.carrier_params["rear"]
             self._lam_f = Pf.c11 * Pf.r0 ** 2 / (Pf.J_x * v)
             self._lam_r = Pr.c11 * Pr.r0 ** 2 / (Pr.J_x * v)
         else:
