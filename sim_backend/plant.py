@@ -20,17 +20,23 @@ Yaw, per carrier (Delta u held over the step, M_z the disturbance yaw moment):
           (with du held: ue' = -ue/tau; ue jumps by the change of du at a step boundary)
     D     = D_min if |udot| >= c_udot_max else D_max - |udot|/c_udot_max (D_max - D_min)
 
-Lateral (2a)/(2b) with the offset of Sec. 4.1.2 and a lateral force as creep velocity:
+Lateral (2a)/(2b) with the offset of Sec. 4.1.2 and a lateral force as creep velocity, each
+carrier c with its own values (``params.carrier(c)``) and a_c = cy_c v/(2 l0_c):
 
-    y_f' = +a_l y_f - a_l y_r + cy v psi_af + |v| F_y_f/(2 c22)
-    y_r' = -a_l y_r + a_l y_f + cy v psi_ar + v/(2 l0) y_off + |v| F_y_r/(2 c22),   a_l = cy v/(2 l0)
+    y_f' = +a_f y_f - a_f y_r + cy_f v psi_af + v/(2 l0_f) y_off_f + |v| F_y_f/(2 c22_f)
+    y_r' = -a_r y_r + a_r y_f + cy_r v psi_ar + v/(2 l0_r) y_off_r + |v| F_y_r/(2 c22_r)
+
+(eigenvalues 0 and a_f - a_r; a Jordan block at 0 for equal carriers). The speed v is held
+over a step and changed between steps by ``set_speed`` (through 0 and negative).
 
 With ``front_contact`` false the front carrier is lifted: y_f == 0, its yaw still follows its own
-yaw dynamics, its wheels have no rolling contact (dw_f = 0).
+yaw dynamics, its wheels have no rolling contact (dw_f = 0); ``rear_contact`` false is the same
+for the rear (the mirrored set-up of the front's identification, v < 0).
 
 ``rear_lifted`` (a ``LiftedCarrier``) lifts the rear carrier off the rollers, the set-up of the
 free-response experiment (Sec. 4.3.2): its yaw follows (6) with the contact-free damping and
-offset of ``LiftedCarrier`` and no hysteresis, y_r stays where it is, dw_r = 0.
+offset of ``LiftedCarrier`` and no hysteresis, y_r stays where it is, dw_r = 0;
+``front_lifted`` is its mirror for the front. docs/vehicle/plant.md has the vehicle's part.
 
 The integrator (``Plant.step``) is pure-Python scalar code: an exact solution of the yaw
 oscillator linearised about the (sub)step start (D frozen at its exact average over the
@@ -150,8 +156,8 @@ def _hermite_weights(lam: float, h: float) -> tuple[float, float, float, float, 
     """Exact step of y' = -lam y + g(t) over [0, h] with g the cubic Hermite interpolant of
     (g0, g0', g1, g1'):  y(h) = phi y0 + w0 g0 + w1 g0' + w2 g1 + w3 g1'.
 
-    Uses J_j = int_0^1 exp(-x (1-s)) s^j ds, x = lam h (``_exp_ints``).  Pure math, about a
-    microsecond: cheap enough to redo whenever dt or the speed changes.
+    Uses J_j = int_0^1 exp(-x (1-s)) s^j ds, x = lam h (``_exp_ints``).  Pure math, cheap
+    enough to redo whenever dt or the speed changes (cost: docs/vehicle/plant.md).
     """
     x = lam * h
     (J0, J1, J2, J3), _ = _exp_ints(x)
@@ -601,7 +607,7 @@ class Plant:
     # ---------------------------------------------------------------- the roller speed
     def set_speed(self, v: float) -> None:
         """Set the roller speed v (m/s, sign = direction) for the following steps; the
-        speed-dependent constants are recomputed only when v changes (a few µs: docs/plant-model.md).
+        speed-dependent constants are recomputed only when v changes (cost: docs/vehicle/plant.md).
 
         Which terms scale with v: the lateral pole and input gain c̄_y v (2), the offset
         v y_off/(2 l0), the lateral creep of a force |v|/(2 c22), the kinematic terms of (4)

@@ -238,8 +238,10 @@ def test_set_speed_recomputes_what_scales_with_v(P):
     pl.step(H, 0.0, 0.0)
     fresh.step(H, 0.0, 0.0)
     assert pl._lat2 == fresh._lat2                           # the lateral weights follow v
-    pl.set_speed(1.0)
-    assert pl._lat2 == Plant(Pv)._lat2 if hasattr(Plant(Pv), "_lat2") else True
+    pl.set_speed(Pv.v)                                       # back: the weights of the configured speed
+    again = Plant(Pv)
+    again.step(H, 0.0, 0.0)
+    assert pl._lat2 == again._lat2 and pl.a_f == a_f
 
 
 def test_at_standstill_the_lateral_input_has_no_effect(P):
