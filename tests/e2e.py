@@ -23,6 +23,7 @@ class Run:
     log: dict
     wire: list          # (sync_index, wheel, current_A) of every RPDO on the wire
     syncs: int
+    log_path: Path | None = None    # the log file (HDF5) the run wrote
 
     @property
     def fault(self):
@@ -65,7 +66,7 @@ def run(tmp_path: Path, scenario, cfg=None, **kw) -> Run:
             wheel, r = rated[node]
             wire.append((syncs, wheel, co.permille_to_amps(tq, r)))
     tap.shutdown()
-    return Run(summary, code, read_log(log), wire, syncs)
+    return Run(summary, code, read_log(log), wire, syncs, log)
 
 
 def assert_safe_stop(r, device, check):
