@@ -17,3 +17,21 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 def cfg():
     """The shipped simulated-rig configuration."""
     return config.load()
+
+
+@pytest.fixture(scope="session")
+def shared_run(tmp_path_factory):
+    """``shared_run(scenario, seed=None, duration_s=None)``: tests/e2e.py ``run`` of a shipped
+    scenario on the shipped configuration, done once per session for each (scenario, seed,
+    duration) and shared by the tests that only read it (test_faults_e2e.py's checks of each
+    fault scenario; test_lifecycle_e2e.py compares a second run of the same scenario with it).
+    A test that needs a prepare hook, another configuration or a fresh run calls ``run``."""
+    from .e2e import run
+    done: dict = {}
+
+    def get(scenario: str, seed=None, duration_s=None):
+        key = (scenario, seed, duration_s)
+        if key not in done:
+            done[key] = run(tmp_path_factory.mktemp(scenario), scenario, seed=seed, duration_s=duration_s)
+        return done[key]
+    return get

@@ -4,7 +4,7 @@
 import numpy as np
 import pytest
 
-from .e2e import run
+from .e2e import assert_steps_tracked, run
 
 pytestmark = pytest.mark.slow
 
@@ -14,25 +14,43 @@ def _window(r, t0, t1):
     return (t >= t0) & (t < t1)
 
 
+STEP_SEQUENCE_LEVELS_MM = (-3.5, -0.7, -0.1, 0.1, 0.3, 3.5)
+
+
+def part_of_step_sequence(levels_mm):
+    """The shipped step-sequence scenario with only the steps to ``levels_mm`` and back, in
+    the shipped order, each level held as long as in the shipped file (its timing shifted
+    so that the kept steps follow one another)."""
+    import dataclasses
+    from rig_runtime.scenario import load_scenario
+    sc = load_scenario("step-sequence")
+    ref = sc.reference
+    assert ref[0].y_mm == 0.0 and all(p.y_mm == 0.0 for p in ref[2::2])     # 0 -> level -> 0 -> …
+    pairs = [(a, b) for a, b in zip(ref[1::2], ref[2::2])]
+    ends = [b.t for b in ref[3::2]] + [sc.duration_s]                      # each pair's 0 is held up to the next level
+    kept = [(a, b, end) for (a, b), end in zip(pairs, ends) if a.y_mm in levels_mm]
+    assert [a.y_mm for a, _, _ in kept] == sorted(levels_mm, key=[a.y_mm for a, _ in pairs].index)
+    pts, t = [ref[0]], ref[1].t
+    for a, b, end in kept:
+        pts += [dataclasses.replace(a, t=t), dataclasses.replace(b, t=t + b.t - a.t)]
+        t += end - a.t
+    return dataclasses.replace(sc, name="step-sequence-part", reference=tuple(pts), duration_s=t)
+
+
 def test_step_sequence(tmp_path, cfg):
-    """Sec. 5.2.4 ("negligible steady-state error"): every step tracked with a steady-state
-    error < 2 % of the step or, for the 0.1 mm steps where 2 % is 2 µm, < 5 µm (the
-    hysteresis' slow tail can outlast their 20 s window: 3.7 µm on one of them at seed 0
-    since the drives are enabled at ARM); current within ±4 A, no faults, rise/settling
-    times of a few seconds."""
-    r = run(tmp_path, "step-sequence")
-    s = r.summary
-    assert s["final_state"] == "IDLE" and s["faults"] == []
-    assert s["max_abs_current_A"] <= cfg.limits.u_max
-    assert all(abs(i) <= cfg.limits.u_max for _, _, i in r.wire)
-    steps = s["steps"]
-    assert len(steps) == 72
-    for st in steps:
-        size = abs(st["to_mm"] - st["from_mm"])
-        assert abs(st["steady_state_error_mm"]) < max(0.02 * size, 0.005), st
-    rise = np.median([st["rise_time_s"] for st in steps])
-    settle = np.median([st["settling_time_s"] for st in steps if st["settling_time_s"] is not None])
-    assert 0.5 < rise < 5.0 and 2.0 < settle < 15.0
+    """Sec. 5.2.4 on a part of the step-sequence scenario, judged as the whole sequence is
+    (tests/e2e.py assert_steps_tracked: every step's steady-state error < 2 % of the step or
+    < 5 µm, current within ±u_max in the log and on the wire, no faults, median rise and
+    settling times). The part keeps, in the shipped order and each held 20 s as shipped, the
+    largest steps (±3.5 mm: the largest current), the smallest (±0.1 mm, where the 5 µm
+    bound and the slow high-damped tail matter) and the two levels whose steps came closest
+    to their bound in the whole sequence at seed 0 (-0.7 and +0.3 mm: 55 % and 54 %): 12 of
+    its 72 steps, 241 s instead of 1441 s simulated. The whole sequence is the acceptance
+    run benchmarks/step_sequence.py, judged by the same check (docs/performance.md)."""
+    sc = part_of_step_sequence(STEP_SEQUENCE_LEVELS_MM)
+    assert sc.duration_s == 241.0
+    r = run(tmp_path, sc)
+    assert_steps_tracked(r, cfg, n_steps=2 * len(STEP_SEQUENCE_LEVELS_MM))
 
 
 def test_robustness(tmp_path):
@@ -97,8 +115,10 @@ def test_sine_hysteresis(tmp_path, cfg):
 
 def test_open_loop_steps(tmp_path):
     """Sec. 3 / Fig. 8: a fast, low-damped jump right after a step, then a slow,
-    high-damped tail."""
-    r = run(tmp_path, "open-loop-steps")
+    high-damped tail. The run ends at 261 s: the three steps judged are over by 260 s (the
+    scenario's last two, at 260 and 320 s, are not judged; a run is causal, so what
+    happened up to 260 s is the same in the 380 s run)."""
+    r = run(tmp_path, "open-loop-steps", duration_s=261.0)
     assert r.summary["final_state"] == "IDLE"
     t, psi = r.col("t_run"), r.col("psi_ar")
     for t0, t_next in ((20.0, 80.0), (80.0, 140.0), (200.0, 260.0)):

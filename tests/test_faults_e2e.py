@@ -1,9 +1,11 @@
 """Every fault scenario ends in FAULT with the right cause, zero current on the wire from
-the detecting cycle on, the cause in the log's event table, and a readable log."""
+the detecting cycle on, the cause in the log's event table, and a readable log. Each
+scenario is run once in the session (conftest.py ``shared_run``): these tests only read the
+run, and test_lifecycle_e2e.py's determinism test compares its own second run with it."""
 
 import pytest
 
-from .e2e import assert_safe_stop, run
+from .e2e import assert_safe_stop
 
 CASES = [
     ("fault-dropout", "b_f", "stale"),
@@ -20,8 +22,8 @@ CASES = [
 
 
 @pytest.mark.parametrize("scenario, device, check", CASES, ids=[c[0] for c in CASES])
-def test_fault_scenarios(tmp_path, scenario, device, check):
-    r = run(tmp_path, scenario)
+def test_fault_scenarios(shared_run, scenario, device, check):
+    r = shared_run(scenario)
     assert_safe_stop(r, device, check)
     if scenario == "fault-no_heartbeat":
         assert "rl" in r.fault["message"] and "heartbeat" in r.fault["message"].lower()
@@ -35,8 +37,8 @@ def test_fault_scenarios(tmp_path, scenario, device, check):
         assert max(abs(u) for u in r.col("rear_u_lim")[k - 20:k]) > 0.1
 
 
-def test_dropout_detection_latency(tmp_path, cfg):
-    r = run(tmp_path, "fault-dropout")
+def test_dropout_detection_latency(shared_run, cfg):
+    r = shared_run("fault-dropout")
     t_inject = r.summary["run_started_t"] + 3.0
     bound = cfg.limits.stale_periods * cfg.controller.h
     latency_cycles = (r.fault["t"] - t_inject - bound) / cfg.controller.h

@@ -32,6 +32,7 @@ import h5py
 import numpy as np
 import pytest
 
+from rig_runtime.app.ctl_server import CtlError, request
 from rig_runtime.app.export import read_log
 from rig_runtime.safety import State
 
@@ -67,10 +68,12 @@ def _ctl(sock: Path, *args: str) -> subprocess.CompletedProcess:
 
 
 def _status(sock: Path) -> dict | None:
-    r = _ctl(sock, "--json", "status")
-    if r.returncode != 0:
+    """The run's status, asked over its socket from this process (the test watching, not
+    the operator's part: a `rig ctl` process per poll cost a second of start-up each)."""
+    try:
+        return request(sock, {"cmd": "status"}, timeout_s=5.0).get("status") or {}
+    except (CtlError, OSError):
         return None
-    return json.loads(r.stdout).get("status") or {}
 
 
 def _wait(cond, timeout: float, what: str, p: subprocess.Popen):
