@@ -87,24 +87,37 @@ def speeds(cfg: RigConfig) -> tuple[tuple[float, ...], Optional[tuple[float, flo
     return tuple(out), band
 
 
-def damping_cases(cfg: RigConfig, carriers: tuple[str, ...]) -> list[dict[str, float]]:
-    """The damping cases the gate checks: every carrier at its D_min, then every carrier at its
-    D_max — today's set of D values (the paper's set-up: plant (10) at D_min, then D_max) for the
-    vehicle as a whole. The damping of (6) varies with the input (7): D_max only while
-    |u̇| < c_udot_max (3e-5 A/s), i.e. for a quasi-static input."""
-    lo = {c: cfg.plant.carrier(c).D_min for c in carriers}
-    hi = {c: cfg.plant.carrier(c).D_max for c in carriers}
-    return [lo] if hi == lo else [lo, hi]
-
-
-def mixed_cases(cfg: RigConfig, carriers: tuple[str, ...]) -> list[dict[str, float]]:
-    """The damping cases the gate does not check: one carrier at D_max while another is at
-    D_min. Reported by ``rig tune`` (docs/vehicle/analysis.md: a leading carrier at D_max has a
-    yaw loop about ten times slower than its unstable lateral pole; no gain within the input
-    bounds stabilises it, and a carrier stabilising an unstable pole has |u̇| >> c_udot_max)."""
+def all_damping_cases(cfg: RigConfig, carriers: tuple[str, ...]) -> list[dict[str, float]]:
+    """Every combination of the carriers' D_min and D_max (each its own): the damping of (6)
+    varies with the input (7), D_max only while |u̇| < c_udot_max (a quasi-static input)."""
     per = [dict.fromkeys((cfg.plant.carrier(c).D_min, cfg.plant.carrier(c).D_max)) for c in carriers]
-    gate = damping_cases(cfg, carriers)
-    return [d for d in (dict(zip(carriers, combo)) for combo in itertools.product(*per)) if d not in gate]
+    return [dict(zip(carriers, combo)) for combo in itertools.product(*per)]
+
+
+def lateral_open_loop_stable(cfg: RigConfig, v: float, lay: "Layout") -> bool:
+    """Whether the lateral dynamics of the carriers in contact, ψ held at 0, are asymptotically
+    stable at v: the paper's set-up at v > 0 (the rear's pole −c̄_y v/(2 l0)); not with both
+    carriers in contact (the double pole at 0 of (2a)/(2b)) nor a single leading carrier."""
+    A, _ = plant_matrices(cfg, v, d_min(cfg, lay.carriers), lay)
+    n = len(lay.carriers)
+    return bool(np.all(np.linalg.eigvals(A[:n, :n]).real < -1e-9))
+
+
+def damping_cases(cfg: RigConfig, v: float, lay: "Layout") -> list[dict[str, float]]:
+    """The damping cases the gate checks at speed v (the rule, written once):
+
+    - every carrier at its D_min — always (the damping the loop runs at: any input change
+      faster than c_udot_max = 3e-5 A/s gives D_min, Sec. 4.3.3);
+    - every carrier at its D_max — where the carriers' lateral dynamics are stable open loop
+      (:func:`lateral_open_loop_stable`). There a loop at rest may sit at D_max indefinitely:
+      the paper's set-up keeps today's gate (plant (10) at D_min, then D_max). Where they are
+      not (both carriers in contact; a leading carrier alone), holding y needs a moving input,
+      and a mode growing at σ with input amplitude |u| has |u̇| ≈ σ|u|: it leaves D_max (7) at
+      |u| ≈ c_udot_max/σ, a fraction of a mA (docs/vehicle/analysis.md). These cases, and the
+      mixed ones (one carrier at D_max), are computed and reported by ``rig tune``, not gated."""
+    lo = {c: cfg.plant.carrier(c).D_min for c in lay.carriers}
+    hi = {c: cfg.plant.carrier(c).D_max for c in lay.carriers}
+    return [lo] if hi == lo or not lateral_open_loop_stable(cfg, v, lay) else [lo, hi]
 
 
 def d_min(cfg: RigConfig, carriers: tuple[str, ...]) -> dict[str, float]:
@@ -267,7 +280,7 @@ class SpeedResult:
     eigenvalues: np.ndarray          # continuous, 1/s, sorted by real part (slowest last)
     spectral_radius: float           # sampled, max over damping_cases (what the gate judges)
     radius_D: dict                   # the damping case of that radius
-    mixed_radius: Optional[float] = None   # sampled, max over mixed_cases (reported, not gated)
+    ungated_radius: Optional[float] = None   # sampled, max over the other D_min/D_max cases (reported)
 
     @property
     def stable(self) -> bool:
@@ -310,12 +323,13 @@ def at_speed(cfg: RigConfig, v: float, lay: Optional[Layout] = None) -> SpeedRes
     ev = np.linalg.eigvals(continuous_matrix(cfg, v, d_min(cfg, lay.carriers), lay))
     ev = ev[np.lexsort((ev.imag, ev.real))]
     worst, worst_D = -1.0, {}
-    for D in damping_cases(cfg, lay.carriers):
+    gated = damping_cases(cfg, v, lay)
+    for D in gated:
         r = _radius(sampled_matrix(cfg, v, D, lay))
         if r > worst:
             worst, worst_D = r, D
-    mixed = [_radius(sampled_matrix(cfg, v, D, lay)) for D in mixed_cases(cfg, lay.carriers)]
-    return SpeedResult(v, gain_factor(cfg, v), ev, worst, worst_D, max(mixed) if mixed else None)
+    other = [_radius(sampled_matrix(cfg, v, D, lay)) for D in all_damping_cases(cfg, lay.carriers) if D not in gated]
+    return SpeedResult(v, gain_factor(cfg, v), ev, worst, worst_D, max(other) if other else None)
 
 
 def analyse(cfg: RigConfig) -> CoupledResult:
@@ -360,11 +374,16 @@ def instability(cfg: RigConfig) -> Optional[Instability]:
     vd = design_speed(cfg)
     coupled = applies(cfg)
     for v in sorted(vs, key=lambda x: (abs(x - vd), x)):
-        for D in damping_cases(cfg, lay.carriers):
+        try:
+            with np.errstate(all="ignore"):
+                cases = damping_cases(cfg, v, lay)
+        except (ArithmeticError, ValueError):        # numbers so extreme the matrices overflow
+            return Instability(v, d_min(cfg, lay.carriers), complex(np.nan), cfg.controller.h, coupled)
+        for D in cases:
             try:
                 with np.errstate(all="ignore"):
                     z = np.linalg.eigvals(sampled_matrix(cfg, v, D, lay))
-            except (ArithmeticError, ValueError):    # numbers so extreme the matrices overflow
+            except (ArithmeticError, ValueError):    # (LinAlgError is a ValueError)
                 return Instability(v, D, complex(np.nan), cfg.controller.h, coupled)
             if not len(z):
                 continue
@@ -385,7 +404,7 @@ def to_json(r: CoupledResult) -> dict:
                      "least_damped": [p.least_damped.real, p.least_damped.imag], "zeta_min": p.zeta_min}
                     for p in r.points],
         "coupled_sampled": [{"v": p.v, "spectral_radius": p.spectral_radius, "stable": p.sampled_stable,
-                             "D": p.radius_D, "mixed_D_spectral_radius": p.mixed_radius} for p in r.points],
+                             "D": p.radius_D, "ungated_spectral_radius": p.ungated_radius} for p in r.points],
         "coupled_setup": {"carriers_in_contact": list(r.carriers), "controlled": list(r.controlled),
                           "v_design": r.v_design, "held_band": list(r.band) if r.band else None},
     }

@@ -60,7 +60,7 @@ def test_default_gate_and_tune_json_unchanged(cfg):
 
 def test_expm_agrees_with_scipy(veh):
     lay = coupled.layout(veh)
-    for D in coupled.damping_cases(veh, lay.carriers):
+    for D in coupled.all_damping_cases(veh, lay.carriers):
         A, B = coupled.plant_matrices(veh, -1.5, D, lay)
         M = np.block([[A, B], [np.zeros((2, 8))]]) * veh.controller.h
         assert np.max(np.abs(coupled.expm(M) - scipy_expm(M))) < 1e-12
@@ -159,14 +159,29 @@ def test_check_accepts_the_vehicle_and_names_what_it_covered(veh_path, tmp_path)
     assert "coupled" in r.stdout and "both directions" in r.stdout and "held for |v| < 0.2" in r.stdout
 
 
-def test_ctl_set_is_judged_over_the_range(veh):
-    """A gain that is stable at v_design but not at D_max somewhere in the range is refused."""
-    wide = dataclasses.replace(veh, controller=dataclasses.replace(veh.controller, tuning={
-        **veh.controller.tuning, "K_I_y": (0.1, 20.0)}))
-    assert tuning.check(wide, "K_I_y", 0.5).new == 0.5
-    with pytest.raises(TuningError, match=r"K_I_y = 9 would make the sampled closed loop unstable \(coupled loop at "
-                                          r"v = [+-][0-9.]+ m/s \(D_front = .*D_rear = "):
-        tuning.check(wide, "K_I_y", 9.0)
+def test_ctl_set_is_judged_over_the_range(tmp_path):
+    """Rear l0 0.2 m: the configured gains are stable over ±1.5 m/s; K_P_y 3 (within the
+    shipped bounds) is stable at +1 but not at some negative speed: refused, naming it."""
+    c = config.load(write_vehicle(tmp_path, plant={"rear": {"l0": 0.2}}))
+    assert analysis.sampled_instability(c) is None
+    assert tuning.check(c, "K_P_y", 6.0).new == 6.0
+    low = tuning.with_gains(c, {"K_P_y": 3.0})
+    assert coupled.at_speed(low, 1.0).sampled_stable and coupled.instability(low).v < 0
+    with pytest.raises(TuningError, match=r"K_P_y = 3 would make the sampled closed loop unstable \(coupled loop at "
+                                          r"v = -[0-9.]+ m/s \(D_front = .*D_rear = "):
+        tuning.check(c, "K_P_y", 3.0)
+
+
+def test_the_gates_damping_cases(cfg, veh):
+    """D_max is gated where the lateral dynamics are stable open loop (the paper's set-up at
+    v > 0: unchanged), not with the double pole at 0 of both carriers nor a leading carrier."""
+    P = cfg.plant
+    assert coupled.damping_cases(cfg, 1.0, coupled.layout(cfg)) == [{"rear": P.D_min}, {"rear": P.D_max}]
+    assert coupled.damping_cases(cfg, -1.0, coupled.layout(cfg)) == [{"rear": P.D_min}]
+    for v in (1.0, -1.0):
+        assert coupled.damping_cases(veh, v, coupled.layout(veh)) == [{"front": P.D_min, "rear": P.D_min}]
+    p = coupled.at_speed(veh, 1.0)
+    assert p.ungated_radius is not None and len(coupled.all_damping_cases(veh, ("front", "rear"))) == 4
 
 
 # ------------------------------------------------------------------ the scenario against the config

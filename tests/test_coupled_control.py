@@ -117,6 +117,6 @@ def test_sampled_poles_match(vehicle, v):
     _match(theirs, mine)
     (entry,) = [p for p in tune["coupled_sampled"] if p["v"] == v]
     if entry["D"] == coupled.d_min(cfg, lay.carriers):       # the radius at D_min is the reported one
-        assert np.max(np.abs(theirs)) == pytest.approx(entry["spectral_radius"], rel=1e-9)
+        assert np.max(np.abs(theirs)) == pytest.approx(entry["spectral_radius"], rel=REL)
     else:
-        assert np.max(np.abs(theirs)) <= entry["spectral_radius"] * (1 + 1e-9)
+        assert np.max(np.abs(theirs)) <= entry["spectral_radius"] * (1 + REL)

@@ -4,6 +4,7 @@ leading one included), designed on the coupled loop at v_design and checked over
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -23,19 +24,19 @@ def test_equal_carriers_get_equal_gains_stable_over_the_range(tmp_path):
     prop = design.with_vehicle_gains(cfg, d.gains)
     assert coupled.instability(prop) is None
     assert all(p.stable and p.sampled_stable for p in d.result.points)
-    # the paper's outer gains are not stable on the vehicle at D_max: the design is not a no-op
-    paper = design.with_vehicle_gains(cfg, {c: cfg.controller.pipd.__class__(K_P_y=3.0, K_I_y=9.0, K_P_psi=40.0,
-                                                                              K_D_psi=5.0, T_f_psi=0.034144)
-                                            for c in ("front", "rear")})
-    assert coupled.instability(paper) is not None
+    # the paper's outer gains, stable on the vehicle but with a poorly damped pair (the lateral
+    # pair has lost the rear's stabilising pole): the design is not a no-op
+    paper = design.with_vehicle_gains(cfg, {c: replace(d.gains[c], K_P_y=3.0, K_I_y=9.0) for c in ("front", "rear")})
+    assert coupled.instability(paper) is None
+    assert coupled.at_speed(paper, 1.0).zeta_min < 0.3 < design.ZETA_MIN <= coupled.at_speed(prop, 1.0).zeta_min
 
 
 def test_differing_carriers_each_get_their_own(tmp_path):
-    """Front conicity −20 % and damping D_min +30 % off the rear: each carrier's T_f from its own
-    yaw parameters, outer gains scaled so that c̄_y,c K_c is the same; the coupled loop is stable
-    over ±1.5 m/s. (Differences in K, ω0 or l0 of this size leave no gains that pass the gate's
-    D_max case: docs/vehicle/analysis.md.)"""
-    cfg = config.load(write_vehicle(tmp_path, plant={"front": {"delta0": 0.0626982 * 0.8, "D_min": 2.1701 * 1.3}}))
+    """Front 30 % off the rear (K, ω0, l0, conicity): each carrier's T_f from its own yaw
+    parameters, outer gains scaled so that c̄_y,c K_c is the same; the coupled loop is stable
+    over ±1.5 m/s in both directions."""
+    cfg = config.load(write_vehicle(tmp_path, plant={"front": {"omega0": 18.774 * 1.3, "delta0": 0.0626982 * 0.7,
+                                                               "K": 6.2937e-3 * 0.7, "l0": 0.27625 * 1.3}}))
     d = design.design_vehicle(cfg)
     f, r = d.gains["front"], d.gains["rear"]
     assert f.T_f_psi != r.T_f_psi

@@ -207,8 +207,8 @@ def design_vehicle(cfg: RigConfig) -> VehicleDesign:
        lateral criterion (largest carrier K_P,y · y_design <= psi_ref_design_max) and K_I,y on
        ``KI_Y_VEHICLE``, the pair whose coupled loop at v_design (continuous, D_min) decays
        fastest, with every complex pole damped >= ``ZETA_MIN`` and the sampled loop as
-       implemented stable at ±v_design, the range's ends and ±v_min, for all carriers at D_min
-       and at D_max (the gate's cases);
+       implemented stable at ±v_design, the range's ends and ±v_min in the gate's damping
+       cases (``coupled.damping_cases``);
     3. the coupled loop over the whole range: continuous stable and the gate passes."""
     t = cfg.tuning
     lay = coupled.layout(cfg)
@@ -237,11 +237,11 @@ def design_vehicle(cfg: RigConfig) -> VehicleDesign:
             if slow >= best_slow - 1e-9 or not _zeta_ok(ev):
                 continue
             if all(coupled._radius(coupled.sampled_matrix(c, v, D, lay)) < 1.0
-                   for v in speeds for D in coupled.damping_cases(c, lay.carriers)):
+                   for v in speeds for D in coupled.damping_cases(c, v, lay)):
                 best, best_slow = (float(kpy), kiy), slow
     if best is None:
-        raise ValueError("no outer gains make the coupled loop stable at v_design at D_min and D_max "
-                         "within the criteria of Sec. 5.2.3")
+        raise ValueError("no outer gains make the coupled loop stable at v_design in the gate's damping "
+                         "cases within the criteria of Sec. 5.2.3")
     gains = vehicle_gains(cfg, *best, inner)
     prop = with_vehicle_gains(cfg, gains)
     res = coupled.analyse(prop)
@@ -298,4 +298,4 @@ def vehicle_json(d: VehicleDesign) -> dict:
 VEHICLE_OBJECTIVE = ("per carrier: inner PD as Sec. 5.2.3 on its own yaw parameters; outer PI: one lateral loop gain "
                      "c_y v_d K for every carrier, the fastest-decaying coupled loop at v_design (continuous, D_min) "
                      f"with complex poles damped >= {ZETA_MIN} and the sampled loop stable at +-v_design, the range's ends "
-                     "and +-v_min at D_min and D_max; then checked over the schedule's range")
+                     "and +-v_min in the gate's damping cases; then checked over the schedule's range")

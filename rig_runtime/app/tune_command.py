@@ -98,18 +98,18 @@ def _print_coupled(cfg, cr) -> None:
     print(f"\ncoupled loop of the vehicle: carriers in contact {', '.join(cr.carriers)}, controlled "
           f"{', '.join(cr.controlled) or 'none'}; " + (f"schedule g = v_d/v, v_d = {cr.v_design:g} m/s" if s
                                                         else f"fixed gains at v = {cfg.plant.v:g} m/s"))
-    print("  continuous at each carrier's D_min; sampled (h, Tustin): largest |z| over {all D_min, all D_max}"
-          "; mixed: one carrier at D_max (not gated)")
+    print("  continuous at each carrier's D_min; sampled (h, Tustin): largest |z| over the gate's damping cases "
+          "(all D_min; all D_max too where the lateral pair is stable open loop); other D cases: reported, not gated")
     print(f"  {'v m/s':>7} {'g':>6}  {'least-damped pole 1/s':<24} {'zeta_min':>8} {'|z| sampled':>12} "
-          f"{'ln|z|/h':>9} {'mixed |z|':>10}  verdict")
+          f"{'ln|z|/h':>9} {'other D |z|':>11}  verdict")
     for p in cr.points:
         e = p.least_damped
         pole = f"{e.real:+.3f}" + (f"{e.imag:+.3f}j" if abs(e.imag) > 5e-4 else "")
-        mixed = "" if p.mixed_radius is None else f"{p.mixed_radius:.5f}"
+        mixed = "" if p.ungated_radius is None else f"{p.ungated_radius:.5f}"
         ok = "stable" if p.stable and p.sampled_stable else ("UNSTABLE" if not p.stable else "UNSTABLE (sampled)")
         rate = math.log(p.spectral_radius) / cfg.controller.h if p.spectral_radius > 0 else -math.inf
         print(f"  {p.v:+7.3f} {p.g:+6.2f}  {pole:<24} {p.zeta_min:8.3f} {p.spectral_radius:12.6f} {rate:+9.4f} "
-              f"{mixed:>10}  {ok}")
+              f"{mixed:>11}  {ok}")
     if cr.band:
         print(f"  held (lateral loop open, integrator frozen, psi_ref -> 0): |v| < {cr.band[1]:g} m/s")
 
