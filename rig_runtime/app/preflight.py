@@ -247,6 +247,15 @@ def describe(plan: Plan) -> list[str]:
     else:
         out.append(f"law: pipd   K_P,y = {g.K_P_y:g}  K_I,y = {g.K_I_y:g}  K_P,psi = {g.K_P_psi:g}  "
                    f"K_D,psi = {g.K_D_psi:g}  T_f,psi = {g.T_f_psi:g} s   h = {c.h:g} s")
+        for who in ("front", "rear"):
+            own = getattr(c, who)
+            if own is not None:
+                out.append(f"  {who} carrier's own gains: K_P,y = {own.K_P_y:g}  K_I,y = {own.K_I_y:g}  "
+                           f"K_P,psi = {own.K_P_psi:g}  K_D,psi = {own.K_D_psi:g}  T_f,psi = {own.T_f_psi:g} s")
+    if c.schedule is not None:
+        s = c.schedule
+        out.append(f"schedule: outer gains x v_d/v, v_d = {coupled.design_speed(cfg):g} m/s; v_range "
+                   f"[{s.v_range[0]:g}, {s.v_range[1]:g}] m/s; held for |v| < {s.v_min:g} m/s")
     if "coupled" in plan.slowest:
         v, r, n, band = plan.slowest["coupled"]
         held = f"; held for |v| < {band[1]:g} m/s" if band else ""
@@ -268,8 +277,14 @@ def describe(plan: Plan) -> list[str]:
     if sc is None:
         out.append("scenario: none (hold y_ref = 0)")
     else:
-        ys = [p.y_mm for p in sc.reference]
-        parts = [f"reference {len(ys)} point(s), y_ref in [{min(ys):g}, {max(ys):g}] mm"]
+        parts = []
+        for who in (cfg.controlled if sc.references else ("",)):
+            ys = [p.y_mm for p in (sc.reference_for(who) if who else sc.reference)]
+            parts.append(f"reference{' ' + who if who else ''} {len(ys)} point(s), "
+                         f"y_ref in [{min(ys):g}, {max(ys):g}] mm")
+        if sc.speed:
+            vs = [p.v for p in sc.speed]
+            parts.append(f"speed profile {len(vs)} point(s), v in [{min(vs):g}, {max(vs):g}] m/s")
         if sc.open_loop is not None:
             parts.append(f"open loop on the {sc.open_loop.carrier} carrier")
         parts.append(f"{len(sc.disturbances)} disturbance(s)")
