@@ -175,8 +175,8 @@ def plant_matrices(cfg: RigConfig, v: float, D: Mapping[str, float], lay: Layout
 def expm(M: np.ndarray) -> np.ndarray:
     """e^M by scaling and squaring of a 14-term Taylor series (||M/2^s||_inf <= 1/4: truncation
     below 1e-16). For the small matrices here (ZOH over h, ||M h|| up to ~20 at D_max) it agrees
-    with scipy.linalg.expm to ~1e-13 (tests/test_coupled.py) at a thirtieth of its cost, which
-    matters: the gate evaluates some 200 of them on every run and every ``rig ctl set``."""
+    with scipy.linalg.expm to 1e-12 (tests/test_coupled.py) at about a thirtieth of its cost
+    here, which matters: the gate evaluates ~50–110 of them on every run and ``rig ctl set``."""
     nrm = float(np.max(np.sum(np.abs(M), axis=1))) if M.size else 0.0
     if not math.isfinite(nrm):
         raise ArithmeticError("expm: a matrix with non-finite entries")
@@ -273,7 +273,8 @@ def sampled_matrix(cfg: RigConfig, v: float, D: Mapping[str, float],
 @dataclass(frozen=True)
 class SpeedResult:
     """The coupled loop at one speed: continuous eigenvalues at each carrier's D_min, and the
-    sampled loop's spectral radius, the largest over every damping case."""
+    sampled loop's spectral radius, the largest over the gate's damping cases (and, reported
+    only, over the other D_min/D_max combinations)."""
 
     v: float
     g: float                         # the schedule's gain factor at v

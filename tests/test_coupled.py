@@ -200,6 +200,16 @@ def test_speed_profile_outside_the_range_is_refused(veh_path, tmp_path, text, ke
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and key in r.stderr, r.stderr
 
 
+def test_open_loop_experiment_may_run_at_any_speed_within_v_max(tmp_path):
+    """An identification experiment (open loop) at v = −1 on the paper's config: its input does
+    not depend on the gains, only the hardware's v_max applies."""
+    ol = "open_loop: {carrier: rear, steps: [[0, 0.0], [1, 0.5]]}\n"
+    r = _rig("check", "--scenario", str(_scenario(tmp_path, ol + "speed: [{t: 0, v: -1.0}]\n")))
+    assert r.returncode == 0, r.stderr
+    r = _rig("check", "--scenario", str(_scenario(tmp_path, ol + "speed: [{t: 0, v: -2.5}]\n")))
+    assert r.returncode == 2 and "speed[0].v" in r.stderr and "v_max" in r.stderr, r.stderr
+
+
 def test_speed_profile_needs_a_schedule_and_references_controlled_carriers(tmp_path):
     r = _rig("check", "--scenario", str(_scenario(tmp_path, "speed: [{t: 0, v: 1.0}, {t: 1, v: 0.5}]\n")))
     assert r.returncode == 2 and "speed[1].v" in r.stderr and "plant.v" in r.stderr, r.stderr

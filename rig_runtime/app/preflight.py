@@ -88,9 +88,10 @@ def validate_scenario(cfg: RigConfig, sc: Scenario) -> None:
 
 def validate_speed(cfg: RigConfig, sc: Scenario) -> None:
     """The scenario's speed profile fits the config: every point within the hardware's
-    ``v_max``, and within ``controller.schedule.v_range`` (the range the stability gate
-    covered), or equal to ``plant.v`` without a schedule (fixed gains are analysed at that
-    speed only). The profile is piecewise linear between its points: checking them suffices."""
+    ``v_max``; and, where the controller runs (not an open-loop experiment, whose input does
+    not depend on the gains), within ``controller.schedule.v_range`` (the range the stability
+    gate covered), or equal to ``plant.v`` without a schedule (fixed gains are analysed at
+    that speed only). The profile is piecewise linear between its points: checking them suffices."""
     f = sc.source or sc.name
     v_max = cfg.hardware.ceilings.v_max
     s = cfg.controller.schedule
@@ -98,6 +99,8 @@ def validate_speed(cfg: RigConfig, sc: Scenario) -> None:
         key = f"speed[{i}].v"
         if not abs(p.v) <= v_max:
             raise ConfigError(f, key, f"|v| <= the hardware's v_max = {v_max:g} m/s ({cfg.hardware.source})", p.v)
+        if sc.open_loop is not None:
+            continue
         if s is None and p.v != cfg.plant.v:
             raise ConfigError(f, key, f"plant.v = {cfg.plant.v:g} m/s (the config has fixed gains, no "
                               "controller.schedule: the speed cannot change)", p.v)
