@@ -15,7 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import expm
 
+from . import coupled
 from .config import RigConfig
+from .coupled import Instability
 from .errors import ConfigError
 
 
@@ -163,21 +165,13 @@ def ev_text(e: complex) -> str:
     return f"{e.real:+.3g}" + (f"{e.imag:+.3g}j" if abs(e.imag) > 1e-9 else "") + " 1/s"
 
 
-def sampled_instability(cfg: RigConfig) -> tuple[float, complex] | None:
-    """(D, eigenvalue) of the first damping at which the sampled closed loop as implemented
-    (the configured law, h, Tustin; plant (10) at D_min, then D_max) has an eigenvalue with
-    Re >= 0; None if it is stable at both."""
-    p = cfg.plant
-    for D in dict.fromkeys((p.D_min, p.D_max)):
-        try:
-            with np.errstate(all="ignore"):
-                ev = sampled_loop(cfg, D)
-        except (ArithmeticError, ValueError):    # parameters so extreme the matrices overflow (LinAlgError is a ValueError)
-            return D, complex(np.nan)
-        worst = complex(ev[np.argmax(ev.real)]) if len(ev) else 0j
-        if not worst.real < 0:           # NaN (not computable) counts as unstable
-            return D, worst
-    return None
+def sampled_instability(cfg: RigConfig) -> "Instability | None":
+    """Where the sampled closed loop as implemented (the configured law, h, Tustin) is not
+    stable, or None: at every speed the config runs at (``plant.v``; with a schedule every
+    speed of ``schedule.v_range`` outside the standstill band, both signs) and for each
+    carrier's D_min and D_max, with every carrier in contact (:mod:`rig_runtime.coupled`).
+    With the paper's set-up (front lifted, fixed speed) this is plant (10) at D_min, then D_max."""
+    return coupled.instability(cfg)
 
 
 def stability_gate(cfg: RigConfig) -> None:
@@ -186,30 +180,54 @@ def stability_gate(cfg: RigConfig) -> None:
     before anything is opened; ``rig tune`` fails on it too."""
     bad = sampled_instability(cfg)
     if bad is not None:
-        D, ev = bad
         law = cfg.controller.law
+        ev = bad.s
+        what = ("gains whose sampled closed loop ({law}, h = {h:g} s, {where}) is stable, but "
+                .format(law=law, h=cfg.controller.h, where=bad.where()))
         raise UnstableLoopError(
-            cfg.source or None, "controller.K_P" if law == "p" else "controller.pipd",
-            f"gains whose sampled closed loop ({law}, h = {cfg.controller.h:g} s, plant (10) with D = {D:g}) "
-            "is stable, but " + ("it cannot be computed with these parameters (numbers overflow)" if ev != ev
-                                 else f"it has an eigenvalue at {ev_text(ev)} (`rig tune` shows the analysis)"))
+            cfg.source or None, "controller.K_P" if law == "p" else _gains_key(cfg, bad),
+            what + ("it cannot be computed with these parameters (numbers overflow)" if ev != ev
+                    else f"it has an eigenvalue at {ev_text(ev)} (`rig tune` shows the analysis)"))
+
+
+def _gains_key(cfg: RigConfig, bad: "Instability") -> str:
+    c = cfg.controller
+    keys = ["controller.pipd"] + [f"controller.{k}" for k in ("front", "rear") if getattr(c, k) is not None]
+    if c.schedule is not None:
+        keys.append("controller.schedule")
+    return " / ".join(keys)
+
+
+# the single-carrier loops that describe the paper's set-up (rear carrier, front lifted, fixed
+# speed) and not the loop a vehicle config runs: reported by `rig tune`, judged only there
+SINGLE_CARRIER_ONLY = ("complete closed loop (19)", "slowest_outer_eigenvalue")
 
 
 def tune_failures(cfg: RigConfig, r: "TuneResult") -> list[str]:
     """What makes ``rig tune`` fail: a loop of (15), (16), (19) or the sampled loop as
-    implemented with an eigenvalue Re >= 0, or a design check of Sec. 5.2.3 that fails."""
+    implemented with an eigenvalue Re >= 0, or a design check of Sec. 5.2.3 that fails.
+    On a vehicle config (:func:`coupled.applies`) the coupled loop at every analysed speed
+    replaces (19) and the outer-loop criterion of (17), which assume the rear carrier alone
+    with its stable lateral pole (the vehicle's lateral pair has a double pole at 0)."""
+    vehicle = coupled.applies(cfg)
     out = []
     for name, ev in (("inner loop (15)", r.inner), ("inner loop with differentiator (16)", r.inner_filtered),
                      ("complete closed loop (19)", r.closed_loop)):
         bad = [e for e in ev if not e.real < 0]
-        if bad:
+        if bad and not (vehicle and name in SINGLE_CARRIER_ONLY):
             out.append(f"{name} unstable: eigenvalue at {ev_text(max(bad, key=lambda e: e.real))}")
-    bad = sampled_instability(cfg)    # r.closed_loop_sampled is its D_min case (pipd)
+    bad = sampled_instability(cfg)    # r.closed_loop_sampled is its D_min case (pipd, paper's set-up)
     if bad is not None:
-        out.append(f"sampled loop as implemented ({cfg.controller.law}, D = {bad[0]:g}) unstable: "
-                   f"eigenvalue at {ev_text(bad[1])}")
+        where = bad.where().replace("plant (10) with ", "")
+        out.append(f"sampled loop as implemented ({cfg.controller.law}, {where}) unstable: "
+                   f"eigenvalue at {ev_text(bad.s)}")
+    if vehicle:
+        for p in coupled.analyse(cfg).points:
+            if not p.stable:
+                out.append(f"coupled loop at v = {p.v:+g} m/s unstable: eigenvalue at {ev_text(p.least_damped)}")
+                break
     for k, c in r.checks.items():
-        if not c["ok"]:
+        if not c["ok"] and not (vehicle and k in SINGLE_CARRIER_ONLY):
             out.append(f"design check {k} fails: {c['value']:.4g} (limit {c['limit']:g})")
     return out
 

@@ -44,11 +44,14 @@ def gains_of(cfg: RigConfig) -> dict[str, float]:
 
 
 def with_gains(cfg: RigConfig, gains: Mapping[str, float]) -> RigConfig:
-    """``cfg`` with the law's gains replaced by ``gains`` (a subset is fine)."""
+    """``cfg`` with the law's gains replaced by ``gains`` (a subset is fine). A live change
+    acts on every carrier's controller: carriers with gains of their own (``controller.front``
+    / ``rear``) get the new value too, their other gains stay."""
     c = cfg.controller
     kp = {k: float(v) for k, v in gains.items() if k in P_GAINS}
     kpipd = {k: float(v) for k, v in gains.items() if k in PIPD_GAINS}
-    c = dataclasses.replace(c, pipd=dataclasses.replace(c.pipd, **kpipd), **kp)
+    own = {k: dataclasses.replace(getattr(c, k), **kpipd) for k in ("front", "rear") if getattr(c, k) is not None}
+    c = dataclasses.replace(c, pipd=dataclasses.replace(c.pipd, **kpipd), **own, **kp)
     return dataclasses.replace(cfg, controller=c)
 
 

@@ -11,7 +11,8 @@ the one-line reason given to the operator):
    tunable) and the value is finite and within them;
 3. the sampled closed loop as implemented (:func:`rig_runtime.analysis.sampled_instability`,
    the stability gate that guards every run) is stable with the new value and the other
-   gains in force (which may differ from the config after earlier changes).
+   gains in force (which may differ from the config after earlier changes) — on a vehicle
+   config at every speed of the schedule's range, both directions, every carrier in contact.
 
 Checks 1 and 2 are :func:`rig_runtime.gains.admissible` (no numpy: the loop repeats them);
 this module adds check 3 and so imports the analysis (numpy, scipy) — only where a change
@@ -43,10 +44,10 @@ def check(cfg: RigConfig, name: str, value: float, gains: Mapping[str, float] | 
     in_force[name] = v
     bad = analysis.sampled_instability(with_gains(cfg, in_force))
     if bad is not None:
-        D, ev = bad
-        where = "cannot be computed" if ev != ev else f"has an eigenvalue at {analysis.ev_text(ev)}"
-        raise TuningError(f"{name} = {v:g} would make the sampled closed loop unstable (plant (10) with "
-                          f"D = {D:g} {where}; gains then: " + ", ".join(f"{k} {x:g}" for k, x in in_force.items()) + ")")
+        ev = bad.s
+        what = "cannot be computed" if ev != ev else f"has an eigenvalue at {analysis.ev_text(ev)}"
+        raise TuningError(f"{name} = {v:g} would make the sampled closed loop unstable ({bad.where()} {what}; "
+                          "gains then: " + ", ".join(f"{k} {x:g}" for k, x in in_force.items()) + ")")
     return GainChange(name, old, v)
 
 

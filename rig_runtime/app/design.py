@@ -25,7 +25,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from rig_runtime import analysis
+from rig_runtime import analysis, coupled
 from rig_runtime.config import PIPDGains, RigConfig
 
 TF_SLOW_TOL = 0.03      # |λ_slow(16) − λ_slow(15)| <= 3 % of |λ_slow(15)|
@@ -162,3 +162,140 @@ OBJECTIVE = ("inner: largest K_P,psi, K_D,psi with each term <= u_design_max at 
              f"T_f,psi: largest with the slowest eigenvalue of (16) within {TF_SLOW_TOL:.0%} of (15)'s and "
              f"K_D/T_f <= {NOISE_GAIN_MAX:g} A/rad; outer: largest K_I,y with K_P,y y_design <= psi_ref_design_max, "
              f"(17) real with max Re <= slowest_eig_min, (19) max Re <= {SLOW_19} and complex poles damped >= {ZETA_MIN}")
+
+
+# --------------------------------------------------------------------------- the vehicle (issue 18)
+@dataclass(frozen=True)
+class VehicleDesign:
+    gains: dict                       # carrier -> PIPDGains (every controlled carrier in contact)
+    result: "coupled.CoupledResult"   # the coupled analysis of the proposal over the range
+    configured: "coupled.CoupledResult"
+    checks: dict
+
+
+KI_Y_VEHICLE = tuple(float(x) for x in np.round(np.geomspace(0.05, 20.0, 28), 4))   # rad/(m s)
+
+
+def vehicle_gains(cfg: RigConfig, kpy: float, kiy: float, inner: dict) -> dict:
+    """Each controlled carrier's gains for the reference outer gains (kpy, kiy): its own inner
+    PD (``inner``) and outer gains scaled by c̄_y,ref / c̄_y,c, so that every carrier's lateral
+    loop gain c̄_y v_d K is the same (the carriers' conicities may differ)."""
+    lay = coupled.layout(cfg)
+    ref = cfg.plant.carrier(lay.controlled[-1]).c_y
+    out = {}
+    for c in lay.controlled:
+        s = ref / cfg.plant.carrier(c).c_y
+        out[c] = replace(inner[c], K_P_y=kpy * s, K_I_y=kiy * s)
+    return out
+
+
+def with_vehicle_gains(cfg: RigConfig, gains: dict) -> RigConfig:
+    """``cfg`` with each carrier's own gains (``controller.front`` / ``rear``); pipd = the rear's
+    (else the first's), for what reads the common gains."""
+    pipd = gains.get("rear") or next(iter(gains.values()))
+    return replace(cfg, controller=replace(cfg.controller, pipd=pipd, front=gains.get("front"),
+                                           rear=gains.get("rear")))
+
+
+def design_vehicle(cfg: RigConfig) -> VehicleDesign:
+    """The scheduled gains of every controlled carrier in contact (the leading one included),
+    designed at v_design on the coupled loop (rig_runtime/coupled.py) and checked over the range.
+
+    1. inner PD per carrier as Sec. 5.2.3 (``design``'s steps 1, 2 on that carrier's yaw
+       parameters): K_P,psi, K_D,psi from the input criterion, T_f,psi by :func:`design_tf`;
+    2. outer PI: one loop gain for all carriers (:func:`vehicle_gains`); over K_P,y within the
+       lateral criterion (largest carrier K_P,y · y_design <= psi_ref_design_max) and K_I,y on
+       ``KI_Y_VEHICLE``, the pair whose coupled loop at v_design (continuous, D_min) decays
+       fastest, with every complex pole damped >= ``ZETA_MIN`` and the sampled loop as
+       implemented stable at ±v_design, the range's ends and ±v_min in the gate's damping
+       cases (``coupled.damping_cases``);
+    3. the coupled loop over the whole range: continuous stable and the gate passes."""
+    t = cfg.tuning
+    lay = coupled.layout(cfg)
+    if not lay.controlled:
+        raise ValueError("no controlled carrier in contact with the rollers: nothing to design")
+    kp = t.u_design_max / t.psi_design
+    kd = t.u_design_max / t.psi_rate_design
+    inner = {}
+    for c in lay.controlled:
+        own = replace(cfg, plant=cfg.plant.carrier(c))
+        inner[c] = PIPDGains(K_P_y=0.0, K_I_y=0.0, K_P_psi=kp, K_D_psi=kd, T_f_psi=design_tf(own, kp, kd))
+    ref = cfg.plant.carrier(lay.controlled[-1]).c_y
+    scale_max = max(ref / cfg.plant.carrier(c).c_y for c in lay.controlled)
+    kp_y_max = t.psi_ref_design_max / t.y_design / scale_max
+    vd = coupled.design_speed(cfg)
+    s = cfg.controller.schedule
+    # the gate's speeds that decide in practice: ±v_design, the range's ends, the band's edges
+    speeds = [vd] if s is None else [v for v in dict.fromkeys((vd, -vd, *s.v_range, s.v_min, -s.v_min))
+                                     if s.v_range[0] <= v <= s.v_range[1]]
+    best, best_slow = None, 0.0
+    for kpy in np.arange(KP_Y_GRID, kp_y_max + 1e-9, KP_Y_GRID):
+        for kiy in KI_Y_VEHICLE:
+            c = with_vehicle_gains(cfg, vehicle_gains(cfg, float(kpy), kiy, inner))
+            ev = np.linalg.eigvals(coupled.continuous_matrix(c, vd, coupled.d_min(c, lay.carriers), lay))
+            slow = _slowest(ev)
+            if slow >= best_slow - 1e-9 or not _zeta_ok(ev):
+                continue
+            if all(coupled._radius(coupled.sampled_matrix(c, v, D, lay)) < 1.0
+                   for v in speeds for D in coupled.damping_cases(c, v, lay)):
+                best, best_slow = (float(kpy), kiy), slow
+    if best is None:
+        raise ValueError("no outer gains make the coupled loop stable at v_design in the gate's damping "
+                         "cases within the criteria of Sec. 5.2.3")
+    gains = vehicle_gains(cfg, *best, inner)
+    prop = with_vehicle_gains(cfg, gains)
+    res = coupled.analyse(prop)
+    bad = coupled.instability(prop)
+    slowest = max(_slowest(p.eigenvalues) for p in res.points)
+    checks = {
+        "coupled_continuous_stable_over_range": {"value": slowest, "limit": 0.0, "ok": slowest < 0},
+        "coupled_sampled_gate_over_range": {"value": max(p.spectral_radius for p in res.points), "limit": 1.0,
+                                            "ok": bad is None},
+        "zeta_min_at_v_design": {"value": min(p.zeta_min for p in res.points if p.v == vd), "limit": ZETA_MIN,
+                                 "ok": all(p.zeta_min >= ZETA_MIN - 1e-9 for p in res.points if p.v == vd)},
+        "worst_case_psi_ref_rad": {"value": max(g.K_P_y for g in gains.values()) * t.y_design,
+                                   "limit": t.psi_ref_design_max,
+                                   "ok": max(g.K_P_y for g in gains.values()) * t.y_design
+                                   <= t.psi_ref_design_max + 1e-12},
+    }
+    return VehicleDesign(gains, res, coupled.analyse(cfg), checks)
+
+
+def vehicle_yaml(cfg: RigConfig, gains: dict) -> str:
+    """A ``controller:`` fragment with the designed gains: ``pipd`` alone when every carrier's
+    are equal, else ``pipd`` (the rear's) and ``front`` / ``rear``; the schedule, h, law, K_P,
+    discretization and the live-tuning bounds carried over."""
+    c = cfg.controller
+    vals = list(gains.values())
+    equal = all(_gains(g) == _gains(vals[0]) for g in vals)
+
+    def block(name: str, g: PIPDGains) -> str:
+        return (f"  {name}:\n    K_P_y: {g.K_P_y:.6g}\n    K_I_y: {g.K_I_y:.6g}\n    K_P_psi: {g.K_P_psi:.6g}\n"
+                f"    K_D_psi: {g.K_D_psi:.6g}\n    T_f_psi: {g.T_f_psi:.6g}\n")
+    text = ("# Gains designed by `rig tune --design` for the vehicle (coupled loop, rig_runtime/app/design.py)\n"
+            f"# for the plant of {cfg.source}\ncontroller:\n  h: {c.h!r}\n  law: {c.law}\n")
+    text += block("pipd", gains.get("rear") or vals[0])
+    if not equal:
+        for name, g in gains.items():
+            text += block(name, g)
+    s = c.schedule
+    if s is not None:
+        text += (f"  schedule:\n    v_design: {coupled.design_speed(cfg)!r}\n    v_min: {s.v_min!r}\n"
+                 f"    v_range: [{s.v_range[0]!r}, {s.v_range[1]!r}]\n    hold_ramp_s: {s.hold_ramp_s!r}\n"
+                 f"    v_filter_hz: {s.v_filter_hz!r}\n")
+    text += f"  K_P: {c.K_P!r}\n  discretization: {c.discretization}\n"
+    return text + _tuning_yaml(cfg, gains.get("rear") or vals[0])
+
+
+def vehicle_json(d: VehicleDesign) -> dict:
+    return {"gains": {c: _gains(g) for c, g in d.gains.items()},
+            "objective": VEHICLE_OBJECTIVE,
+            **coupled.to_json(d.result),
+            "configured": coupled.to_json(d.configured),
+            "checks": d.checks, "ok": all(c["ok"] for c in d.checks.values())}
+
+
+VEHICLE_OBJECTIVE = ("per carrier: inner PD as Sec. 5.2.3 on its own yaw parameters; outer PI: one lateral loop gain "
+                     "c_y v_d K for every carrier, the fastest-decaying coupled loop at v_design (continuous, D_min) "
+                     f"with complex poles damped >= {ZETA_MIN} and the sampled loop stable at +-v_design, the range's ends "
+                     "and +-v_min in the gate's damping cases; then checked over the schedule's range")

@@ -22,6 +22,9 @@ def _ev(ev) -> str:
 def run_design(cfg: RigConfig, args: argparse.Namespace) -> int:
     if not args.design:
         raise ConfigError(None, "--write", "--design as well (--write writes the designed gains)")
+    from rig_runtime import coupled
+    if coupled.applies(cfg):
+        return run_vehicle_design(cfg, args)
     try:
         d = _design.design(cfg)
     except ValueError as e:
@@ -59,3 +62,42 @@ def run_design(cfg: RigConfig, args: argparse.Namespace) -> int:
     if args.write:
         print(f"controller fragment: {args.write}")
     return 0 if all(v["ok"] for v in d.checks.values()) else 3
+
+
+def run_vehicle_design(cfg: RigConfig, args: argparse.Namespace) -> int:
+    """``rig tune --design`` on a vehicle config: every controlled carrier's scheduled gains
+    on the coupled loop (design.design_vehicle); exit 0 if every check holds, else 3."""
+    try:
+        d = _design.design_vehicle(cfg)
+    except ValueError as e:
+        raise ConfigError(cfg.source, "controller", str(e)) from None
+    if args.write:
+        p = Path(args.write)
+        if p.exists():
+            raise ConfigError(str(p), "", "a new file (refusing to overwrite)")
+        p.write_text(_design.vehicle_yaml(cfg, d.gains))
+    ok = all(v["ok"] for v in d.checks.values())
+    if args.json:
+        out = _design.vehicle_json(d)
+        if args.write:
+            out["written"] = args.write
+        print(json.dumps(out))
+        return 0 if ok else 3
+    print(f"config: {cfg.source}")
+    print(f"objective: {_design.VEHICLE_OBJECTIVE}\n")
+    names = list(d.gains)
+    print(f"{'gain':<10}" + "".join(f"{c + ' (proposed)':>18}{c + ' (configured)':>20}" for c in names))
+    for k in ("K_P_y", "K_I_y", "K_P_psi", "K_D_psi", "T_f_psi"):
+        print(f"{k:<10}" + "".join(f"{getattr(d.gains[c], k):>18.4g}{getattr(cfg.controller.gains(c), k):>20.4g}"
+                                   for c in names))
+    print("\ncoupled loop, proposed / configured: least-damped pole (1/s, D_min) and sampled |z| (gate cases)")
+    for p, q in zip(d.result.points, d.configured.points):
+        if p.v in (d.result.v_design, -d.result.v_design) or p is d.result.points[0] or p is d.result.points[-1]:
+            print(f"  v = {p.v:+6.3f}  {_ev([p.least_damped])} |z| {p.spectral_radius:.6f}   /   "
+                  f"{_ev([q.least_damped])} |z| {q.spectral_radius:.6f}")
+    print("\nchecks of the proposal:")
+    for k, v in d.checks.items():
+        print(f"  {'ok  ' if v['ok'] else 'FAIL'} {k:<38} {v['value']:.4g} (limit {v['limit']:g})")
+    if args.write:
+        print(f"controller fragment: {args.write}")
+    return 0 if ok else 3

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-from .. import analysis, ceilings
+from .. import analysis, ceilings, coupled
 from ..config import RigConfig
 from ..devices import require_complete
 from ..errors import ConfigError
@@ -66,6 +66,15 @@ def validate_scenario(cfg: RigConfig, sc: Scenario) -> None:
     for i, p in enumerate(sc.reference):
         if abs(p.y_mm) * 1e-3 > lim.y_max:
             raise ConfigError(f, f"reference[{i}].y_mm", f"|y_ref| <= limits.y_max = {lim.y_max * 1e3:g} mm", p.y_mm)
+    for carrier, points in sc.references.items():
+        if carrier not in cfg.controlled:
+            raise ConfigError(f, f"reference.{carrier}", f"references for controlled carriers only ({controlled})",
+                              carrier)
+        for i, p in enumerate(points):
+            if abs(p.y_mm) * 1e-3 > lim.y_max:
+                raise ConfigError(f, f"reference.{carrier}[{i}].y_mm",
+                                  f"|y_ref| <= limits.y_max = {lim.y_max * 1e3:g} mm", p.y_mm)
+    validate_speed(cfg, sc)
     if sc.open_loop is not None:
         for i, (_, u) in enumerate(sc.open_loop.steps):
             if abs(u) > lim.u_max:
@@ -75,6 +84,29 @@ def validate_scenario(cfg: RigConfig, sc: Scenario) -> None:
             if peak > lim.u_max:
                 raise ConfigError(f, f"open_loop.sine[{i}]",
                                   f"|bias_A| + |amplitude_A| <= limits.u_max = {lim.u_max:g} A", peak)
+
+
+def validate_speed(cfg: RigConfig, sc: Scenario) -> None:
+    """The scenario's speed profile fits the config: every point within the hardware's
+    ``v_max``; and, where the controller runs (not an open-loop experiment, whose input does
+    not depend on the gains), within ``controller.schedule.v_range`` (the range the stability
+    gate covered), or equal to ``plant.v`` without a schedule (fixed gains are analysed at
+    that speed only). The profile is piecewise linear between its points: checking them suffices."""
+    f = sc.source or sc.name
+    v_max = cfg.hardware.ceilings.v_max
+    s = cfg.controller.schedule
+    for i, p in enumerate(sc.speed):
+        key = f"speed[{i}].v"
+        if not abs(p.v) <= v_max:
+            raise ConfigError(f, key, f"|v| <= the hardware's v_max = {v_max:g} m/s ({cfg.hardware.source})", p.v)
+        if sc.open_loop is not None:
+            continue
+        if s is None and p.v != cfg.plant.v:
+            raise ConfigError(f, key, f"plant.v = {cfg.plant.v:g} m/s (the config has fixed gains, no "
+                              "controller.schedule: the speed cannot change)", p.v)
+        if s is not None and not s.v_range[0] <= p.v <= s.v_range[1]:
+            raise ConfigError(f, key, f"a speed within controller.schedule.v_range = "
+                              f"[{s.v_range[0]:g}, {s.v_range[1]:g}] m/s (the range the stability gate covers)", p.v)
 
 
 def check_duration(value: Optional[float], what: str = "--duration") -> None:
@@ -170,7 +202,8 @@ class Plan:
     duration_s: float            # inf: until SIGINT/SIGTERM
     duration_from: str
     log: Optional[Path]
-    slowest: dict                # damping D -> the slowest sampled eigenvalue (1/s)
+    slowest: dict                # damping D -> the slowest sampled eigenvalue (1/s); a vehicle config:
+                                 # "coupled" -> (v, |z|, speeds analysed, held band) of the largest |z|
 
 
 def check_run(cfg: RigConfig, scenario: Optional[Scenario], duration_s: Optional[float], *,
@@ -194,7 +227,12 @@ def check_run(cfg: RigConfig, scenario: Optional[Scenario], duration_s: Optional
         d, src = scenario.duration_s, "the scenario's duration_s"
     else:
         d, src = math.inf, "until SIGINT/SIGTERM"
-    slowest = {D: float(max(analysis.sampled_loop(cfg, D).real)) for D in (cfg.plant.D_min, cfg.plant.D_max)}
+    if coupled.applies(cfg):
+        r = coupled.analyse(cfg)
+        worst = max(r.points, key=lambda p: p.spectral_radius)
+        slowest = {"coupled": (worst.v, worst.spectral_radius, len(r.points), r.band)}
+    else:
+        slowest = {D: float(max(analysis.sampled_loop(cfg, D).real)) for D in (cfg.plant.D_min, cfg.plant.D_max)}
     return Plan(cfg, scenario, d, src, Path(log) if log is not None else None, slowest)
 
 
@@ -212,8 +250,24 @@ def describe(plan: Plan) -> list[str]:
     else:
         out.append(f"law: pipd   K_P,y = {g.K_P_y:g}  K_I,y = {g.K_I_y:g}  K_P,psi = {g.K_P_psi:g}  "
                    f"K_D,psi = {g.K_D_psi:g}  T_f,psi = {g.T_f_psi:g} s   h = {c.h:g} s")
-    out.append("sampled closed loop: stable (slowest eigenvalue " +
-               ", ".join(f"{ev:+.3f} 1/s at D = {D:g}" for D, ev in plan.slowest.items()) + ")")
+        for who in ("front", "rear"):
+            own = getattr(c, who)
+            if own is not None:
+                out.append(f"  {who} carrier's own gains: K_P,y = {own.K_P_y:g}  K_I,y = {own.K_I_y:g}  "
+                           f"K_P,psi = {own.K_P_psi:g}  K_D,psi = {own.K_D_psi:g}  T_f,psi = {own.T_f_psi:g} s")
+    if c.schedule is not None:
+        s = c.schedule
+        out.append(f"schedule: outer gains x v_d/v, v_d = {coupled.design_speed(cfg):g} m/s; v_range "
+                   f"[{s.v_range[0]:g}, {s.v_range[1]:g}] m/s; held for |v| < {s.v_min:g} m/s")
+    if "coupled" in plan.slowest:
+        v, r, n, band = plan.slowest["coupled"]
+        held = f"; held for |v| < {band[1]:g} m/s" if band else ""
+        out.append(f"sampled closed loop (coupled, carriers in contact: {', '.join(coupled.in_contact(cfg))}): "
+                   f"stable at {n} speed(s) in both directions in the gate's damping cases (largest |z| = {r:.6f} "
+                   f"at v = {v:+g} m/s{held})")
+    else:
+        out.append("sampled closed loop: stable (slowest eigenvalue " +
+                   ", ".join(f"{ev:+.3f} 1/s at D = {D:g}" for D, ev in plan.slowest.items()) + ")")
     out.append("limits (value <= hardware ceiling):")
     rows = list(ceilings.bounds(cfg))
     w = max(len(b.key) for b in rows)
@@ -226,8 +280,14 @@ def describe(plan: Plan) -> list[str]:
     if sc is None:
         out.append("scenario: none (hold y_ref = 0)")
     else:
-        ys = [p.y_mm for p in sc.reference]
-        parts = [f"reference {len(ys)} point(s), y_ref in [{min(ys):g}, {max(ys):g}] mm"]
+        parts = []
+        for who in (cfg.controlled if sc.references else ("",)):
+            ys = [p.y_mm for p in (sc.reference_for(who) if who else sc.reference)]
+            parts.append(f"reference{' ' + who if who else ''} {len(ys)} point(s), "
+                         f"y_ref in [{min(ys):g}, {max(ys):g}] mm")
+        if sc.speed:
+            vs = [p.v for p in sc.speed]
+            parts.append(f"speed profile {len(vs)} point(s), v in [{min(vs):g}, {max(vs):g}] m/s")
         if sc.open_loop is not None:
             parts.append(f"open loop on the {sc.open_loop.carrier} carrier")
         parts.append(f"{len(sc.disturbances)} disturbance(s)")
