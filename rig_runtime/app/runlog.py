@@ -165,7 +165,8 @@ def scenario_of(run: RunLog):
     if "y_ref" in run.columns and run.rows:
         idx = np.flatnonzero(run.columns["state"] == 2.0)
         idx = idx[np.linspace(0, len(idx) - 1, min(len(idx), 2000)).astype(int)] if len(idx) else idx
-        ref = Reference(sc.reference)
+        lanes = run.config.get("controlled") or run.controlled      # y_ref is the first lane's
+        ref = Reference(sc.reference_for(lanes[0]) if lanes else sc.reference)
         y = np.array([ref(x) for x in run.t_rel[idx]])
         if len(idx) and np.nanmax(np.abs(y - run.columns["y_ref"][idx])) > 1e-9:
             return None, f"scenario file {sc.source} no longer gives the recorded reference"
