@@ -4,6 +4,7 @@ PI-PD law and of a lane, per-carrier gains and references in the lanes. (Lockste
 tests/test_vehicle_e2e.py.)"""
 
 import dataclasses
+import json
 import math
 
 import pytest
@@ -256,3 +257,44 @@ def test_make_controller_takes_the_carriers_gains(vcfg):
     assert make_controller(c, 4.0, None, "front").kdp == 7.0
     assert make_controller(c, 4.0, None, "rear").kdp == vcfg.controller.pipd.K_D_psi
     assert make_controller(c, 4.0).kdp == vcfg.controller.pipd.K_D_psi
+
+
+# ------------------------------------------------------------------ live views
+def _vehicle_columns(vcfg):
+    """The vehicle's log columns (the loop's own layout, four F/T sensors)."""
+    from rig_runtime.config import LASER_ROLES, WHEELS
+    from rig_runtime.safety import Channel
+    chs = [Channel(r, "laser", 0, 1, 1) for r in LASER_ROLES] + [Channel(w, "wheel", -1, 1, 1) for w in WHEELS]
+    return tuple(log_columns(vcfg, chs, [f"ft_{w}_{c}" for w in WHEELS for c in ("fx", "fy", "fz", "mx", "my", "mz")]))
+
+
+def test_telemetry_carries_the_speed_and_the_schedule_state(vcfg):
+    from rig_runtime.app.telemetry import MAX_DATAGRAM, RowSignals
+    from tests.test_telemetry import make_rows
+    cols = _vehicle_columns(vcfg)
+    rs = RowSignals(cols)
+    assert [g.key for g in rs.groups] == ["front", "rear", "speed", "timing", "currents"]
+    block = make_rows(cols, 1)
+    ix = {c: j for j, c in enumerate(cols)}
+    block[0, ix["v_meas"]], block[0, ix["front_held"]], block[0, ix["front_g"]] = -0.15, 1.0, -6.5
+    block[0, ix["front_y_ref"]], block[0, ix["y_ref"]] = 2e-3, 2e-3
+    block[0, ix["rear_y_ref"]] = -1e-3
+    msg = rs.message(rs.values(block)[0])
+    assert msg["speed"]["v"] == -0.15 and set(msg["speed"]) == {"v", "front", "rear"}
+    assert (msg["front"]["held"], msg["front"]["g"]) == (1.0, -6.5)
+    assert (msg["front"]["y_ref"], msg["rear"]["y_ref"]) == (2e-3, -1e-3)      # each carrier's own
+    assert len(json.dumps(rs.worst_case(), separators=(",", ":"))) < MAX_DATAGRAM // 2   # room for device health
+
+
+def test_panel_shows_the_speed_and_a_held_lateral_loop(vcfg):
+    from rig_runtime.app.panel import render
+    from tests.test_panel import row_dict, text_of
+    cols = _vehicle_columns(vcfg)
+    row = row_dict(cols, v_meas=-0.123, front_held=1.0, rear_held=0.0, front_g=-8.13, rear_g=-8.13,
+                   front_y_ref=0.002, rear_y_ref=-0.001, y_ref=0.002)
+    text = text_of(render(row, {}, controlled=("front", "rear")), width=200)
+    assert "v̂ -0.123 m/s" in text
+    front = next(l for l in text.splitlines() if l.lstrip().startswith("front "))
+    rear = next(l for l in text.splitlines() if l.lstrip().startswith("rear "))
+    assert "HELD" in front and "-8.13" in front and "2.00" in front
+    assert "HELD" not in rear and " on" in rear and "-1.00" in rear
