@@ -120,14 +120,18 @@ def main() -> int:
             if v:
                 print(f"  {k:46s} {sum(v) / n * 1e6:14.1f} {statistics.median(v) * 1e6:12.1f} {len(v) / n:12.2f}")
         return 0
-    print(f"mean us per cycle ({args.scenario}, {args.duration:g} s); config: " +
+    print(f"us: mean per cycle / median per call ({args.scenario}, {args.duration:g} s); config: " +
           ", ".join(f"[{i}] {name}" for i, (name, _, _) in enumerate(runs)))
-    print(f"  {'':46s} " + " ".join(f"{f'[{i}]':>9s}" for i in range(len(runs))))
+    print(f"  {'':46s} " + " ".join(f"{f'[{i}] mean':>9s} {'p50':>7s}" for i in range(len(runs))))
     print(f"  {'in the loop (whole cycle)':46s} " +
-          " ".join(f"{s['wall_time_s'] / s['cycles'] * 1e6:9.1f}" for _, s, _ in runs))
+          " ".join(f"{s['wall_time_s'] / s['cycles'] * 1e6:9.1f} {'':>7s}" for _, s, _ in runs))
     keys = list(dict.fromkeys(k for _, _, smp in runs for k in smp))
     for k in keys:
-        print(f"  {k:46s} " + " ".join(f"{sum(smp.get(k, [])) / s['cycles'] * 1e6:9.1f}" for _, s, smp in runs))
+        cells = []
+        for _, s, smp in runs:
+            v = smp.get(k, [])
+            cells.append(f"{sum(v) / s['cycles'] * 1e6:9.1f} {statistics.median(v) * 1e6 if v else 0.0:7.1f}")
+        print(f"  {k:46s} " + " ".join(cells))
     return 0
 
 
