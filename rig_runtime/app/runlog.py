@@ -283,8 +283,9 @@ def format_info(d: dict) -> list[str]:
         lines.append("faults: none")
     if d["steps"]:
         lines.append("steps:")
+        several = len({s.get("carrier") for s in d["steps"]}) > 1
         for s in d["steps"]:
-            lines.append(f"  {s['from_mm']:+.2f} -> {s['to_mm']:+.2f} mm at {s['t0']:.2f} s: rise "
+            lines.append(f"  {s['carrier'] + ' ' if several else ''}{s['from_mm']:+.2f} -> {s['to_mm']:+.2f} mm at {s['t0']:.2f} s: rise "
                          f"{num(s['rise_time_s'], '.2f')} s, overshoot {num(s['overshoot_pct'], '.1f')} %, settling "
                          f"{num(s['settling_time_s'], '.2f')} s, steady-state error {num(s['steady_state_error_mm'], '+.4f')} mm")
     else:
