@@ -1,5 +1,6 @@
 """The control loop: one fixed period, the stages of ``docs/architecture.md`` in order —
-operator command, read, geometry, supervisor, control (per lane), limit, write, record —
+operator command, read, geometry, measured speed, supervisor, control (per lane: schedule and
+law), limit, write, record —
 with one timestamp per cycle.
 
 The loop owns time (a ``Clock``), never blocks on I/O (drivers drain OS buffers), freezes
