@@ -7,9 +7,15 @@ drives" handles the runtime's frames (the replies wait in an outbox), "frames se
 the replies; both the replies, the wheel speeds and the F/T work run while the kernel
 delivers the laser bytes; what is left of that wait is "wait until the laser bytes are
 delivered", the last part of ``advance``. "advance" is the whole simulator step (the
-parts plus what is not timed separately).
+parts plus what is not timed separately). The runtime's stages of the cycle (loop.py) are
+timed too: the geometry, the measured speed, the supervisor, control (the lanes' schedule
+and law), the output limit and the log row.
 
-    python benchmarks/lockstep_breakdown.py [--duration S]
+With several ``--config`` the runs are made one after the other in one process and shown
+side by side (e.g. the paper's single-carrier set-up against the vehicle):
+
+    python benchmarks/lockstep_breakdown.py [--duration S] [--scenario NAME]
+    python benchmarks/lockstep_breakdown.py --config configs/sim.yaml --config configs/vehicle.yaml
 """
 
 from __future__ import annotations
@@ -25,10 +31,19 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from rig_runtime import config  # noqa: E402
+from rig_runtime.loop import ControlLoop  # noqa: E402
 from rig_runtime.scenario import load_scenario  # noqa: E402
+from rig_runtime.speed import SpeedEstimate  # noqa: E402
 from rig_runtime.app import dryrun  # noqa: E402
 
 samples: dict[str, list[float]] = collections.defaultdict(list)
+STAGES = ((ControlLoop, "_measure", "runtime: stage geometry (_measure)"),
+          (SpeedEstimate, "update", "runtime: stage measured speed"),
+          (ControlLoop, "_supervise", "runtime: stage supervisor (rules)"),
+          (ControlLoop, "_estimate", "runtime: stage observer (_estimate)"),
+          (ControlLoop, "_control", "runtime: stage control (schedule + law)"),
+          (ControlLoop, "_limit", "runtime: stage output limit"),
+          (ControlLoop, "row", "runtime: log row"))
 
 
 def timed(f, key: str):
@@ -69,23 +84,54 @@ def prepare(sim, dev, clock) -> None:
     wrap(dev, "write", "runtime: devices.write")
 
 
+def measure(path, scenario: str, duration: float) -> tuple[dict, dict[str, list[float]]]:
+    """One run of ``scenario`` with config ``path`` (None: the default); its summary and timers."""
+    samples.clear()
+    cfg = config.load(path) if path else config.load()
+    originals = [(cls, name, getattr(cls, name)) for cls, name, _ in STAGES]
+    for cls, name, key in STAGES:
+        setattr(cls, name, timed(getattr(cls, name), key))
+    try:
+        t0 = time.perf_counter()
+        with tempfile.TemporaryDirectory() as d:
+            s, _ = dryrun.run_lockstep(cfg, load_scenario(scenario), Path(d) / "x.h5",
+                                       duration_s=duration, prepare=prepare)
+        s["wall_all"] = time.perf_counter() - t0
+    finally:
+        for cls, name, f in originals:
+            setattr(cls, name, f)
+    return s, {k: list(v) for k, v in samples.items()}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=10.0)
+    ap.add_argument("--scenario", default="single-step")
+    ap.add_argument("--config", action="append", help="a config (repeat: side by side; default: the shipped one)")
     args = ap.parse_args()
-    cfg = config.load()
-    t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory() as d:
-        s, _ = dryrun.run_lockstep(cfg, load_scenario("single-step"), Path(d) / "x.h5",
-                                   duration_s=args.duration, prepare=prepare)
-    wall = time.perf_counter() - t0
-    n = s["cycles"]
-    print(f"{n} cycles, {wall / n * 1e6:.0f} us per cycle in all (incl. set-up), "
-          f"{s['wall_time_s'] / n * 1e6:.0f} us in the loop")
-    print(f"  {'':42s} {'mean us/cycle':>14s} {'p50 us/call':>12s} {'calls/cycle':>12s}")
-    for k, v in samples.items():
-        if v:
-            print(f"  {k:42s} {sum(v) / n * 1e6:14.1f} {statistics.median(v) * 1e6:12.1f} {len(v) / n:12.2f}")
+    runs = [(p or "default", *measure(p, args.scenario, args.duration)) for p in (args.config or [None])]
+    if len(runs) == 1:
+        _, s, smp = runs[0]
+        n = s["cycles"]
+        print(f"{n} cycles, {s['wall_all'] / n * 1e6:.0f} us per cycle in all (incl. set-up), "
+              f"{s['wall_time_s'] / n * 1e6:.0f} us in the loop")
+        print(f"  {'':46s} {'mean us/cycle':>14s} {'p50 us/call':>12s} {'calls/cycle':>12s}")
+        for k, v in smp.items():
+            if v:
+                print(f"  {k:46s} {sum(v) / n * 1e6:14.1f} {statistics.median(v) * 1e6:12.1f} {len(v) / n:12.2f}")
+        return 0
+    print(f"us: mean per cycle / median per call ({args.scenario}, {args.duration:g} s); config: " +
+          ", ".join(f"[{i}] {name}" for i, (name, _, _) in enumerate(runs)))
+    print(f"  {'':46s} " + " ".join(f"{f'[{i}] mean':>9s} {'p50':>7s}" for i in range(len(runs))))
+    print(f"  {'in the loop (whole cycle)':46s} " +
+          " ".join(f"{s['wall_time_s'] / s['cycles'] * 1e6:9.1f} {'':>7s}" for _, s, _ in runs))
+    keys = list(dict.fromkeys(k for _, _, smp in runs for k in smp))
+    for k in keys:
+        cells = []
+        for _, s, smp in runs:
+            v = smp.get(k, [])
+            cells.append(f"{sum(v) / s['cycles'] * 1e6:9.1f} {statistics.median(v) * 1e6 if v else 0.0:7.1f}")
+        print(f"  {k:46s} " + " ".join(cells))
     return 0
 
 

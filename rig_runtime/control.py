@@ -17,7 +17,7 @@ import math
 from dataclasses import dataclass
 from typing import Sequence
 
-from .config import PIPD_GAINS
+from .config import PIPD_GAINS, PIPDGains
 from .config import Controller as ControllerConfig
 
 
@@ -40,10 +40,19 @@ class PIPDController:
     ``step(y_ref, y, psi)`` returns the saturated current command; ``limit_feedback(u)``
     tells the controller what was actually applied after the safety limits, so that the
     outer integrator does not wind up against a limit it did not impose itself.
+
+    The speed schedule (docs/vehicle/runtime.md) acts through two calls between steps:
+    ``set_gain_factor(g)`` makes the outer PI's gains K_P_y·g and K_I_y·g (the integrator
+    integrates g·e_y, so its share of ψ_ref does not jump when g changes: it holds the yaw
+    angle the offsets need, which does not depend on the speed); ``hold(ramp_s)`` freezes
+    the integrator and ramps ψ_ref linearly to 0 over ``ramp_s`` while the inner PD keeps
+    ψ at ψ_ref; ``resume()`` re-seeds the integrator at the next step so that ψ_ref goes on
+    from where the hold left it. With g = 1 and no hold the law is the paper's, bit for bit.
     """
 
-    def __init__(self, cfg: ControllerConfig, u_max: float, psi_ref_max: float | None = None):
-        g = cfg.pipd
+    def __init__(self, cfg: ControllerConfig, u_max: float, psi_ref_max: float | None = None,
+                 gains: PIPDGains | None = None):
+        g = gains if gains is not None else cfg.pipd
         self.h = cfg.h
         self.kpy, self.kiy, self.kpp, self.kdp, self.tf = g.K_P_y, g.K_I_y, g.K_P_psi, g.K_D_psi, g.T_f_psi
         self.u_max = u_max
@@ -56,31 +65,71 @@ class PIPDController:
         self._e_psi_prev = 0.0
         self._dI = 0.0          # integration done in the last step (undone on limit feedback)
         self._started = False
+        self.g = 1.0            # the schedule's gain factor on K_P_y, K_I_y (1: fixed gains)
+        self.held = False       # the lateral loop holds (standstill band)
+        self._reseed = False    # resumed: the next step re-seeds x_I (ψ_ref continuous)
+        self._psi_hold = 0.0    # ψ_ref when the hold began
+        self._hold_n = 1        # steps of the ramp to 0
+        self._hold_k = 0        # steps held so far
 
     def reset(self) -> None:
         """Forget all history; the next step starts bumplessly."""
         self.st = PIPDInternals()
         self._e_y_prev = self._e_psi_prev = self._dI = 0.0
         self._started = False
+        self.held = self._reseed = False
+
+    def set_gain_factor(self, g: float) -> None:
+        """The schedule's factor on the outer PI's gains from the next step on (sign included)."""
+        self.g = g
+
+    def hold(self, ramp_s: float) -> None:
+        """Enter the hold: integrator frozen, ψ_ref from its latest value linearly to 0 over
+        ``ramp_s`` (at least one step); the inner PD keeps running."""
+        if not self.held:
+            self.held = True
+            self._reseed = False
+            self._psi_hold = self.st.psi_ref
+            self._hold_n = max(1, round(ramp_s / self.h))
+            self._hold_k = 0
+
+    def resume(self) -> None:
+        """Leave the hold: the next step re-seeds x_I so that ψ_ref is continuous (bumpless)."""
+        if self.held:
+            self.held = False
+            self._reseed = True
 
     def start(self, y_ref: float, y: float, psi: float, u0: float = 0.0) -> None:
         """Bumpless start: choose x_I so that ψ_ref = ψ (no proportional jump) and seed the
         differentiator with the current error (no derivative kick)."""
         e_y = y_ref - y
-        x_I = (psi + u0 / self.kpp - self.kpy * e_y) / self.kiy if self.kiy else 0.0
+        x_I = (psi + u0 / self.kpp - self.kpy * self.g * e_y) / self.kiy if self.kiy else 0.0
         self.st = PIPDInternals(e_y=e_y, x_I=x_I, psi_ref=psi + u0 / self.kpp, u=u0, u_unsat=u0)
         self._e_y_prev = e_y
         self._e_psi_prev = u0 / self.kpp
         self._started = True
+        self.held = self._reseed = False
 
     def step(self, y_ref: float, y: float, psi: float) -> float:
         if not self._started:
             self.start(y_ref, y, psi)
         st = self.st
         e_y = y_ref - y
-        dI = 0.5 * self.h * (e_y + self._e_y_prev)
-        x_I = st.x_I + dI
-        psi_ref = self.kpy * e_y + self.kiy * x_I
+        g = self.g
+        if self.held:                       # standstill: integrator frozen, ψ_ref ramps to 0
+            dI = 0.0
+            x_I = st.x_I
+            k = self._hold_k = self._hold_k + 1
+            psi_ref = self._psi_hold * (1.0 - k / self._hold_n) if k < self._hold_n else 0.0
+        else:
+            if self._reseed:                # resumed: ψ_ref goes on from the held value
+                self._reseed = False
+                dI = 0.0
+                x_I = (st.psi_ref - self.kpy * g * e_y) / self.kiy if self.kiy else 0.0
+            else:
+                dI = 0.5 * self.h * g * (e_y + self._e_y_prev)
+                x_I = st.x_I + dI
+            psi_ref = self.kpy * g * e_y + self.kiy * x_I
         lim = self.psi_ref_max
         if lim is not None and (psi_ref > lim or psi_ref < -lim):
             clipped = lim if psi_ref > 0 else -lim
@@ -138,9 +187,10 @@ class PIPDController:
         v = _positive(name, value)
         st = self.st
         if self._started and name in ("K_P_y", "K_I_y") and self.kiy:
-            psi_ref = self.kpy * st.e_y + self.kiy * st.x_I          # unclipped, as the last step made it
+            g = self.g
+            psi_ref = self.kpy * g * st.e_y + self.kiy * st.x_I      # unclipped, as the last step made it
             kpy, kiy = (v, self.kiy) if name == "K_P_y" else (self.kpy, v)
-            st.x_I = (psi_ref - kpy * st.e_y) / kiy
+            st.x_I = (psi_ref - kpy * g * st.e_y) / kiy
         setattr(self, attr, v)
         if name == "T_f_psi":
             den = 2.0 * self.tf + self.h
@@ -157,22 +207,35 @@ class PIPDController:
 
 
 class PController:
-    """The P baseline of Sec. 5.1: u = K_P (y_ref − y), saturated."""
+    """The P baseline of Sec. 5.1: u = K_P (y_ref − y), saturated. Scheduled, K_P·g; held,
+    u = 0 (the law has no yaw loop to keep ψ at 0 with)."""
 
     def __init__(self, cfg: ControllerConfig, u_max: float):
         self.kp = cfg.K_P
         self.u_max = u_max
         self.st = PIPDInternals()
+        self.g = 1.0
+        self.held = False
 
     def reset(self) -> None:
         self.st = PIPDInternals()
 
     def start(self, y_ref: float, y: float, psi: float, u0: float = 0.0) -> None:
         self.reset()
+        self.held = False
+
+    def set_gain_factor(self, g: float) -> None:
+        self.g = g
+
+    def hold(self, ramp_s: float) -> None:
+        self.held = True
+
+    def resume(self) -> None:
+        self.held = False
 
     def step(self, y_ref: float, y: float, psi: float) -> float:
         e = y_ref - y
-        u = self.kp * e
+        u = 0.0 if self.held else self.kp * self.g * e
         u_sat = min(self.u_max, max(-self.u_max, u))
         st = self.st
         st.e_y, st.u_unsat, st.u = e, u, u_sat
@@ -201,11 +264,12 @@ def _positive(name: str, value: float) -> float:
     return v
 
 
-def make_controller(cfg: ControllerConfig, u_max: float, psi_ref_max: float | None = None):
-    """The configured control law."""
+def make_controller(cfg: ControllerConfig, u_max: float, psi_ref_max: float | None = None,
+                    carrier: str | None = None):
+    """The configured control law (with ``carrier``: that carrier's gains, ``cfg.gains``)."""
     if cfg.law == "p":
         return PController(cfg, u_max)
-    return PIPDController(cfg, u_max, psi_ref_max)
+    return PIPDController(cfg, u_max, psi_ref_max, cfg.gains(carrier) if carrier is not None else None)
 
 
 # --------------------------------------------------------------------------- open loop

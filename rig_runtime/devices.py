@@ -98,7 +98,9 @@ class RigDevices:
             lo = lc.offset_mm * 1e-3
             out.append(Channel(role, "laser", lo, lo + lc.measuring_range_mm * 1e-3, self._stale,
                                step_max=step, stuck_check=True))
-        w_max = 3.0 * abs(cfg.plant.v) / cfg.plant.r0 + 10.0
+        sch = cfg.controller.schedule      # a vehicle runs over its schedule's speed range
+        v = max(abs(cfg.plant.v), *(abs(x) for x in sch.v_range)) if sch is not None else abs(cfg.plant.v)
+        w_max = 3.0 * v / cfg.plant.r0 + 10.0
         for w in WHEELS:
             out.append(Channel(w, "wheel", -w_max, w_max, self._stale, stuck_check=True))
         for n in self.ft_names:

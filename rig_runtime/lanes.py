@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from typing import Callable, Mapping, MutableMapping, Optional, Sequence
 
-from .config import WHEELS, RigConfig
+from .config import WHEELS, RigConfig, Schedule
 from .control import make_controller
 from .geometry import Measurement
 from .observer import Observer, ObserverDesign
@@ -41,16 +41,20 @@ def wheel_currents(lanes: Sequence["Lane"], out: MutableMapping[str, float]) -> 
 
 class Lane:
     """One carrier the runtime drives (see the module docstring). Per cycle: ``sense`` →
-    ``estimate`` (a lane with an observer) → (``start`` when RUNNING begins) → ``control``
-    → ``apply``."""
+    ``estimate`` (a lane with an observer) → (``start`` when RUNNING begins) →
+    ``schedule`` → ``control`` → ``apply``."""
 
     __slots__ = ("carrier", "wheels", "controller", "reference", "open_loop", "controlled",
-                 "y", "psi", "dw", "y_ref", "u_cmd", "u", "observer", "lateral_lasers", "ft_sensors")
+                 "y", "psi", "dw", "y_ref", "u_cmd", "u", "observer", "lateral_lasers", "ft_sensors",
+                 "sched", "v_design")
 
     def __init__(self, carrier: str, controller, reference: Callable[[float], float],
                  open_loop: Optional[Callable[[float], float]] = None,
-                 observer: Optional[ObserverDesign] = None):
+                 observer: Optional[ObserverDesign] = None,
+                 schedule: Optional[Schedule] = None, v_design: float = 1.0):
         self.carrier = carrier
+        self.sched = schedule if controller is not None else None   # None: fixed gains
+        self.v_design = v_design
         self.observer = Observer(observer) if observer is not None else None
         self.lateral_lasers = observer.lateral_lasers if observer is not None else ()
         self.ft_sensors = observer.ft_sensors if observer is not None else ()
@@ -74,6 +78,29 @@ class Lane:
         judges them; ``y_other``: the other carrier's lateral displacement, ``f_lat``: its
         measured lateral force (N), known inputs)."""
         self.observer.step(self.y, self.psi, self.dw, self.u, y_other, lat_ok, f_lat)
+
+    def schedule(self, v_hat: float) -> None:
+        """The speed schedule on the measured speed ``v_hat`` (the schedule law,
+        docs/vehicle/runtime.md): outside the standstill band the outer PI's gain factor is
+        g = v_design / v̂ (sign included); inside it (|v̂| < v_min, or no speed measured) the
+        lateral loop holds, and it resumes bumplessly on leaving it. Nothing without a
+        ``controller.schedule``."""
+        sch = self.sched
+        if sch is None:
+            return
+        c = self.controller
+        if abs(v_hat) >= sch.v_min:         # False for NaN: no speed, no lateral control
+            c.set_gain_factor(self.v_design / v_hat)
+            if c.held:
+                c.resume()
+        elif not c.held:
+            c.hold(sch.hold_ramp_s)
+
+    def log_values(self) -> tuple[float, float, float, float, float]:
+        """``LANE_FIELDS`` of the loop's log: u_cmd, u_lim, y_ref, the schedule's gain factor
+        and whether the lateral loop holds (1.0/0.0)."""
+        c = self.controller
+        return (self.u_cmd, self.u, self.y_ref, c.g, 1.0 if c.held else 0.0)
 
     def start(self) -> None:
         """RUNNING began: the controller starts bumplessly on the reference's first value."""
@@ -99,20 +126,33 @@ class Lane:
             self.controller.limit_feedback(u)
 
 
-def make_lanes(cfg: RigConfig, reference: Callable[[float], float],
+def make_lanes(cfg: RigConfig, reference: Callable[[float], float] | Mapping[str, Callable[[float], float]],
                open_loop: Optional[tuple[str, Callable[[float], float]]] = None,
                observers: Optional[Mapping[str, ObserverDesign]] = None) -> list[Lane]:
-    """A lane per controlled carrier (PI-PD or P with the configured gains and limits), plus
-    one for an open-loop input on a carrier that is not controlled (in that order); a
-    controlled carrier with a design in ``observers`` carries its observer."""
+    """A lane per controlled carrier (PI-PD or P with that carrier's gains, the configured
+    limits and speed schedule), plus one for an open-loop input on a carrier that is not
+    controlled (in that order); a controlled carrier with a design in ``observers`` carries
+    its observer. ``reference``: one y_ref(t) for every carrier, or one per carrier by name
+    (a carrier without one holds 0). ``open_loop``: (carrier, u(t)); the carrier ``both``
+    plays the input on every controlled carrier (the controller off)."""
     observers = observers or {}
     lim = cfg.limits
+    refs = reference if isinstance(reference, Mapping) else None
     ol_carrier, ol_input = open_loop if open_loop is not None else (None, None)
-    carriers = list(cfg.controlled) + ([ol_carrier] if ol_carrier and ol_carrier not in cfg.controlled else [])
+    ol_carriers = tuple(cfg.controlled) if ol_carrier == "both" else (ol_carrier,)
+    carriers = list(cfg.controlled) + ([ol_carrier] if ol_carrier and ol_carrier != "both"
+                                       and ol_carrier not in cfg.controlled else [])
+    sch = cfg.controller.schedule
+    v_design = sch.v_design if sch is not None and sch.v_design is not None else cfg.plant.v
     lanes = []
     for carrier in carriers:
         controlled = carrier in cfg.controlled
-        ctrl = make_controller(cfg.controller, lim.u_max, lim.psi_ref_max) if controlled else None
-        lanes.append(Lane(carrier, ctrl, reference, ol_input if carrier == ol_carrier else None,
-                          observers.get(carrier) if controlled else None))
+        ctrl = make_controller(cfg.controller, lim.u_max, lim.psi_ref_max, carrier) if controlled else None
+        ref = refs.get(carrier, _zero) if refs is not None else reference
+        lanes.append(Lane(carrier, ctrl, ref, ol_input if carrier in ol_carriers else None,
+                          observers.get(carrier) if controlled else None, sch, v_design))
     return lanes
+
+
+def _zero(t: float) -> float:
+    return 0.0

@@ -1,5 +1,6 @@
 """The control loop: one fixed period, the stages of ``docs/architecture.md`` in order —
-operator command, read, geometry, supervisor, control (per lane), limit, write, record —
+operator command, read, geometry, measured speed, supervisor, control (per lane: schedule and
+law), limit, write, record —
 with one timestamp per cycle.
 
 The loop owns time (a ``Clock``), never blocks on I/O (drivers drain OS buffers), freezes
@@ -35,6 +36,8 @@ from .mailbox import Command
 from .observer import LOG_FIELDS as OBSERVER_FIELDS
 from .observer import ObserverDesign
 from .safety import Channel, State, Supervisor
+from .speed import SpeedEstimate
+from .speed import columns as speed_columns
 from .stats import CycleStats
 
 
@@ -54,7 +57,7 @@ class RunResult:
 CYCLE_FIELDS = ("t", "t_run", "lateness", "work", "state", "y_ref")
 MEASUREMENT_FIELDS = Measurement._fields
 CONTROLLER_FIELDS = tuple(f for f in PIPDInternals.__dataclass_fields__ if f != "u")
-LANE_FIELDS = ("u_cmd", "u_lim")
+LANE_FIELDS = ("u_cmd", "u_lim", "y_ref", "g", "held")     # Lane.log_values
 LOGGED_KINDS = ("laser", "wheel")       # channels whose value and age are logged
 
 
@@ -74,6 +77,7 @@ def log_columns(cfg: RigConfig, channels: Sequence[Channel], extra_columns: Sequ
             cols += (n, f"{n}_age")
     cols += extra_columns
     cols += MEASUREMENT_FIELDS
+    cols += speed_columns(cfg.plant)
     for carrier in cfg.controlled:
         cols += (f"{carrier}_{f}" for f in CONTROLLER_FIELDS + LANE_FIELDS)
     cols += (f"i_{w}" for w in WHEELS)
@@ -103,7 +107,7 @@ class ControlLoop:
     collaborators are given here, at construction."""
 
     def __init__(self, cfg: RigConfig, devices: Hardware, clock: Clock, *,
-                 reference: Callable[[float], float] = lambda t: 0.0,
+                 reference: Callable[[float], float] | Mapping[str, Callable[[float], float]] = lambda t: 0.0,
                  open_loop: Optional[tuple[str, Callable[[float], float]]] = None,
                  recorder=None, mailbox=None, on_event: Callable | None = None,
                  observers: Optional[Mapping[str, ObserverDesign]] = None):
@@ -119,9 +123,10 @@ class ControlLoop:
         self.controllers = [l.controller for l in self.lanes if l.controlled]
         self.observed = [l for l in self.lanes if l.observer is not None]
         self._front_contact = cfg.plant.front_contact
+        self.speed = SpeedEstimate.from_config(cfg)
         self.supervisor = Supervisor(cfg.limits, self.h, self.channels, [l.carrier for l in self.lanes], devices,
                                      on_event=self._event, observers=[l.observer for l in self.observed],
-                                     degraded=cfg.degraded)
+                                     degraded=cfg.degraded, v_max=cfg.hardware.ceilings.v_max)
         self.stats = CycleStats()
         self.stop_requested = False
         self.stop_reason = "stop requested (signal)"
@@ -140,10 +145,11 @@ class ControlLoop:
                 get.append(lambda cy, c=c: (c.value, cy.t - c.t))
         get.append(attrgetter("wrench"))
         get.append(attrgetter("m"))
+        get.append(lambda cy, sp=self.speed: sp.log_values())
         st = attrgetter(*CONTROLLER_FIELDS)
         for lane in self.lanes:
             if lane.controlled:
-                get.append(lambda cy, l=lane, st=st: (*st(l.controller.st), l.u_cmd, l.u))
+                get.append(lambda cy, l=lane, st=st: (*st(l.controller.st), *l.log_values()))
         get.append(lambda cy: [cy.currents[w] for w in WHEELS])
         for lane in self.lanes:
             if lane.observer is not None:
@@ -259,6 +265,7 @@ class ControlLoop:
                 self._operator_command(t)
                 reading = self.dev.poll(t)
                 self._measure(reading)
+                self.speed.update(reading.values)     # v̂ from the wheel encoders of the carriers in contact
                 step = self._supervise(t, reading)
                 self._estimate(t)
                 if step.started:
@@ -322,7 +329,8 @@ class ControlLoop:
         misses = self.stats.overrun_periods + int(self.cycle.lateness / self.h)
         poses = [(l.carrier, l.y, l.psi) for l in self.lanes if l.controlled]
         return sup.cycle(t, reading.samples, reading.converters, poses, misses,
-                         rec.healthy if rec is not None else True, rec.error if rec is not None else "")
+                         rec.healthy if rec is not None else True, rec.error if rec is not None else "",
+                         self.speed)
 
     def _estimate(self, t: float) -> None:
         """Each observed lane's observer on this cycle's measurement; the lateral lasers are
@@ -358,9 +366,12 @@ class ControlLoop:
             lane.start()
 
     def _control(self, t: float, running: bool) -> None:
+        """Each lane's schedule on v̂ (gain factor, hold), then its command."""
         cy = self.cycle
         tr = cy.t_run = t - self.t_start if self.t_start is not None else 0.0
+        v_hat = self.speed.v_hat
         for lane in self.lanes:
+            lane.schedule(v_hat)
             lane.control(tr, running)
         cy.y_ref = self.lanes[0].y_ref if self.lanes else 0.0
 

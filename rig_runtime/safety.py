@@ -272,6 +272,42 @@ def output_not_finite(carrier: str, u: float, lim: Limits) -> Finding:
 OUTPUT_RULES = (output_not_finite,)
 
 
+# ---------------------------------------------------------------------- speed rules
+# A speed rule takes the measured speed (rig_runtime.speed.SpeedEstimate: ``carriers``, their
+# filtered speeds ``v`` and v̂ ``v_hat``, m/s), the limits and the hardware's v_max, and
+# returns (device, check, value, limit, message) or None. Not finite (no encoder value yet):
+# the channel rules judge the encoders themselves.
+def speed_disagree(sp, lim: Limits, v_max: float) -> Optional[tuple]:
+    """The carriers on the rollers run at one roller speed: encoders that disagree about it by
+    more than ``limits.v_disagree_max`` are wrong (a slipping or miscounting encoder, an
+    offset) — which of them the rule cannot tell; the finding names both carriers' values."""
+    v = sp.v
+    if len(v) < 2:
+        return None
+    lo = hi = v[0]
+    for x in v:
+        lo = x if x < lo else lo
+        hi = x if x > hi else hi
+    d = hi - lo
+    if d > lim.v_disagree_max:
+        each = ", ".join(f"{c} {x:+.3f} m/s" for c, x in zip(sp.carriers, v))
+        return ("encoders", "speed_disagree", d, lim.v_disagree_max,
+                f"the carriers' wheel encoders disagree about the roller speed by {d:.3f} m/s ({each})")
+    return None
+
+
+def speed_range(sp, lim: Limits, v_max: float) -> Optional[tuple]:
+    """|v̂| above the hardware's ``ceilings.v_max``: beyond what the rollers can run."""
+    v = sp.v_hat
+    if abs(v) > v_max:
+        return ("encoders", "speed_range", v, v_max,
+                f"measured roller speed {v:+.3f} m/s beyond the hardware's v_max ({'/'.join(sp.carriers)} encoders)")
+    return None
+
+
+SPEED_RULES = (speed_disagree, speed_range)
+
+
 # ---------------------------------------------------------------------- observer rules
 # An observer rule takes one carrier's observer (rig_runtime.observer.Observer: its window
 # statistics of the normalised innovations, as of the latest estimate) and returns
@@ -334,8 +370,10 @@ class Supervisor:
 
     def __init__(self, limits: Limits, h: float, channels: Sequence[Channel], carriers: Sequence[str],
                  hardware: Hardware, on_event: Callable | None = None, activate_timeout_s: float = 0.5,
-                 observers: Sequence = (), degraded=None):
+                 observers: Sequence = (), degraded=None, v_max: float = math.inf):
         self._limits = limits           # frozen, and not replaceable: see the property
+        self.v_max = v_max              # the hardware's ceiling on |v̂| (speed_range)
+        self._speed = None              # this cycle's measured speed (rig_runtime.speed), if given
         self.h = h
         self.channels = list(channels)
         self._by_name = {c.name: c for c in self.channels}
@@ -479,11 +517,13 @@ class Supervisor:
 
     # ------------------------------------------------------------------ per cycle
     def cycle(self, t: float, samples: Mapping[str, Sample], conv: Converters, poses: Sequence[tuple[str, float, float]],
-              consecutive_misses: int, recorder_ok: bool, recorder_cause: str) -> Step:
+              consecutive_misses: int, recorder_ok: bool, recorder_cause: str, speed=None) -> Step:
         """Observe this cycle's samples (by channel name), make the transitions that are due,
         and (while ARMED/RUNNING/STOPPING) apply every rule in order. ``poses``: (carrier,
-        y, ψ) of each controlled carrier."""
+        y, ψ) of each controlled carrier; ``speed``: the measured roller speed (judged by
+        the speed rules after the pose rules; None: not judged)."""
         self._latched = None
+        self._speed = speed
         self._started = False
         for c in self.channels:
             c.observe(samples[c.name])
@@ -538,6 +578,11 @@ class Supervisor:
                 f = rule(p, self._deg_limits if p.carrier in self.degraded_since else lim)
                 if f is not None:
                     return self.trip(t, "geometry", *f)
+        if self._speed is not None:
+            for rule in SPEED_RULES:
+                f = rule(self._speed, lim, self.v_max)
+                if f is not None:
+                    return self.trip(t, *f)
         for rule in OBSERVER_RULES:
             for o in self.observers:
                 if self._channel_evidence(o.d.channels):

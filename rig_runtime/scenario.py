@@ -46,7 +46,7 @@ class SineInput:
 
 @dataclass(frozen=True, kw_only=True)
 class OpenLoop:
-    carrier: Literal["front", "rear"] = "rear"
+    carrier: Literal["front", "rear", "both"] = "rear"     # both: every carrier plays it (the controller off)
     steps: tuple[tuple[float, float], ...] = ()      # [[t, u_A], ...]
     sine: Optional[tuple[SineInput, ...]] = None      # consecutive sines (e.g. 4.8 then 2.4 mHz)
 
@@ -55,6 +55,11 @@ class OpenLoop:
             raise ConfigError(None, "steps", "either steps or sine (one of them, not both)")
         _increasing([t for t, _ in self.steps], "steps", "[t, u_A] pairs with times >= 0, increasing")
         _increasing([s.t0 for s in self.sine or ()], "sine", "sines whose t0 increase")
+
+    @property
+    def carriers(self) -> tuple[str, ...]:
+        """The carriers that play the input."""
+        return ("front", "rear") if self.carrier == "both" else (self.carrier,)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -25,8 +25,9 @@ def test_dry_run_json_summary_and_export(tmp_path):
         assert set(d["timing"][k]) >= {"p50", "p99", "p999", "max"}
     assert "deadline_misses" in d["timing"]
     assert d["final_state"] == "IDLE" and d["log"] == str(log)
-    assert set(d["steps"][0]) == {"t0", "from_mm", "to_mm", "rise_time_s", "overshoot_pct", "settling_time_s",
-                                  "steady_state_error_mm"}
+    assert set(d["steps"][0]) == {"carrier", "t0", "from_mm", "to_mm", "rise_time_s", "overshoot_pct",
+                                  "settling_time_s", "steady_state_error_mm"}
+    assert d["steps"][0]["carrier"] == "rear"
     assert (tmp_path / "rep" / "response.png").stat().st_size > 10000
     assert "Steps" in (tmp_path / "rep" / "summary.md").read_text()
     out = tmp_path / "run.csv"

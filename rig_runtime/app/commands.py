@@ -64,10 +64,12 @@ def _print_summary(summary: dict, as_json: bool) -> None:
     if "steps" in summary:
         if summary.get("clock") != "lockstep":
             print(f"simulated {summary['sim_time_s']:.1f} s in {summary['wall_time_s']:.1f} s wall")
+        several = len({s.get("carrier") for s in summary["steps"]}) > 1
         for s in summary["steps"]:
             def f(v, fmt):
                 return format(v, fmt) if v is not None else "-"
-            print(f"  step {s['from_mm']:+.2f} -> {s['to_mm']:+.2f} mm at {s['t0']:.1f}s: rise {f(s['rise_time_s'], '.2f')} s, "
+            who = f"{s['carrier']} " if several else ""
+            print(f"  {who}step {s['from_mm']:+.2f} -> {s['to_mm']:+.2f} mm at {s['t0']:.1f}s: rise {f(s['rise_time_s'], '.2f')} s, "
                   f"overshoot {f(s['overshoot_pct'], '.1f')} %, settling {f(s['settling_time_s'], '.2f')} s, "
                   f"steady-state error {f(s['steady_state_error_mm'], '+.4f')} mm")
 

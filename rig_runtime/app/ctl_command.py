@@ -25,7 +25,7 @@ def format_status(ans: dict) -> str:
              + (f" of {_num(dur, fmt='.1f')} s" if isinstance(dur, (int, float)) else "")
              + f"   socket {ans.get('socket', '-')}"]
     for c in st.get("controlled") or []:
-        lines.append(f"{c}: y_ref {_num(row.get('y_ref'), 1e3)} mm  y {_num(row.get('y_' + c[0]), 1e3)} mm  "
+        lines.append(f"{c}: y_ref {_num(row.get(c + '_y_ref', row.get('y_ref')), 1e3)} mm  y {_num(row.get('y_' + c[0]), 1e3)} mm  "
                      f"psi {_num(row.get('psi_a' + c[0]), 1e3)} mrad  u {_num(row.get(c + '_u_lim'))} A")
     gains = ans.get("gains") or st.get("gains") or {}
     if gains:

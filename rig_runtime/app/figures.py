@@ -235,7 +235,7 @@ def log_figures(run: RunLog, open_loop_carrier: Optional[str] = None, title: str
     figs = {"response": response(run, title)}
     if has_forces(run):
         figs["forces"] = forces(run)
-    if open_loop_carrier:
+    if open_loop_carrier in CARRIER_COLUMNS:       # one carrier's input ("both": no single one)
         figs["psi_over_u"] = psi_over_u(run, open_loop_carrier)
     return figs
 

@@ -70,14 +70,27 @@ def clean(v):
 
 
 def steps_from_log(log, scenario, h: float) -> list[dict]:
-    """``step_info`` for every reference step of ``scenario`` from a recorded run."""
+    """``step_info`` for every reference step of ``scenario`` from a recorded run, per
+    controlled carrier (the log's ``controlled``) on that carrier's own reference
+    (``scenario.reference_for``) and its own y; each step names its ``carrier``."""
     from ..scenario import Reference
     from .export import read_log
     if scenario is None:
         return []
-    d = read_log(log)["columns"]
+    log_d = read_log(log)
+    d = log_d["columns"]
+    carriers = log_d["attrs"].get("controlled") or ["rear"]
+    if isinstance(carriers, str):
+        carriers = [carriers]
     run = d["t_run"] > 0
-    t, y = d["t_run"][run], d["y_r"][run]
+    t = d["t_run"][run]
     if not len(t):
         return []
-    return step_info(t, y, Reference(scenario.reference).steps(), t_end=float(t[-1]) + h, h=h)
+    out = []
+    for c in carriers:
+        y = d.get(f"y_{c[0]}")
+        if y is None:
+            continue
+        for s in step_info(t, y[run], Reference(scenario.reference_for(c)).steps(), t_end=float(t[-1]) + h, h=h):
+            out.append({"carrier": c, **s})
+    return out

@@ -99,6 +99,8 @@ def _header(row, status, duration_s) -> Text:
         text.append(f"   remaining {_clock(remaining)} of {_clock(duration)}")
     y_ref = _num(row.get("y_ref"))
     text.append(f"   y_ref {_fmt(y_ref, 1e3)} mm")
+    if "v_meas" in row:                 # the measured roller speed (the schedule's input)
+        text.append(f"   v̂ {_fmt(row.get('v_meas'), 1.0, 3)} m/s")
     return text
 
 
@@ -114,13 +116,17 @@ def _controlled(row: Mapping, status: Mapping, controlled: Sequence[str] | None)
 def _carriers(row, status, controlled) -> Table:
     t = Table(title="carriers", title_justify="left", expand=False, box=None, pad_edge=False)
     for name, just in (("carrier", "left"), ("y_ref mm", "right"), ("y mm", "right"), ("e_y mm", "right"),
-                       ("ψ_ref mrad", "right"), ("ψ mrad", "right"), ("u A", "right"), ("u_lim A", "right")):
+                       ("ψ_ref mrad", "right"), ("ψ mrad", "right"), ("u A", "right"), ("u_lim A", "right"),
+                       ("g", "right"), ("schedule", "left")):
         t.add_column(name, justify=just)
     for c in _controlled(row, status, controlled):
         s = c[0]
-        t.add_row(c, _fmt(row.get("y_ref"), 1e3), _fmt(row.get(f"y_{s}"), 1e3), _fmt(row.get(f"{c}_e_y"), 1e3),
-                  _fmt(row.get(f"{c}_psi_ref"), 1e3), _fmt(row.get(f"psi_a{s}"), 1e3),
-                  _fmt(row.get(f"{c}_u_cmd"), 1.0, 3), _fmt(row.get(f"{c}_u_lim"), 1.0, 3))
+        held = _num(row.get(f"{c}_held"))
+        t.add_row(c, _fmt(row.get(f"{c}_y_ref", row.get("y_ref")), 1e3), _fmt(row.get(f"y_{s}"), 1e3),
+                  _fmt(row.get(f"{c}_e_y"), 1e3), _fmt(row.get(f"{c}_psi_ref"), 1e3), _fmt(row.get(f"psi_a{s}"), 1e3),
+                  _fmt(row.get(f"{c}_u_cmd"), 1.0, 3), _fmt(row.get(f"{c}_u_lim"), 1.0, 3),
+                  _fmt(row.get(f"{c}_g"), 1.0, 2),
+                  MISSING if held is None else Text("HELD", "bold yellow") if held else "on")
     return t
 
 

@@ -56,7 +56,7 @@ def validate_scenario(cfg: RigConfig, sc: Scenario) -> None:
         if fi.kind not in kinds:
             raise ConfigError(f, f"faults[{i}].kind", f"a fault a {what} can have ({', '.join(kinds)})", fi.kind)
     controlled = ", ".join(cfg.controlled)
-    if sc.open_loop is not None and sc.open_loop.carrier not in cfg.controlled:
+    if sc.open_loop is not None and not set(sc.open_loop.carriers) <= set(cfg.controlled):
         raise ConfigError(f, "open_loop.carrier", f"a controlled (supervised) carrier ({controlled})",
                           sc.open_loop.carrier)
     for i, d in enumerate(sc.disturbances):

@@ -165,7 +165,8 @@ def scenario_of(run: RunLog):
     if "y_ref" in run.columns and run.rows:
         idx = np.flatnonzero(run.columns["state"] == 2.0)
         idx = idx[np.linspace(0, len(idx) - 1, min(len(idx), 2000)).astype(int)] if len(idx) else idx
-        ref = Reference(sc.reference)
+        lanes = run.config.get("controlled") or run.controlled      # y_ref is the first lane's
+        ref = Reference(sc.reference_for(lanes[0]) if lanes else sc.reference)
         y = np.array([ref(x) for x in run.t_rel[idx]])
         if len(idx) and np.nanmax(np.abs(y - run.columns["y_ref"][idx])) > 1e-9:
             return None, f"scenario file {sc.source} no longer gives the recorded reference"
@@ -282,8 +283,9 @@ def format_info(d: dict) -> list[str]:
         lines.append("faults: none")
     if d["steps"]:
         lines.append("steps:")
+        several = len({s.get("carrier") for s in d["steps"]}) > 1
         for s in d["steps"]:
-            lines.append(f"  {s['from_mm']:+.2f} -> {s['to_mm']:+.2f} mm at {s['t0']:.2f} s: rise "
+            lines.append(f"  {s['carrier'] + ' ' if several else ''}{s['from_mm']:+.2f} -> {s['to_mm']:+.2f} mm at {s['t0']:.2f} s: rise "
                          f"{num(s['rise_time_s'], '.2f')} s, overshoot {num(s['overshoot_pct'], '.1f')} %, settling "
                          f"{num(s['settling_time_s'], '.2f')} s, steady-state error {num(s['steady_state_error_mm'], '+.4f')} mm")
     else:

@@ -18,7 +18,7 @@ from typing import Optional, Sequence
 
 from .. import __version__, analysis, schema
 from ..clock import Clock, helper_cpus
-from ..config import RigConfig
+from ..config import CARRIERS, RigConfig
 from ..errors import DeviceInitError
 from ..lanes import split
 from ..loop import ControlLoop, log_columns
@@ -97,7 +97,8 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     # contact only (a carrier the scenario lifts off the rollers has no (2b) and no (4))
     lifted = scenario.lifted_carrier if scenario else None
     observers = {c: d for c, d in observer_designs(cfg).items() if c != lifted}
-    reference = Reference(scenario.reference) if scenario else (lambda t: 0.0)
+    # each carrier's own reference (scenario.reference_for: its own points, else the common ones)
+    reference = {c: Reference(scenario.reference_for(c)) for c in CARRIERS} if scenario else (lambda t: 0.0)
     open_loop = (scenario.open_loop.carrier, open_loop_input(scenario.open_loop)) if scenario and scenario.open_loop else None
     duration = duration_s if duration_s is not None else (scenario.duration_s if scenario else math.inf)
     stops = stops if stops is not None else StopSignals()

@@ -7,7 +7,9 @@ datagram of at most ``MAX_DATAGRAM`` bytes::
     {"timestamp": 1234.565, "t_run": 3.2,
      "state": {"code": 2, "name": "RUNNING"},
      "front": {"y": ..., "psi": ..., "delta_omega": ...},
-     "rear":  {"y": ..., "psi": ..., "dpsi": ..., "delta_omega": ..., "y_ref": ..., "psi_ref": ..., "u": ...},
+     "rear":  {"y": ..., "psi": ..., "dpsi": ..., "delta_omega": ..., "y_ref": ..., "psi_ref": ..., "u": ...,
+               "g": ..., "held": ...},
+     "speed": {"v": ..., "rear": ...},
      "timing": {"lateness": ..., "work": ...},
      "currents": {"fl": ..., "fr": ..., "rl": ..., "rr": ...},
      "health": {"deadline_misses": 0, "skipped_periods": 0, "recorder_healthy": 1},
@@ -101,7 +103,7 @@ class RowSignals:
     """Which log columns feed which nested field, built once from the column list.
 
     ``t``, ``t_run`` and ``state`` come first, then the groups in priority order (the most
-    important first): carriers, timing, currents. ``values(block)`` selects the needed columns of many rows with one
+    important first): carriers, the measured speed, timing, currents. ``values(block)`` selects the needed columns of many rows with one
     numpy take; ``message(v)`` builds the nested dict of one row from that selection by
     position, never by looking a column up by name.
     """
@@ -121,8 +123,11 @@ class RowSignals:
             pairs = [("y", f"y_{s}"), ("psi", f"psi_a{s}"), ("dpsi", f"{carrier}_de_psi"),
                      ("delta_omega", f"dw_{s}")]
             if f"{carrier}_u_cmd" in pos:          # a controlled carrier: its reference and u
-                pairs += [("y_ref", "y_ref"), ("psi_ref", f"{carrier}_psi_ref"), ("u", f"{carrier}_u_cmd")]
+                ref = f"{carrier}_y_ref" if f"{carrier}_y_ref" in pos else "y_ref"
+                pairs += [("y_ref", ref), ("psi_ref", f"{carrier}_psi_ref"), ("u", f"{carrier}_u_cmd"),
+                          ("g", f"{carrier}_g"), ("held", f"{carrier}_held")]     # the speed schedule
             group(carrier, pairs)
+        group("speed", [("v", "v_meas"), ("front", "front_v"), ("rear", "rear_v")])     # measured, m/s
         group("timing", [("lateness", "lateness"), ("work", "work")])
         group("currents", [(w, f"i_{w}") for w in WHEELS])
         self.groups: tuple[Group, ...] = tuple(groups)
