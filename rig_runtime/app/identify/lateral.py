@@ -2,15 +2,14 @@
 the other carrier out of contact (its y ≡ 0), the measured ψ as input.
 
     rear  (2b), v > 0:  ẏ_r = −(c̄_y v/(2 l0)) y_r + c̄_y v ψ_ar + (v/(2 l0)) y_off
-    front (2a), v < 0:  ẏ_f = +(c̄_y v/(2 l0)) y_f + c̄_y v ψ_af − (v/(2 l0)) y_off
+    front (2a), v < 0:  ẏ_f = +(c̄_y v/(2 l0)) y_f + c̄_y v ψ_af + (v/(2 l0)) y_off
 
-i.e. ẏ = σ (v/(2 l0)) (c̄_y y − y_off) + c̄_y v ψ with σ = −1 for the rear and +1 for the
-front (the offset shifts the carrier's lateral rest, mirrored like the coupling term
-a (y_f − y_r) of (2a)/(2b)). Each is stable only for the trailing carrier: the rear at
-v > 0 (the paper's set-up), the front at v < 0 (the mirrored one); ``identify`` refuses the
-other direction. c̄_y comes from δ0 of relation (4) (fitted before). The ODE is linear in y
-with a measured input, so it is integrated exactly for ψ linear between samples
-(first-order hold).
+with each carrier's own c̄_y, l0, y_off (the simulator's model, sim_backend/plant.py: the
+offset term of the front is the rear's, (v/(2 l0)) y_off). Each is stable only for the
+trailing carrier: the rear at v > 0 (the paper's set-up), the front at v < 0 (the mirrored
+one); ``identify`` refuses the other direction. c̄_y comes from δ0 of relation (4) (fitted
+before). The ODE is linear in y with a measured input, so it is integrated exactly for ψ
+linear between samples (first-order hold).
 """
 
 from __future__ import annotations
@@ -29,8 +28,7 @@ SIGMA = {"rear": -1.0, "front": 1.0}
 def coefficients(P: PlantParams, carrier: str, v: float, l0: float) -> tuple[float, float, float]:
     """(decay λ, input gain, offset gain) of ẏ = −λ y + (c̄_y v) ψ + g_off y_off for ``carrier``
     in contact alone at speed v (λ > 0: stable)."""
-    s = SIGMA[carrier]
-    return -s * P.c_y * v / (2 * l0), P.c_y * v, -s * v / (2 * l0)
+    return -SIGMA[carrier] * P.c_y * v / (2 * l0), P.c_y * v, v / (2 * l0)
 
 
 def speed(P: PlantParams, e: Experiment) -> float:
