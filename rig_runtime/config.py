@@ -107,6 +107,7 @@ class Plant:
     psi_off: float = 0.0                      # yaw offset, rad
     bouc_wen: Optional[BoucWen] = None        # hysteresis (8)/(9); None = linear
     front_contact: bool = False               # front carrier on the rollers (else lifted, y_f = 0)
+    rear_contact: bool = True                 # rear carrier on the rollers (false: the mirrored set-up, y_r = 0)
     front: Optional[CarrierPlant] = None      # the front carrier's own values (None: the common ones)
     rear: Optional[CarrierPlant] = None       # the rear carrier's own values
 

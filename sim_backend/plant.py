@@ -104,6 +104,7 @@ class PlantState:
     dw_r: float = 0.0
     du_f: float = 0.0      # inputs held since the last step
     du_r: float = 0.0
+    v: Optional[float] = None   # roller speed, m/s (None: not recorded)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -173,19 +174,60 @@ def _hermite_weights(lam: float, h: float) -> tuple[float, float, float, float, 
             h * (3.0 * J2 - 2.0 * J3), h * h * (J3 - J2))
 
 
-def _hermite_weights_coupled(a: float, h: float) -> tuple:
-    """Exact step of (2a)/(2b) with the front in contact, Y = (y_f, y_r), Y' = M Y + G(t),
-    M = a [[1, -1], [1, -1]] (nilpotent: e^{Mt} = I + M t), G cubic Hermite over [0, h].
+def _exp_ints(x: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """J_j = int_0^1 exp(-x (1-s)) s^j ds and K_j = (J_j - 1/(j+1))/(-x) for j = 0..3
+    (K_j at x = 0 is 1/((j+1)(j+2))); K is what is left of J once its x = 0 value is taken out,
+    computed without cancellation: for |x| < 0.5 the series of K_3 and the stable backward
+    recursion K_{j-1} = (1/(j+1) - x K_j)/j, else J by its forward recursion."""
+    if abs(x) < 0.5:
+        acc, term, m = 0.0, 1.0 / 20.0, 1               # K_3 = sum_{m>=1} (-x)^(m-1) 3!/(m+4)!
+        while True:
+            acc += term
+            m += 1
+            term *= -x / (m + 4)
+            if abs(term) <= 1e-17 * abs(acc) or m > 40:
+                break
+        K3 = acc
+        K2 = (0.25 - x * K3) / 3.0
+        K1 = (1.0 / 3.0 - x * K2) / 2.0
+        K0 = 0.5 - x * K1
+        return (1.0 - x * K0, 0.5 - x * K1, 1.0 / 3.0 - x * K2, 0.25 - x * K3), (K0, K1, K2, K3)
+    J0 = -expm1(-x) / x
+    J1 = (1.0 - J0) / x
+    J2 = (1.0 - 2.0 * J1) / x
+    J3 = (1.0 - 3.0 * J2) / x
+    return (J0, J1, J2, J3), ((1.0 - J0) / x, (0.5 - J1) / x, (1.0 / 3.0 - J2) / x, (0.25 - J3) / x)
+
+
+def _hermite_weights_coupled(a_f: float, h: float, a_r: Optional[float] = None) -> tuple:
+    """Exact step of (2a)/(2b) with both carriers in contact, Y = (y_f, y_r), Y' = M Y + G(t),
+    M = [[a_f, -a_f], [a_r, -a_r]], G cubic Hermite over [0, h] (``a_r`` None: equal carriers).
+
+    M has the eigenvalues 0 and mu = a_f - a_r and M^2 = mu M, so e^{Mt} = I + (e^{mu t} - 1)/mu M:
+    for equal carriers (mu = 0) a Jordan block at 0, e^{Mt} = I + M t. With the Hermite basis
+    functions H_k: W_k = int_0^h e^{M(h-s)} H_k(s) ds = c_k I + d_k M, c_k = int H_k and
+    d_k = int (e^{mu (h-s)} - 1)/mu H_k(s) ds (for mu = 0: int (h - s) H_k(s) ds).
 
     Returns (Phi, (W0, W1, W2, W3)) as nested lists: Y(h) = Phi Y0 + W0 G0 + W1 G0' + W2 G1 + W3 G1'.
     int_0^h G = h/2 (G0 + G1) + h^2/12 (G0' - G1');
     int_0^h (h - t) G = h^2 (7/20 G0 + 3/20 G1) + h^3 (1/20 G0' - 1/30 G1').
     """
-    M = ((a, -a), (a, -a))
+    if a_r is None:
+        a_r = a_f
+    M = ((a_f, -a_f), (a_r, -a_r))
     I = ((1.0, 0.0), (0.0, 1.0))
-    phi = [[I[i][j] + h * M[i][j] for j in range(2)] for i in range(2)]
+    mu = a_f - a_r
     c_int = (h / 2, h * h / 12, h / 2, -h * h / 12)                       # for G0, G0', G1, G1'
-    c_mom = (0.35 * h * h, h ** 3 / 20, 0.15 * h * h, -h ** 3 / 30)
+    if mu == 0.0:
+        s = h
+        c_mom = (0.35 * h * h, h ** 3 / 20, 0.15 * h * h, -h ** 3 / 30)
+    else:
+        (J0, _, _, _), (K0, K1, K2, K3) = _exp_ints(-mu * h)
+        s = h * J0                                                         # (e^{mu h} - 1)/mu
+        h2, h3 = h * h, h * h * h
+        c_mom = (h2 * (K0 - 3.0 * K2 + 2.0 * K3), h3 * (K1 - 2.0 * K2 + K3),
+                 h2 * (3.0 * K2 - 2.0 * K3), h3 * (K3 - K2))
+    phi = [[I[i][j] + s * M[i][j] for j in range(2)] for i in range(2)]
     W = [[[c_int[k] * I[i][j] + c_mom[k] * M[i][j] for j in range(2)] for i in range(2)]
          for k in range(4)]
     return phi, W
@@ -499,18 +541,27 @@ class _Carrier:
 
 
 # --------------------------------------------------------------------------- the plant
+_LAT_NONE, _LAT_REAR, _LAT_FRONT, _LAT_BOTH = 0, 1, 2, 3     # which carriers roll (lateral update)
+
+
 class Plant:
     """Both wheel carriers of the rig: lateral (2), wheel speeds (4) or (3), yaw (6)-(9).
 
-    ``step(dt, du_f, du_r, ...)`` advances by dt with inputs and disturbances held (ZOH).
-    ``wheel_dynamics``: "static" uses the algebraic relation (4); "dynamic" integrates (3)
-    exactly (its pole -c11 r0^2/(J_x v) is about -5.6e4 1/s).  ``substeps``: None = adaptive
-    (default; meets the documented accuracy), an int = that many equal yaw sub-steps per
-    call with no adaptation (faster, less accurate when D varies or the hysteresis flips).
+    Each carrier has its own parameters, ``params.carrier("front"|"rear")`` (the common values
+    with that carrier's overrides). ``step(dt, du_f, du_r, ...)`` advances by dt with inputs,
+    disturbances and the roller speed held (ZOH); ``set_speed(v)`` changes the speed between
+    steps. ``wheel_dynamics``: "static" uses the algebraic relation (4); "dynamic" integrates
+    (3) exactly (its pole -c11 r0^2/(J_x v) is about -5.6e4 1/s; only for a fixed v > 0).
+    ``substeps``: None = adaptive (default; meets the documented accuracy), an int = that many
+    equal yaw sub-steps per call with no adaptation (faster, less accurate when D varies or the
+    hysteresis flips). ``rear_lifted`` / ``front_lifted`` (a ``LiftedCarrier``) lift that
+    carrier off the rollers for its free response (Sec. 4.3.2); the other carrier must be out
+    of contact then (``front_contact`` / ``rear_contact`` false).
     """
 
     def __init__(self, params: PlantParams, wheel_dynamics: str = "static",
-                 substeps: Optional[int] = None, rear_lifted: Optional[LiftedCarrier] = None):
+                 substeps: Optional[int] = None, rear_lifted: Optional[LiftedCarrier] = None,
+                 front_lifted: Optional[LiftedCarrier] = None):
         if wheel_dynamics not in ("static", "dynamic"):
             raise ValueError(f"wheel_dynamics: expected 'static' or 'dynamic', got {wheel_dynamics!r}")
         if substeps is not None and (not isinstance(substeps, int) or substeps < 1):
@@ -518,38 +569,94 @@ class Plant:
         if wheel_dynamics == "dynamic" and not params.v > 0:
             raise ValueError("wheel_dynamics='dynamic' needs v > 0: the creep pole "
                              "-c11 r0^2/(J_x v) of (3) is unstable/undefined otherwise")
-        if rear_lifted is not None and params.front_contact:
+        if rear_lifted is not None and params.front_contact and front_lifted is None:
             raise ValueError("rear_lifted needs the front carrier lifted too (front_contact: false): "
                              "the identification set-up of Sec. 4.1.1 has no carrier on the rollers then")
+        if front_lifted is not None and params.rear_contact and rear_lifted is None:
+            raise ValueError("front_lifted needs the rear carrier out of contact too (rear_contact: false): "
+                             "the mirrored identification set-up has no carrier on the rollers then")
         P = params
         self.params = P
         self.wheel_dynamics = wheel_dynamics
         self.dynamic = wheel_dynamics == "dynamic"
         self.substeps = substeps
         self.n_states = 12 if self.dynamic else 10
-        # derived constants
-        self.cy = P.c_y
-        self.Gamma = P.Gamma
-        self.a_lat = P.a_lat
-        self.c22 = P.c11                                     # ESTIMATE: c22 ~ c11
-        self.J_z = P.b * P.k_tau / (P.r0 * P.K * P.omega0 ** 2)
-        self.front_contact = P.front_contact
-        self._cyv = self.cy * P.v
-        self._off = P.v / (2.0 * P.l0) * P.y_off             # paper Sec. 4.1.2: (v/(2 l0)) y_off
-        self._fy = abs(P.v) / (2.0 * self.c22)               # lateral creep velocity per N
-        self._gvb = self.Gamma * P.v * P.b / (2.0 * P.r0 ** 2)
-        self._b2r = P.b / (2.0 * P.r0)
-        self._vk = P.v * P.k_tau / (P.r0 ** 2 * P.c11)
-        self._lam = P.c11 * P.r0 ** 2 / (P.J_x * P.v) if self.dynamic else 0.0
-        self._w_nom = P.v / P.r0
-        self._front = _Carrier(P, substeps)
         self.rear_lifted = rear_lifted
-        self._rear = _Carrier(P if rear_lifted is None else
-                              replace(P, D_min=rear_lifted.D, D_max=rear_lifted.D, bouc_wen=None,
+        self.front_lifted = front_lifted
+        self.front_contact = P.front_contact and front_lifted is None     # rolling contact
+        self.rear_contact = P.rear_contact and rear_lifted is None
+        self._lat_mode = ((_LAT_FRONT if self.front_contact else _LAT_NONE)
+                          + (_LAT_REAR if self.rear_contact else _LAT_NONE))
+        Pf, Pr = P.carrier("front"), P.carrier("rear")
+        self.carrier_params = {"front": Pf, "rear": Pr}
+        # speed-independent constants per carrier (_f, _r)
+        self._cy_f, self._cy_r = Pf.c_y, Pr.c_y
+        self._l0_f, self._l0_r = Pf.l0, Pr.l0
+        self._c22_f, self._c22_r = Pf.c11, Pr.c11                # ESTIMATE: c22 ~ c11
+        self._b2r_f, self._b2r_r = Pf.b / (2.0 * Pf.r0), Pr.b / (2.0 * Pr.r0)
+        # public constants of the rear carrier (the paper's); per carrier: carrier_params
+        self.cy = Pr.c_y
+        self.Gamma = Pr.Gamma
+        self.c22 = Pr.c11
+        self.J_z = Pr.b * Pr.k_tau / (Pr.r0 * Pr.K * Pr.omega0 ** 2)
+        self._front = _Carrier(Pf if front_lifted is None else
+                               replace(Pf, D_min=front_lifted.D, D_max=front_lifted.D, bouc_wen=None,
+                                       psi_off=front_lifted.psi_off), substeps)
+        self._rear = _Carrier(Pr if rear_lifted is None else
+                              replace(Pr, D_min=rear_lifted.D, D_max=rear_lifted.D, bouc_wen=None,
                                       psi_off=rear_lifted.psi_off), substeps)
         self._h = None
+        self._v = None
+        self.set_speed(P.v)
         self.reset()
         self._ft_rest = self.ft_rest_loads()     # the contact set-up is fixed for the plant's life
+
+    # ---------------------------------------------------------------- the roller speed
+    def set_speed(self, v: float) -> None:
+        """Set the roller speed v (m/s, sign = direction) for the following steps; the
+        speed-dependent constants are recomputed only when v changes (a few µs: docs/plant-model.md).
+
+        Which terms scale with v: the lateral pole and input gain c̄_y v (2), the offset
+        v y_off/(2 l0), the lateral creep of a force |v|/(2 c22), the kinematic terms of (4)
+        (Γ v b/(2 r0²) y, the nominal wheel speed v/r0) and the creep term of the input in (4),
+        |v| k_τ/(r0² c̄11) (a creep slip needs |v|, the paper's v > 0 form writes v). The yaw (6)
+        has none: the v and 1/v terms of (5) cancel against (4) (docs/vehicle/plant.md).
+        ``wheel_dynamics="dynamic"`` keeps its fixed v: the creep pole -c̄11 r0²/(J_x v) of (3)
+        is unstable for v < 0 as the paper writes it and unbounded at v = 0."""
+        v = float(v)
+        if v == self._v:
+            return
+        if self.dynamic and self._v is not None:
+            raise ValueError(f"set_speed: wheel_dynamics='dynamic' runs at its fixed v = {self._v} "
+                             f"(the creep pole of (3) is -c11 r0^2/(J_x v): unbounded at v = 0, "
+                             f"unstable for v < 0), got {v}")
+        self._v = v
+        av = abs(v)
+        Pf, Pr = self.carrier_params["front"], self.carrier_params["rear"]
+        self._a_f = self._cy_f * v / (2 * self._l0_f)
+        self._a_r = self._cy_r * v / (2 * self._l0_r)
+        self._cyv_f, self._cyv_r = self._cy_f * v, self._cy_r * v
+        self._off_f = v / (2.0 * Pf.l0) * Pf.y_off                # paper Sec. 4.1.2: (v/(2 l0)) y_off
+        self._off_r = v / (2.0 * Pr.l0) * Pr.y_off
+        self._fy_f = av / (2.0 * self._c22_f)                     # lateral creep velocity per N
+        self._fy_r = av / (2.0 * self._c22_r)
+        self._gvb_f = Pf.Gamma * v * Pf.b / (2.0 * Pf.r0 ** 2)
+        self._gvb_r = Pr.Gamma * v * Pr.b / (2.0 * Pr.r0 ** 2)
+        self._vk_f = av * Pf.k_tau / (Pf.r0 ** 2 * Pf.c11)
+        self._vk_r = av * Pr.k_tau / (Pr.r0 ** 2 * Pr.c11)
+        self._w_nom_f, self._w_nom_r = v / Pf.r0, v / Pr.r0
+        if self.dynamic:
+            self._lam_f = Pf.c11 * Pf.r0 ** 2 / (Pf.J_x * v)
+            self._lam_r = Pr.c11 * Pr.r0 ** 2 / (Pr.J_x * v)
+        else:
+            self._lam_f = self._lam_r = 0.0
+        if self._h is not None:
+            self._prepare_lateral(self._h)
+
+    v = property(lambda self: self._v, doc="roller speed now, m/s (sign = direction)")
+    a_lat = property(lambda self: self._a_r, doc="rear lateral coefficient c̄_y,r v/(2 l0_r), 1/s")
+    a_f = property(lambda self: self._a_f, doc="front lateral coefficient a_f = c̄_y,f v/(2 l0_f), 1/s")
+    a_r = property(lambda self: self._a_r, doc="rear lateral coefficient a_r = c̄_y,r v/(2 l0_r), 1/s")
 
     # ---------------------------------------------------------------- state handling
     def reset(self, *, t: float = 0.0, y_f: Optional[float] = None, y_r: Optional[float] = None,
@@ -557,16 +664,18 @@ class Plant:
               psi_rate_f: float = 0.0, psi_rate_r: float = 0.0,
               z_f: Optional[float] = None, z_r: Optional[float] = None,
               du_f: float = 0.0, du_r: float = 0.0) -> None:
-        """Set the state; no disturbance is held afterwards.
+        """Set the state (the speed stays); no disturbance is held afterwards.
 
         Defaults give a rest state: filters settled on du, psi = K du + psi_off (the linear
         equilibrium), z = psi (then a psi + (1-a) z = psi, so it is an equilibrium of the
-        hysteretic model too), and y at its lateral equilibrium for that psi:
-        y_r = (c_y v psi_ar + v y_off/(2 l0))/a_l with the front lifted (y_f = 0 always);
-        with front contact y_r = 0 and y_f = y_r - g_r/a_l (an equilibrium only if
-        psi_af = psi_ar and y_off = 0, otherwise (2a)/(2b) have none and y drifts).
+        hysteretic model too), and y at its lateral equilibrium for that psi (where there is
+        one): rear only in contact, y_r = (c_y v psi_ar + v y_off/(2 l0))/a_r (y_f = 0 always);
+        front only (the mirrored set-up), y_f = -(c_y v psi_af + v y_off/(2 l0))/a_f (y_r = 0
+        always); both in contact, y_r = 0 and y_f = y_r - g_r/a_r (an equilibrium of the pair
+        only if the two carriers' forcing agree, g_f/a_f = g_r/a_r, otherwise (2a)/(2b) have
+        none and y drifts). A lifted carrier's y stays where it is set (default: where it
+        would rest if it rolled alone).
         """
-        P = self.params
         for car, psi, rate, z, du in ((self._front, psi_af, psi_rate_f, z_f, du_f),
                                       (self._rear, psi_ar, psi_rate_r, z_r, du_r)):
             car.psi = car.K * du + car.psi_off if psi is None else float(psi)
@@ -577,17 +686,23 @@ class Plant:
             car.M = 0.0
             car.vl = car.p
         self._t = float(t)
-        a = self.a_lat
-        g_r = self._cyv * self._rear.psi + self._off
-        if self.front_contact:
+        a_f, a_r = self._a_f, self._a_r
+        g_f = self._cyv_f * self._front.psi + self._off_f
+        g_r = self._cyv_r * self._rear.psi + self._off_r
+        mode = self._lat_mode
+        rest_r = g_r / a_r if a_r != 0.0 else 0.0           # rear alone: y_r' = -a_r y_r + g_r
+        rest_f = -g_f / a_f if a_f != 0.0 else 0.0          # front alone: y_f' = a_f y_f + g_f
+        if mode == _LAT_BOTH:
             self._y_r = 0.0 if y_r is None else float(y_r)
             if y_f is not None:
                 self._y_f = float(y_f)
             else:
-                self._y_f = self._y_r - g_r / a if a != 0.0 else self._y_r
-        else:
-            self._y_f = 0.0
-            self._y_r = (g_r / a if a != 0.0 else 0.0) if y_r is None else float(y_r)
+                self._y_f = self._y_r - g_r / a_r if a_r != 0.0 else self._y_r
+        else:                                               # at most one carrier rolls
+            self._y_f = ((rest_f if y_f is None else float(y_f))
+                         if (self.front_contact or self.front_lifted) else 0.0)
+            self._y_r = ((rest_r if y_r is None else float(y_r))
+                         if (self.rear_contact or self.rear_lifted) else 0.0)
         self._F_f = self._F_r = 0.0
         self._dw_f, self._dw_r = self._dw_static()
 
@@ -595,12 +710,22 @@ class Plant:
     def state(self) -> PlantState:
         f, r = self._front, self._rear
         return PlantState(self._t, self._y_f, self._y_r, f.psi, r.psi, f.p, r.p, f.z, r.z,
-                          f.e, r.e, self._dw_f, self._dw_r, f.du, r.du)
+                          f.e, r.e, self._dw_f, self._dw_r, f.du, r.du, self._v)
+
+    def _y_kept(self, y_f: float, y_r: float) -> tuple[float, float]:
+        """(y_f, y_r) as the contact set-up allows: a carrier out of contact by configuration
+        has y = 0, a rolling or lifted one keeps its value."""
+        return (y_f if (self.front_contact or self.front_lifted) else 0.0,
+                y_r if (self.rear_contact or self.rear_lifted) else 0.0)
 
     def set_state(self, s: PlantState) -> None:
-        """Restore a snapshot taken with ``state`` (disturbances are reset to zero)."""
+        """Restore a snapshot taken with ``state`` (disturbances are reset to zero; the speed is
+        restored when the snapshot has one)."""
+        if s.v is not None:
+            self.set_speed(s.v)
         f, r = self._front, self._rear
-        self._t, self._y_f, self._y_r = s.t, (s.y_f if self.front_contact else 0.0), s.y_r
+        self._t = s.t
+        self._y_f, self._y_r = self._y_kept(s.y_f, s.y_r)
         f.psi, r.psi, f.p, r.p = s.psi_af, s.psi_ar, s.psi_rate_f, s.psi_rate_r
         f.z, r.z = (s.z_f if f.hyst else 0.0), (s.z_r if r.hyst else 0.0)
         f.e, r.e, f.du, r.du = s.ue_f, s.ue_r, s.du_f, s.du_r
@@ -620,21 +745,22 @@ class Plant:
     def set_state_vector(self, x: Sequence[float], t: Optional[float] = None) -> None:
         f, r = self._front, self._rear
         x = [float(v) for v in x]
-        self._y_f = x[0] if self.front_contact else 0.0
-        self._y_r = x[1]
+        self._y_f, self._y_r = self._y_kept(x[0], x[1])
         f.psi, f.p, f.z, f.e = x[2:6]
         r.psi, r.p, r.z, r.e = x[6:10]
         f.vl, r.vl = f.p, r.p
         if not f.hyst:
-            f.z = r.z = 0.0
+            f.z = 0.0
+        if not r.hyst:
+            r.z = 0.0
         if t is not None:
             self._t = float(t)
         self._dw_f, self._dw_r = (x[10], x[11]) if self.dynamic else self._dw_static()
 
     # ---------------------------------------------------------------- outputs
     t = property(lambda self: self._t, doc="simulated time, s")
-    y_f = property(lambda self: self._y_f, doc="front lateral displacement, m (0 if lifted)")
-    y_r = property(lambda self: self._y_r, doc="rear lateral displacement, m")
+    y_f = property(lambda self: self._y_f, doc="front lateral displacement, m (0 if out of contact)")
+    y_r = property(lambda self: self._y_r, doc="rear lateral displacement, m (0 if out of contact)")
     dw_f = property(lambda self: self._dw_f, doc="front wheel-speed difference omega_fl - omega_fr, rad/s")
     dw_r = property(lambda self: self._dw_r, doc="rear wheel-speed difference omega_rl - omega_rr, rad/s")
     psi_af = property(lambda self: self._front.psi, doc="front carrier yaw angle psi_af, rad")
@@ -651,18 +777,22 @@ class Plant:
                       doc="filtered input derivative used by (7), front, A/s")
     udot_r = property(lambda self: self._rear.e / self._rear.tau,
                       doc="filtered input derivative used by (7), rear, A/s")
-    omega_fl = property(lambda self: self._w_nom + 0.5 * self._dw_f, doc="front-left wheel speed, rad/s")
-    omega_fr = property(lambda self: self._w_nom - 0.5 * self._dw_f, doc="front-right wheel speed, rad/s")
-    omega_rl = property(lambda self: self._w_nom + 0.5 * self._dw_r, doc="rear-left wheel speed, rad/s")
-    omega_rr = property(lambda self: self._w_nom - 0.5 * self._dw_r, doc="rear-right wheel speed, rad/s")
+    omega_fl = property(lambda self: self._w_nom_f + 0.5 * self._dw_f, doc="front-left wheel speed, rad/s")
+    omega_fr = property(lambda self: self._w_nom_f - 0.5 * self._dw_f, doc="front-right wheel speed, rad/s")
+    omega_rl = property(lambda self: self._w_nom_r + 0.5 * self._dw_r, doc="rear-left wheel speed, rad/s")
+    omega_rr = property(lambda self: self._w_nom_r - 0.5 * self._dw_r, doc="rear-right wheel speed, rad/s")
     substeps_last = property(lambda self: (self._front.nsub_last, self._rear.nsub_last),
                              doc="yaw sub-steps used by the last step (front, rear)")
 
+    def rolling(self, carrier: str) -> bool:
+        """Whether ``carrier`` ("front" / "rear") is in rolling contact with the rollers."""
+        return self.front_contact if carrier == "front" else self.rear_contact
+
     def _dw_static(self) -> tuple[float, float]:
-        """Relation (4) per carrier in contact (a lifted carrier has no rolling contact: 0)."""
+        """Relation (4) per carrier in contact (a carrier out of contact has no rolling contact: 0)."""
         f, r = self._front, self._rear
-        dwr = 0.0 if self.rear_lifted else self._gvb * self._y_r + self._b2r * r.p + self._vk * r.du
-        dwf = (self._gvb * self._y_f + self._b2r * f.p + self._vk * f.du) if self.front_contact else 0.0
+        dwr = (self._gvb_r * self._y_r + self._b2r_r * r.p + self._vk_r * r.du) if self.rear_contact else 0.0
+        dwf = (self._gvb_f * self._y_f + self._b2r_f * f.p + self._vk_f * f.du) if self.front_contact else 0.0
         return dwf, dwr
 
     def ft_loads(self) -> dict[str, tuple[float, float, float, float, float, float]]:
@@ -673,11 +803,11 @@ class Plant:
         wheel load Fz = WHEEL_LOAD_N and the longitudinal reaction of the differential motor
         torque, Fx = +-k_tau du/(2 r0) (left +, right -); Mx = My = 0.
         """
-        P = self.params
         out = {}
-        for name, car, F, contact in (("f", self._front, self._F_f, self.front_contact),
-                                      ("r", self._rear, self._F_r, self.rear_lifted is None)):
-            fx = P.k_tau * car.du / (2.0 * P.r0) if contact else 0.0
+        for name, car, F, contact, Pc in (
+                ("f", self._front, self._F_f, self.front_contact, self.carrier_params["front"]),
+                ("r", self._rear, self._F_r, self.rear_contact, self.carrier_params["rear"])):
+            fx = Pc.k_tau * car.du / (2.0 * Pc.r0) if contact else 0.0
             fz = WHEEL_LOAD_N if contact else 0.0
             out[name + "l"] = (fx, 0.5 * F, fz, 0.0, 0.0, 0.5 * car.M)
             out[name + "r"] = (-fx, 0.5 * F, fz, 0.0, 0.0, 0.5 * car.M)
@@ -698,98 +828,128 @@ class Plant:
 
     # ---------------------------------------------------------------- integration
     def _prepare(self, h: float) -> None:
-        """Per-dt constants: filter decay, lateral and wheel-speed Hermite weights (a few µs)."""
+        """Per-dt constants: filter decays, lateral and wheel-speed Hermite weights (a few µs)."""
         self._h = h
-        self._ef = exp(-h / self._rear.tau)
-        if self.front_contact:
-            self._lat2 = _hermite_weights_coupled(self.a_lat, h)
-        else:
-            self._lat1 = _hermite_weights(self.a_lat, h)
+        self._ef_f = exp(-h / self._front.tau)
+        self._ef_r = exp(-h / self._rear.tau)
+        self._prepare_lateral(h)
         if self.dynamic:
-            lam = self._lam
-            phi, *w = _hermite_weights(lam, h)
-            self._wh = (phi,) + tuple(lam * x for x in w)     # forcing of (3) is lam * (4)
+            self._wh_f = self._wheel_weights(self._lam_f, h)
+            self._wh_r = self._wheel_weights(self._lam_r, h)
+
+    @staticmethod
+    def _wheel_weights(lam: float, h: float) -> tuple:
+        phi, *w = _hermite_weights(lam, h)
+        return (phi,) + tuple(lam * x for x in w)             # forcing of (3) is lam * (4)
+
+    def _prepare_lateral(self, h: float) -> None:
+        """The lateral Hermite weights for the speed now (per v and dt)."""
+        mode = self._lat_mode
+        if mode == _LAT_BOTH:
+            self._lat2 = _hermite_weights_coupled(self._a_f, h, self._a_r)
+        elif mode == _LAT_REAR:
+            self._lat1 = _hermite_weights(self._a_r, h)
+        elif mode == _LAT_FRONT:
+            self._lat1 = _hermite_weights(-self._a_f, h)       # y_f' = +a_f y_f + g_f (y_r = 0)
 
     def step(self, dt: float, du_f: float, du_r: float, F_y_f: float = 0.0, F_y_r: float = 0.0,
              M_z_f: float = 0.0, M_z_r: float = 0.0) -> None:
         """Advance by dt (s) with the differential currents du_f, du_r (A), lateral forces
-        F_y_* (N) and yaw moments M_z_* (N m) held constant over the step."""
+        F_y_* (N), yaw moments M_z_* (N m) and the speed (``set_speed``) held over the step."""
         if dt != self._h:
             if not dt > 0.0:
                 raise ValueError(f"dt: expected a positive step, got {dt!r}")
             self._prepare(dt)
         f, r = self._front, self._rear
-        cyv = self._cyv
         psi_f0, p_f0, psi_r0, p_r0 = f.psi, f.p, r.psi, r.p
         if self.dynamic:
             start = (psi_f0, p_f0, f.z, f.e + (du_f - f.du), psi_r0, p_r0, r.z, r.e + (du_r - r.du),
                      self._y_f, self._y_r)
-        ef = self._ef
-        # yaw (exact / sub-stepped); skip an untouched carrier resting exactly at equilibrium
+        # yaw (exact / sub-stepped); skip an untouched front carrier resting exactly at equilibrium
         if (p_f0 != 0.0 or du_f != f.du or f.e != 0.0 or M_z_f != f.M or f.K * du_f + f.psi_off
                 + M_z_f * f.inv_Jw2 != f.psi - f.oma * (f.psi - f.z)):
-            f.advance(dt, ef, du_f, M_z_f)
+            f.advance(dt, self._ef_f, du_f, M_z_f)
         else:
             f.nsub_last = 0
-        r.advance(dt, ef, du_r, M_z_r)
+        r.advance(dt, self._ef_r, du_r, M_z_r)
         self._F_f, self._F_r = F_y_f, F_y_r
         # lateral: exponential update, forcing = cubic Hermite of psi over the step
-        fy = self._fy
-        if self.front_contact:
+        mode = self._lat_mode
+        if mode == _LAT_BOTH:
             (P0, P1), W = self._lat2
+            cyf, cyr = self._cyv_f, self._cyv_r
             yf0, yr0 = self._y_f, self._y_r
-            cf = fy * F_y_f
-            cr = self._off + fy * F_y_r
-            gf0, gr0 = cyv * psi_f0 + cf, cyv * psi_r0 + cr
-            gf1, gr1 = cyv * f.psi + cf, cyv * r.psi + cr
-            hf0, hr0, hf1, hr1 = cyv * p_f0, cyv * p_r0, cyv * f.p, cyv * r.p
+            cf = self._off_f + self._fy_f * F_y_f
+            cr = self._off_r + self._fy_r * F_y_r
+            gf0, gr0 = cyf * psi_f0 + cf, cyr * psi_r0 + cr
+            gf1, gr1 = cyf * f.psi + cf, cyr * r.psi + cr
+            hf0, hr0, hf1, hr1 = cyf * p_f0, cyr * p_r0, cyf * f.p, cyr * r.p
             W0, W1, W2, W3 = W
             self._y_f = (P0[0] * yf0 + P0[1] * yr0 + W0[0][0] * gf0 + W0[0][1] * gr0 + W1[0][0] * hf0
                         + W1[0][1] * hr0 + W2[0][0] * gf1 + W2[0][1] * gr1 + W3[0][0] * hf1 + W3[0][1] * hr1)
             self._y_r = (P1[0] * yf0 + P1[1] * yr0 + W0[1][0] * gf0 + W0[1][1] * gr0 + W1[1][0] * hf0
                         + W1[1][1] * hr0 + W2[1][0] * gf1 + W2[1][1] * gr1 + W3[1][0] * hf1 + W3[1][1] * hr1)
-        elif self.rear_lifted is None:
+        elif mode == _LAT_REAR:
             phi, w00, w10, w01, w11 = self._lat1
-            cr = self._off + fy * F_y_r
+            cyv = self._cyv_r
+            cr = self._off_r + self._fy_r * F_y_r
             yr0 = self._y_r
             self._y_r = (phi * yr0 + w00 * (cyv * psi_r0 + cr) + w10 * (cyv * p_r0)
                         + w01 * (cyv * r.psi + cr) + w11 * (cyv * r.p))
+        elif mode == _LAT_FRONT:
+            phi, w00, w10, w01, w11 = self._lat1
+            cyv = self._cyv_f
+            cf = self._off_f + self._fy_f * F_y_f
+            yf0 = self._y_f
+            self._y_f = (phi * yf0 + w00 * (cyv * psi_f0 + cf) + w10 * (cyv * p_f0)
+                        + w01 * (cyv * f.psi + cf) + w11 * (cyv * f.p))
         self._t += dt
         # wheel speeds
         if not self.dynamic:
-            gvb, b2r, vk = self._gvb, self._b2r, self._vk
-            self._dw_r = 0.0 if self.rear_lifted else gvb * self._y_r + b2r * r.p + vk * du_r
+            if self.rear_contact:
+                self._dw_r = self._gvb_r * self._y_r + self._b2r_r * r.p + self._vk_r * du_r
+            else:
+                self._dw_r = 0.0
             if self.front_contact:
-                self._dw_f = gvb * self._y_f + b2r * f.p + vk * du_f
+                self._dw_f = self._gvb_f * self._y_f + self._b2r_f * f.p + self._vk_f * du_f
         else:
             self._wheel_dynamic(dt, start)
-            if self.rear_lifted:
-                self._dw_r = 0.0
+
+    def _lateral_rates(self, yf: float, yr: float, psi_f: float, psi_r: float) -> tuple[float, float]:
+        """(y_f', y_r') of (2a)/(2b) with the held forces (0 for a carrier out of contact)."""
+        a_f, a_r = self._a_f, self._a_r
+        if not self.front_contact:
+            yf = 0.0
+        if not self.rear_contact:
+            yr = 0.0
+        d_f = (a_f * yf - a_f * yr + self._cyv_f * psi_f + (self._off_f + self._fy_f * self._F_f)
+               if self.front_contact else 0.0)
+        d_r = (-a_r * yr + a_r * yf + self._cyv_r * psi_r + (self._off_r + self._fy_r * self._F_r)
+               if self.rear_contact else 0.0)
+        return d_f, d_r
 
     def _wheel_dynamic(self, dt: float, start: tuple) -> None:
         """Exact exponential update of (3): Delta-omega relaxes to the static value (4) with the
         pole -lam; (4) over the step is taken as the cubic Hermite interpolant of its end values
         and end derivatives (only the last ~1/lam of the step matters)."""
-        phi, w00, w10, w01, w11 = self._wh
-        a, cyv, fy = self.a_lat, self._cyv, self._fy
         f, r = self._front, self._rear
         fpsi0, fp0, fz0, fe0, rpsi0, rp0, rz0, re0, yf0, yr0 = start
         yf1, yr1 = self._y_f, self._y_r
-        # lateral rates at both ends
-        cr = self._off + fy * self._F_r
-        yr_d0 = -a * yr0 + a * yf0 + cyv * rpsi0 + cr
-        yr_d1 = -a * yr1 + a * yf1 + cyv * r.psi + cr
-        self._dw_r = self._dw_update(r, rpsi0, rp0, rz0, re0, yr0, yr1, yr_d0, yr_d1, self._dw_r)
+        yf_d0, yr_d0 = self._lateral_rates(yf0, yr0, fpsi0, rpsi0)
+        yf_d1, yr_d1 = self._lateral_rates(yf1, yr1, f.psi, r.psi)
+        if self.rear_contact:
+            self._dw_r = self._dw_update(r, self._wh_r, self._gvb_r, self._b2r_r, self._vk_r,
+                                         rpsi0, rp0, rz0, re0, yr0, yr1, yr_d0, yr_d1, self._dw_r)
+        else:
+            self._dw_r = 0.0
         if self.front_contact:
-            cf = fy * self._F_f
-            yf_d0 = a * yf0 - a * yr0 + cyv * fpsi0 + cf
-            yf_d1 = a * yf1 - a * yr1 + cyv * f.psi + cf
-            self._dw_f = self._dw_update(f, fpsi0, fp0, fz0, fe0, yf0, yf1, yf_d0, yf_d1, self._dw_f)
+            self._dw_f = self._dw_update(f, self._wh_f, self._gvb_f, self._b2r_f, self._vk_f,
+                                         fpsi0, fp0, fz0, fe0, yf0, yf1, yf_d0, yf_d1, self._dw_f)
 
-    def _dw_update(self, car: _Carrier, psi0: float, p0: float, z0: float, e0: float,
-                   y0: float, y1: float, yd0: float, yd1: float, dw: float) -> float:
-        phi, w00, w10, w01, w11 = self._wh
-        gvb, b2r, vk = self._gvb, self._b2r, self._vk
+    @staticmethod
+    def _dw_update(car: _Carrier, wh: tuple, gvb: float, b2r: float, vk: float, psi0: float, p0: float,
+                   z0: float, e0: float, y0: float, y1: float, yd0: float, yd1: float, dw: float) -> float:
+        phi, w00, w10, w01, w11 = wh
         du = car.du
         rho0 = abs(e0) / (car.tau * car.cmax)               # right limit at the step start
         D0 = car.Dmin if rho0 >= 1.0 else car.Dmax - rho0 * car.dD
@@ -802,7 +962,8 @@ class Plant:
 
     # ---------------------------------------------------------------- reference model
     def rhs(self, t: float, x: np.ndarray, inputs: Any) -> np.ndarray:
-        """The same model as a vectorised right-hand side (x of shape (n,) or (n, m)).
+        """The same model as a vectorised right-hand side (x of shape (n,) or (n, m)) at the
+        speed set now (``set_speed``).
 
         ``inputs`` = (du_f, du_r, F_y_f, F_y_r, M_z_f, M_z_r), held constant over the
         integration interval (the model's input is zero-order hold).  Where du changes, the
@@ -818,15 +979,19 @@ class Plant:
 
     def _rhs(self, x: list, inputs: Any, absf: Callable, select: Callable) -> list:
         du_f, du_r, Fyf, Fyr, Mzf, Mzr = (float(v) for v in inputs)
-        a, cyv = self.a_lat, self._cyv
+        a_f, a_r = self._a_f, self._a_r
         yf, yr = x[_I_YF], x[_I_YR]
         dx = [0.0] * self.n_states
+        if not self.front_contact:
+            yf = 0.0 if not self.front_lifted else yf
+        if not self.rear_contact:
+            yr = 0.0 if not self.rear_lifted else yr
+        yf_c = yf if self.front_contact else 0.0          # what the other carrier's (2) sees
+        yr_c = yr if self.rear_contact else 0.0
         if self.front_contact:
-            dx[_I_YF] = a * yf - a * yr + cyv * x[_I_F] + self._fy * Fyf
-        else:
-            yf = 0.0
-        if self.rear_lifted is None:
-            dx[_I_YR] = -a * yr + a * yf + cyv * x[_I_R] + self._off + self._fy * Fyr
+            dx[_I_YF] = a_f * yf - a_f * yr_c + self._cyv_f * x[_I_F] + self._off_f + self._fy_f * Fyf
+        if self.rear_contact:
+            dx[_I_YR] = -a_r * yr + a_r * yf_c + self._cyv_r * x[_I_R] + self._off_r + self._fy_r * Fyr
         for car, i, du, M in ((self._front, _I_F, du_f, Mzf), (self._rear, _I_R, du_r, Mzr)):
             psi, p, z, ue = x[i], x[i + 1], x[i + 2], x[i + 3]
             udot = ue / car.tau
@@ -847,16 +1012,16 @@ class Plant:
                          + car.w02 * (car.K * du + car.psi_off + M * car.inv_Jw2))
             dx[i + 3] = -udot
         if self.dynamic:
-            lam = self._lam
-            gvb, b2r, vk = self._gvb, self._b2r, self._vk
-            if self.rear_lifted is None:
-                dx[_I_DW + 1] = lam * (gvb * yr + b2r * x[_I_R + 1] + vk * du_r - x[_I_DW + 1])
+            if self.rear_contact:
+                dx[_I_DW + 1] = self._lam_r * (self._gvb_r * yr + self._b2r_r * x[_I_R + 1]
+                                               + self._vk_r * du_r - x[_I_DW + 1])
             else:
-                dx[_I_DW + 1] = -lam * x[_I_DW + 1]
+                dx[_I_DW + 1] = -self._lam_r * x[_I_DW + 1]
             if self.front_contact:
-                dx[_I_DW] = lam * (gvb * yf + b2r * x[_I_F + 1] + vk * du_f - x[_I_DW])
+                dx[_I_DW] = self._lam_f * (self._gvb_f * yf + self._b2r_f * x[_I_F + 1]
+                                           + self._vk_f * du_f - x[_I_DW])
             else:
-                dx[_I_DW] = -lam * x[_I_DW]
+                dx[_I_DW] = -self._lam_f * x[_I_DW]
         return dx
 
     @staticmethod

@@ -322,7 +322,7 @@ class RealtimeSim:
             "session": {"active": self.session_active, "count": self.sessions,
                         "t0": None if math.isnan(self.session_t0) else self.session_t0,
                         "last_sync_t": None if math.isnan(last_sync) else last_sync},
-            "plant": {"y_f": p.y_f, "y_r": p.y_r, "psi_af": p.psi_af, "psi_ar": p.psi_ar},
+            "plant": {"y_f": p.y_f, "y_r": p.y_r, "psi_af": p.psi_af, "psi_ar": p.psi_ar, "v": p.v},
             "timing": self.timing(),
             "session_stats": self.session_stats(snap),
             "slcan": snap.get("slcan", {}),

@@ -61,16 +61,11 @@ class SimulatedRig:
         self.scenario = scenario
         self.h = cfg.controller.h
         self._rng = random.Random(self.seed)
-        p = cfg.plant
-        lifted = scenario is not None and scenario.lifted_carrier == "rear"
-        self.plant = Plant(p, wheel_dynamics=self.sc.wheel_dynamics,
-                           rear_lifted=LiftedCarrier(self.sc.lifted_D, self.sc.lifted_psi_off) if lifted else None)
-        psi0 = p.psi_off
-        y0 = p.c_y * p.v * psi0 / p.a_lat + p.y_off / (2 * p.l0) * p.v / p.a_lat
-        if self.sc.initial_y_mm is not None:
-            y0 = self.sc.initial_y_mm * 1e-3
-        psi_ar = None if scenario is None or scenario.initial_psi_mrad is None else scenario.initial_psi_mrad * 1e-3
-        self.plant.reset(y_r=y0, psi_ar=psi_ar)   # psi None: at rest (K·0 + psi_off), z = psi
+        self.plant = self._new_plant(cfg.plant, scenario)
+        self.speed = scenario.speed_profile(cfg.plant.v) if scenario is not None else (lambda tau: cfg.plant.v)
+        self._check_speed()
+        self.plant.set_speed(self.speed(0.0))    # the rollers run at the scenario's start speed
+        self._reset_plant(cfg.plant, scenario)
         self.t = 0.0
         self._drive_bus = drive_bus
         self._check_scenario()
@@ -89,6 +84,56 @@ class SimulatedRig:
         self._serving_start_up = drive_bus is None
         if self._serving_start_up:              # the runtime's blocking start-up, before the first advance
             self.drives.start_realtime(time_fn=lambda: self.t)
+
+    # ------------------------------------------------------------------ the contact set-up
+    def _new_plant(self, p, scenario: Optional[Scenario]) -> Plant:
+        """The plant with the set-up of the config (``plant.front_contact``, ``plant.rear_contact``)
+        and the scenario (``lifted_carrier``: that carrier off the rollers, Sec. 4.3.2, with the
+        contact-free ``sim.lifted_D`` and ``sim.lifted_psi_off``; the other one must be out of
+        contact by the config: the paper's free response and its mirror for the front)."""
+        lifted_name = scenario.lifted_carrier if scenario is not None else None
+        if lifted_name is not None:
+            other = "front" if lifted_name == "rear" else "rear"
+            if getattr(p, f"{other}_contact"):
+                raise ConfigError(self.cfg.source or None, f"plant.{other}_contact",
+                                  f"false for scenario {scenario.name!r} (lifted_carrier: {lifted_name}: "
+                                  f"no carrier on the rollers during a free response)", True)
+        lifted = LiftedCarrier(self.sc.lifted_D, self.sc.lifted_psi_off)
+        return Plant(p, wheel_dynamics=self.sc.wheel_dynamics,
+                     rear_lifted=lifted if lifted_name == "rear" else None,
+                     front_lifted=lifted if lifted_name == "front" else None)
+
+    def _check_speed(self) -> None:
+        """A speed profile needs the static wheel relation (4): the dynamic form (3) has the
+        creep pole -c11 r0²/(J_x v), unbounded at v = 0 and unstable for v < 0 as written."""
+        sc = self.scenario
+        if sc is None or not sc.speed or self.sc.wheel_dynamics != "dynamic":
+            return
+        vs = [p.v for p in sc.speed]
+        if any(v != self.cfg.plant.v for v in vs):
+            raise ConfigError(self.cfg.source or None, "sim.wheel_dynamics",
+                              f"'static' for scenario {sc.name!r} with a speed profile (the dynamic form (3) "
+                              f"runs at the fixed plant.v > 0 only)", "dynamic")
+
+    def _reset_plant(self, p, scenario: Optional[Scenario]) -> None:
+        """The plant at rest for u = 0 (yaw at psi_off, z = psi; the rolling carrier(s) at the
+        lateral rest position); ``sim.initial_y_mm`` sets the y of the carrier in contact (the
+        rear's when both are) and the scenario's ``initial_psi_mrad`` the yaw of the lifted or
+        open-loop carrier (the rear's without either)."""
+        pl = self.plant
+        psi = None if scenario is None or scenario.initial_psi_mrad is None else scenario.initial_psi_mrad * 1e-3
+        which = "rear"
+        if scenario is not None:
+            which = scenario.lifted_carrier or (scenario.open_loop.carrier if scenario.open_loop else "rear")
+        y0 = None if self.sc.initial_y_mm is None else self.sc.initial_y_mm * 1e-3
+        kw = {"psi_af" if which == "front" else "psi_ar": psi}
+        if pl.rear_contact or pl.rear_lifted:
+            if y0 is None and p.rear is None and pl.v == p.v and pl.a_r != 0.0:   # the paper's set-up as it always was
+                y0 = p.c_y * p.v * p.psi_off / p.a_lat + p.y_off / (2 * p.l0) * p.v / p.a_lat
+            kw["y_r"] = y0                                        # None: the plant's rest value
+        else:
+            kw["y_f"] = y0
+        pl.reset(**kw)   # psi None: at rest (K·0 + psi_off), z = psi
 
     # ------------------------------------------------------------------ devices
     def _open_devices(self) -> None:
@@ -270,8 +315,9 @@ class SimulatedRig:
     # ------------------------------------------------------------------ the plant
     def step(self, dt: float, currents: Sequence[float]) -> None:
         """One plant step of ``dt`` from ``self.t`` with the wheels' applied ``currents``
-        (A, ``WHEELS`` order): scenario faults switched and forces applied at the step's
-        start (scenario time), then ``self.t += dt``. The one plant step of both
+        (A, ``WHEELS`` order): scenario faults switched, forces applied and the roller speed
+        ``speed(tau)`` of the scenario's profile set at the step's start (scenario time tau;
+        0 before the scenario started), then ``self.t += dt``. The one plant step of both
         :meth:`advance` and ``RealtimeSim``."""
         if self.scenario_started:
             tau = self.t - self.t_run0
@@ -279,10 +325,12 @@ class SimulatedRig:
             self._update_drifts(tau)
             forces = self._forces(tau)
         else:
+            tau = 0.0
             forces = _NO_FORCES
         if self.miswire.current_sign:
             currents = miswire.motor_currents(self.miswire, currents)
         fl, fr, rl, rr = currents
+        self.plant.set_speed(self.speed(tau))   # the roller speed, held over the step (ZOH)
         self.plant.step(dt, fl - fr, rl - rr, *forces)
         self.t += dt
 

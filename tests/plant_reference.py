@@ -18,13 +18,15 @@ from sim_backend.plant import Plant
 # --------------------------------------------------------------------------- scenarios
 @dataclass(frozen=True)
 class Scenario:
-    """Inputs held over each step k: columns du_f, du_r, F_y_f, F_y_r, M_z_f, M_z_r."""
+    """Inputs held over each step k: columns du_f, du_r, F_y_f, F_y_r, M_z_f, M_z_r; ``speed``
+    (optional) the roller speed held over each step k (m/s; None: the plant's fixed v)."""
 
     name: str
     params: PlantParams
     dt: float
     inputs: np.ndarray
     initial: dict = field(default_factory=dict)
+    speed: Optional[np.ndarray] = None
 
     @property
     def t(self) -> np.ndarray:
@@ -83,16 +85,23 @@ def simulate(scenario: Scenario, plant: Optional[Plant] = None, **plant_kw: Any)
     rows = [row()]
     dt = scenario.dt
     step = pl.step
-    for u in scenario.inputs.tolist():
-        step(dt, *u)
-        rows.append(row())
+    if scenario.speed is None:
+        for u in scenario.inputs.tolist():
+            step(dt, *u)
+            rows.append(row())
+    else:
+        set_speed = pl.set_speed
+        for u, v in zip(scenario.inputs.tolist(), scenario.speed.tolist()):
+            set_speed(v)
+            step(dt, *u)
+            rows.append(row())
     return np.array(rows)
 
 
 def reference(scenario: Scenario, rtol: float = 1e-10, atol: float = 1e-12, method: str = "Radau",
               **plant_kw: Any) -> np.ndarray:
     """The same scenario with ``scipy.integrate.solve_ivp`` (restarted wherever the held
-    inputs change, so it sees exactly the same ZOH input); states at t = k dt."""
+    inputs or the speed change, so it sees exactly the same ZOH input); states at t = k dt."""
     from scipy.integrate import solve_ivp
 
     pl = Plant(scenario.params, **plant_kw)
@@ -104,10 +113,14 @@ def reference(scenario: Scenario, rtol: float = 1e-10, atol: float = 1e-12, meth
     x = pl.state_vector()
     out[0] = x
     prev = (pl._front.du, pl._rear.du, 0.0, 0.0, 0.0, 0.0)
-    change = np.flatnonzero(np.any(np.diff(U, axis=0) != 0.0, axis=1)) + 1
+    V = scenario.speed
+    held = U if V is None else np.column_stack((U, V))
+    change = np.flatnonzero(np.any(np.diff(held, axis=0) != 0.0, axis=1)) + 1
     bounds = np.concatenate(([0], change, [n]))
     for k0, k1 in zip(bounds[:-1], bounds[1:]):
         t_eval = np.arange(k0 + 1, k1 + 1) * dt
+        if V is not None:
+            pl.set_speed(float(V[k0]))
         x = pl.input_jump(x, prev, U[k0])
         prev = tuple(U[k0])
         sol = solve_ivp(pl.rhs, (k0 * dt, k1 * dt), x, method=method, t_eval=t_eval,
