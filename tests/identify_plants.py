@@ -50,21 +50,35 @@ duration_s: 110
 open_loop: {carrier: rear, steps: [[0, 0.0], [10, 0.4], [30, 0.8], [50, 0.0], [70, -0.8], [90, 0.0]]}
 """,
 }
+FRONT_SPEED = -1.0      # the mirrored set-up: the front carrier trails at v < 0
 
 
-def short_scenarios(tmp: Path) -> dict:
+def short_text(kind: str, carrier: str = "rear") -> str:
+    """The short scenario of ``kind`` for ``carrier``: the rear's in the paper's set-up, the
+    front's the mirror (every ``rear`` key the front's, rollers at ``FRONT_SPEED``)."""
+    text = SHORT[kind]
+    if carrier == "front":
+        text = text.replace("carrier: rear", "carrier: front").replace("name: t-", "name: t-front-")
+        text += f"speed: [{{t: 0, v: {FRONT_SPEED}}}]\n"
+    return text
+
+
+def short_scenarios(tmp: Path, carrier: str = "rear") -> dict:
     out = {}
-    for kind, text in SHORT.items():
-        p = tmp / f"t-{kind}.yaml"
-        p.write_text(text)
+    for kind in SHORT:
+        p = tmp / f"t-{carrier}-{kind}.yaml"
+        p.write_text(short_text(kind, carrier))
         out[kind] = load_scenario(p)
     return out
 
 
-def standard_scenarios() -> dict:
-    return {k: load_scenario(SCENARIO_DIR / f"{n}.yaml") for k, n in
-            (("free-response", "ident-free-response"), ("steps", "ident-steps"), ("sine", "ident-sine"),
-             ("open-loop-steps", "open-loop-steps"))}
+def standard_scenarios(carrier: str = "rear") -> dict:
+    """The shipped experiment scenarios of ``carrier`` (the front's: ident-front-*)."""
+    names = (("free-response", "ident-free-response"), ("steps", "ident-steps"), ("sine", "ident-sine"),
+             ("open-loop-steps", "open-loop-steps"))
+    if carrier == "front":
+        names = tuple((k, "ident-front-" + n.removeprefix("ident-")) for k, n in names)
+    return {k: load_scenario(SCENARIO_DIR / f"{n}.yaml") for k, n in names}
 
 
 def plants() -> dict:
@@ -90,6 +104,30 @@ def plants() -> dict:
     return out
 
 
+def front_plants() -> dict:
+    """name -> (RigConfig of the mirrored set-up, truth dict of the lifted front): the shipped
+    rear (common values) and a front carrier of its own (``plant.front``) differing from it by
+    up to ±30 % (offsets of other signs), as plants A and B differ from the shipped one;
+    configs/sim-ident-front.yaml's set-up (front on the rollers, rear out of contact, front lane)."""
+    from rig_runtime.config import CarrierPlant
+    cfg = config.load(config.CONFIG_DIR / "sim-ident-front.yaml")
+    out = {}
+    for name, (variant, lifted) in plants().items():
+        if name == "shipped":
+            continue
+        V = variant.plant
+        own = CarrierPlant(**{k: getattr(V, k) for k in ("omega0", "K", "D_min", "D_max", "c_udot_max", "delta0",
+                                                         "l0", "y_off", "psi_off", "c11", "bouc_wen")})
+        out[f"front-{name}"] = (replace(cfg, plant=replace(cfg.plant, front=own), sim={**(cfg.sim or {}), **lifted}),
+                                lifted)
+    return out
+
+
+def all_plants() -> dict:
+    """name -> (RigConfig, lifted truth, carrier): the rear's plants and the front's."""
+    return {**{n: (*v, "rear") for n, v in plants().items()}, **{n: (*v, "front") for n, v in front_plants().items()}}
+
+
 def record(cfg, scenarios: dict, tmp: Path, seed: int = 0, prefix: str = "") -> list[Path]:
     """Run every scenario in lockstep on ``cfg``'s simulated plant; the logs' paths."""
     from rig_runtime.app.dryrun import run_lockstep
@@ -104,8 +142,8 @@ def record(cfg, scenarios: dict, tmp: Path, seed: int = 0, prefix: str = "") -> 
 
 # ------------------------------------------------------------------ shared runs for the tests
 def _record_one(name: str, kind: str, tmp: str) -> str:
-    cfg, _ = plants()[name]
-    sc = short_scenarios(Path(tmp))[kind]
+    cfg, _, carrier = all_plants()[name]
+    sc = short_scenarios(Path(tmp), carrier)[kind]
     (log,) = record(cfg, {kind: sc}, Path(tmp), prefix=name)
     return str(log)
 
@@ -118,6 +156,8 @@ def _identify(name: str, logs: list[str], tmp: str) -> dict:
     from rig_runtime.app.identify import fit
     fit.WORKERS = 1
     argv = ["identify", *logs, "--json"]
+    if name.startswith("front-"):
+        argv += ["--config", str(config.CONFIG_DIR / "sim-ident-front.yaml")]
     extra = {}
     if name == "shipped":
         extra = {"write": str(Path(tmp) / "plant-identified.yaml"), "report": str(Path(tmp) / "report")}
