@@ -164,7 +164,7 @@ def _r0(conf: dict, carrier: str) -> float | None:
     """The carrier's wheel radius in the log's config (its own override, else the common one)."""
     pl = conf.get("plant") or {}
     own = pl.get(carrier) or {}
-    r0 = own.get("r0", pl.get("r0"))
+    r0 = own.get("r0") if own.get("r0") is not None else pl.get("r0")
     return float(r0) if isinstance(r0, (int, float)) and r0 > 0 else None
 
 
