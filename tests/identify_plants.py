@@ -26,28 +26,27 @@ SHORT = {
 experiment: free-response
 lifted_carrier: rear
 initial_psi_mrad: 8.0
-duration_s: 14
+duration_s: 9
 open_loop: {carrier: rear, steps: [[0, 0.0]]}
 disturbances:
   - {kind: constant, carrier: rear, t: 4, duration_s: 1.5, M_z: -2.5}
-  - {kind: constant, carrier: rear, t: 9, duration_s: 1.5, M_z: 2.0}
 """,
     "steps": """name: t-steps
 experiment: steps
-duration_s: 125
-open_loop: {carrier: rear, steps: [[0, 0.0], [5, 0.8], [65, -0.8]]}
+duration_s: 85
+open_loop: {carrier: rear, steps: [[0, 0.0], [5, 0.8], [45, -0.8]]}
 """,
     "sine": """name: t-sine
 experiment: sine
-duration_s: 210
+duration_s: 105
 open_loop:
   carrier: rear
-  sine: [{amplitude_A: 0.6, freq_mhz: 4.8, t0: 0}]
+  sine: [{amplitude_A: 0.6, freq_mhz: 9.6, t0: 0}]
 """,
     "open-loop-steps": """name: t-open-loop-steps
 experiment: open-loop-steps
-duration_s: 110
-open_loop: {carrier: rear, steps: [[0, 0.0], [10, 0.4], [30, 0.8], [50, 0.0], [70, -0.8], [90, 0.0]]}
+duration_s: 70
+open_loop: {carrier: rear, steps: [[0, 0.0], [5, 0.4], [17, 0.8], [29, 0.0], [41, -0.8], [53, 0.0]]}
 """,
 }
 FRONT_SPEED = -1.0      # the mirrored set-up: the front carrier trails at v < 0

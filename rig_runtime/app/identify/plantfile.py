@@ -90,6 +90,8 @@ def render(P: PlantParams, identified: dict, logs: list[str], when: str | None =
             lines.append(line(k, getattr(bw, k) if bw is not None else _BW_DEFAULT.get(k, 1.0), "    ",
                               f"bouc_wen.{k}", identified))
     lines.append(f"  front_contact: {str(P.front_contact).lower()}")
+    if not getattr(P, "rear_contact", True):
+        lines.append("  rear_contact: false")
     for c in CARRIERS:
         if c not in carriers or not carriers[c][0]:
             continue

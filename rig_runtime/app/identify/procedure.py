@@ -84,8 +84,9 @@ def run(P: PlantParams, exps: list[Experiment]) -> dict:
         timing["relation_4"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         lat = lateral.identify(cur, ol)
-        put("l0", lat, "lateral (2b)")
-        put("y_off", lat, "lateral (2b)")
+        eq = "lateral (2a)" if exps[0].carrier == "front" else "lateral (2b)"
+        put("l0", lat, eq)
+        put("y_off", lat, eq)
         cur = replace(cur, l0=lat.value("l0"), y_off=lat.value("y_off"))
         timing["lateral"] = time.perf_counter() - t0
         exp_entry("open-loop-steps", ol, {"relation_4": ws, "lateral": lat},
