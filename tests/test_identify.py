@@ -320,3 +320,21 @@ def test_front_experiment_in_the_unstable_direction_is_refused_with_one_line(tmp
     assert main(["identify", str(p)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "v < 0" in err[0] and "front" in err[0]
+
+
+def test_lateral_data_with_both_carriers_on_the_rollers_is_refused(runs, tmp_path, capsys):
+    """(2a)/(2b) are fitted with the other carrier out of contact (its y ≡ 0): open-loop steps
+    whose log's config had both carriers on the rollers are refused (exit 2, one line)."""
+    import shutil
+    import h5py
+    src = next(p for p in runs["shipped"]["logs"] if "open-loop-steps" in Path(p).name)
+    dst = tmp_path / "both.h5"
+    shutil.copy(src, dst)
+    with h5py.File(dst, "a") as f:
+        conf = json.loads(f.attrs["config"])
+        conf["plant"]["front_contact"] = True
+        f.attrs["config"] = json.dumps(conf)
+    assert load_experiment(dst).other_rolling and not load_experiment(src).other_rolling
+    assert main(["identify", str(dst)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "front carrier was on the rollers too" in err[0]

@@ -58,6 +58,7 @@ class Experiment:
     dw: np.ndarray    # rad/s, its wheel-speed difference left − right
     carrier: str = "rear"
     v: float | None = None   # m/s, roller speed (sign = direction); None: the config's plant.v
+    other_rolling: bool = False   # the other carrier was on the rollers too (the log's config)
 
     @property
     def name(self) -> str:
@@ -155,9 +156,13 @@ def _from_log(path: Path, carrier: str | None = None) -> Experiment:
     if a.get("lifted_carrier", "") != carrier and kind != "free-response":
         r0 = _r0(conf, carrier)
         v = measured_speed(c, carrier, r0, str(path)) if r0 else None
+    other = "front" if carrier == "rear" else "rear"
+    pl = conf.get("plant") or {}
+    rolling = bool(pl.get(f"{other}_contact", other == "rear")) and a.get("lifted_carrier", "") != other
     h = float(a.get("h", np.median(np.diff(c["t"]))))
     t = c["t"] - c["t"][0]
-    return Experiment(kind, str(path), h, t, u, c[col["psi"]], c[col["y"]], c[col["dw"]], carrier=carrier, v=v)
+    return Experiment(kind, str(path), h, t, u, c[col["psi"]], c[col["y"]], c[col["dw"]], carrier=carrier, v=v,
+                      other_rolling=rolling)
 
 
 def _r0(conf: dict, carrier: str) -> float | None:

@@ -51,7 +51,12 @@ def simulate(P: PlantParams, e: Experiment, l0: float, y_off: float, y0: float |
 
 
 def check_direction(P: PlantParams, e: Experiment) -> None:
-    """The carrier's lateral dynamics must be stable in the experiment's direction."""
+    """The set-up: the other carrier out of contact (its y ≡ 0), and the carrier's lateral
+    dynamics stable in the experiment's direction."""
+    if e.other_rolling:
+        other = "front" if e.carrier == "rear" else "rear"
+        raise ValueError(f"{e.name}: the {other} carrier was on the rollers too (the log's config: "
+                         f"plant.{other}_contact true); the {e.carrier}'s lateral fit needs it out of contact")
     lam, _, _ = coefficients(P, e.carrier, speed(P, e), P.l0)
     if not lam > 0:
         want = "v > 0" if e.carrier == "rear" else "v < 0"
