@@ -1,6 +1,8 @@
 """Simulated identification experiments for the recovery tests and the benchmark: plants
-whose parameters differ from the shipped ones by up to ±30 % (offsets with other signs),
-and short versions of the ident-* scenarios (the shortest that still identify).
+whose parameters differ from the shipped ones by up to ±30 % (offsets with other signs), the
+same for a front carrier of its own in the mirrored set-up (``front_plants``), and short
+versions of the ident-* scenarios (short enough to be cheap, long enough for the tests'
+tolerances: docs/identification.md §5), for either carrier (``short_text``).
 
 ``record_and_identify`` records every plant's short set and identifies it in worker
 processes (two: the machine's cores), each scenario one job, each plant's identification a
@@ -164,6 +166,8 @@ def _identify(name: str, logs: list[str], tmp: str) -> dict:
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         code = main(argv)
+    if code == 0:
+        (Path(tmp) / "identify.json").write_text(out.getvalue())      # kept with the logs, for a look afterwards
     return {"code": code, "json": json.loads(out.getvalue()) if code == 0 else None, "stderr": err.getvalue(),
             "logs": logs, **extra}
 
