@@ -1,6 +1,8 @@
 """Simulated identification experiments for the recovery tests and the benchmark: plants
-whose parameters differ from the shipped ones by up to ±30 % (offsets with other signs),
-and short versions of the ident-* scenarios (the shortest that still identify).
+whose parameters differ from the shipped ones by up to ±30 % (offsets with other signs), the
+same for a front carrier of its own in the mirrored set-up (``front_plants``), and short
+versions of the ident-* scenarios (short enough to be cheap, long enough for the tests'
+tolerances: docs/identification.md §5), for either carrier (``short_text``).
 
 ``record_and_identify`` records every plant's short set and identifies it in worker
 processes (two: the machine's cores), each scenario one job, each plant's identification a
@@ -26,45 +28,58 @@ SHORT = {
 experiment: free-response
 lifted_carrier: rear
 initial_psi_mrad: 8.0
-duration_s: 14
+duration_s: 9
 open_loop: {carrier: rear, steps: [[0, 0.0]]}
 disturbances:
   - {kind: constant, carrier: rear, t: 4, duration_s: 1.5, M_z: -2.5}
-  - {kind: constant, carrier: rear, t: 9, duration_s: 1.5, M_z: 2.0}
 """,
     "steps": """name: t-steps
 experiment: steps
-duration_s: 125
-open_loop: {carrier: rear, steps: [[0, 0.0], [5, 0.8], [65, -0.8]]}
+duration_s: 85
+open_loop: {carrier: rear, steps: [[0, 0.0], [5, 0.8], [45, -0.8]]}
 """,
     "sine": """name: t-sine
 experiment: sine
-duration_s: 210
+duration_s: 105
 open_loop:
   carrier: rear
-  sine: [{amplitude_A: 0.6, freq_mhz: 4.8, t0: 0}]
+  sine: [{amplitude_A: 0.6, freq_mhz: 9.6, t0: 0}]
 """,
     "open-loop-steps": """name: t-open-loop-steps
 experiment: open-loop-steps
-duration_s: 110
-open_loop: {carrier: rear, steps: [[0, 0.0], [10, 0.4], [30, 0.8], [50, 0.0], [70, -0.8], [90, 0.0]]}
+duration_s: 70
+open_loop: {carrier: rear, steps: [[0, 0.0], [5, 0.4], [17, 0.8], [29, 0.0], [41, -0.8], [53, 0.0]]}
 """,
 }
+FRONT_SPEED = -1.0      # the mirrored set-up: the front carrier trails at v < 0
 
 
-def short_scenarios(tmp: Path) -> dict:
+def short_text(kind: str, carrier: str = "rear") -> str:
+    """The short scenario of ``kind`` for ``carrier``: the rear's in the paper's set-up, the
+    front's the mirror (every ``rear`` key the front's, rollers at ``FRONT_SPEED``)."""
+    text = SHORT[kind]
+    if carrier == "front":
+        text = text.replace("carrier: rear", "carrier: front").replace("name: t-", "name: t-front-")
+        text += f"speed: [{{t: 0, v: {FRONT_SPEED}}}]\n"
+    return text
+
+
+def short_scenarios(tmp: Path, carrier: str = "rear") -> dict:
     out = {}
-    for kind, text in SHORT.items():
-        p = tmp / f"t-{kind}.yaml"
-        p.write_text(text)
+    for kind in SHORT:
+        p = tmp / f"t-{carrier}-{kind}.yaml"
+        p.write_text(short_text(kind, carrier))
         out[kind] = load_scenario(p)
     return out
 
 
-def standard_scenarios() -> dict:
-    return {k: load_scenario(SCENARIO_DIR / f"{n}.yaml") for k, n in
-            (("free-response", "ident-free-response"), ("steps", "ident-steps"), ("sine", "ident-sine"),
-             ("open-loop-steps", "open-loop-steps"))}
+def standard_scenarios(carrier: str = "rear") -> dict:
+    """The shipped experiment scenarios of ``carrier`` (the front's: ident-front-*)."""
+    names = (("free-response", "ident-free-response"), ("steps", "ident-steps"), ("sine", "ident-sine"),
+             ("open-loop-steps", "open-loop-steps"))
+    if carrier == "front":
+        names = tuple((k, "ident-front-" + n.removeprefix("ident-")) for k, n in names)
+    return {k: load_scenario(SCENARIO_DIR / f"{n}.yaml") for k, n in names}
 
 
 def plants() -> dict:
@@ -90,6 +105,30 @@ def plants() -> dict:
     return out
 
 
+def front_plants() -> dict:
+    """name -> (RigConfig of the mirrored set-up, truth dict of the lifted front): the shipped
+    rear (common values) and a front carrier of its own (``plant.front``) differing from it by
+    up to ±30 % (offsets of other signs), as plants A and B differ from the shipped one;
+    configs/sim-ident-front.yaml's set-up (front on the rollers, rear out of contact, front lane)."""
+    from rig_runtime.config import CarrierPlant
+    cfg = config.load(config.CONFIG_DIR / "sim-ident-front.yaml")
+    out = {}
+    for name, (variant, lifted) in plants().items():
+        if name == "shipped":
+            continue
+        V = variant.plant
+        own = CarrierPlant(**{k: getattr(V, k) for k in ("omega0", "K", "D_min", "D_max", "c_udot_max", "delta0",
+                                                         "l0", "y_off", "psi_off", "c11", "bouc_wen")})
+        out[f"front-{name}"] = (replace(cfg, plant=replace(cfg.plant, front=own), sim={**(cfg.sim or {}), **lifted}),
+                                lifted)
+    return out
+
+
+def all_plants() -> dict:
+    """name -> (RigConfig, lifted truth, carrier): the rear's plants and the front's."""
+    return {**{n: (*v, "rear") for n, v in plants().items()}, **{n: (*v, "front") for n, v in front_plants().items()}}
+
+
 def record(cfg, scenarios: dict, tmp: Path, seed: int = 0, prefix: str = "") -> list[Path]:
     """Run every scenario in lockstep on ``cfg``'s simulated plant; the logs' paths."""
     from rig_runtime.app.dryrun import run_lockstep
@@ -104,8 +143,8 @@ def record(cfg, scenarios: dict, tmp: Path, seed: int = 0, prefix: str = "") -> 
 
 # ------------------------------------------------------------------ shared runs for the tests
 def _record_one(name: str, kind: str, tmp: str) -> str:
-    cfg, _ = plants()[name]
-    sc = short_scenarios(Path(tmp))[kind]
+    cfg, _, carrier = all_plants()[name]
+    sc = short_scenarios(Path(tmp), carrier)[kind]
     (log,) = record(cfg, {kind: sc}, Path(tmp), prefix=name)
     return str(log)
 
@@ -118,6 +157,8 @@ def _identify(name: str, logs: list[str], tmp: str) -> dict:
     from rig_runtime.app.identify import fit
     fit.WORKERS = 1
     argv = ["identify", *logs, "--json"]
+    if name.startswith("front-"):
+        argv += ["--config", str(config.CONFIG_DIR / "sim-ident-front.yaml")]
     extra = {}
     if name == "shipped":
         extra = {"write": str(Path(tmp) / "plant-identified.yaml"), "report": str(Path(tmp) / "report")}
@@ -125,6 +166,8 @@ def _identify(name: str, logs: list[str], tmp: str) -> dict:
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         code = main(argv)
+    if code == 0:
+        (Path(tmp) / "identify.json").write_text(out.getvalue())      # kept with the logs, for a look afterwards
     return {"code": code, "json": json.loads(out.getvalue()) if code == 0 else None, "stderr": err.getvalue(),
             "logs": logs, **extra}
 

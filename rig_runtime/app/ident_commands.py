@@ -13,9 +13,11 @@ def _fmt(v: float) -> str:
     return f"{v:.6g}"
 
 
-@command("identify", "identify the plant parameters (paper Sec. 4) from experiment logs")
+@command("identify", "identify the plant parameters (paper Sec. 4) from experiment logs, per carrier")
 @arg("--config", help="config file whose plant gives start values and fixed constants (default: configs/sim.yaml)")
 @arg("logs", nargs="+", metavar="LOG", help="run logs (.h5) or CSV files of identification experiments")
+@arg("--carrier", choices=("front", "rear"),
+     help="take every log as this carrier's (default: each log's own carrier, from the log)")
 @arg("--json", action="store_true", help="print one JSON object")
 @arg("--write", metavar="PLANT.yaml", help="write a plant: fragment with the identified values (new file)")
 @arg("--report", metavar="DIR", help="write plots (measured, configured model, identified model) into DIR")
@@ -29,27 +31,49 @@ def cmd_identify(args: argparse.Namespace) -> int:
     cfg = config.load(args.config)
     if args.write and Path(args.write).exists():     # before minutes of fitting, not after
         raise ConfigError(args.write, "", "a new file (refusing to overwrite an existing plant file)")
-    exps = [load_experiment(p) for p in args.logs]
+    exps = [load_experiment(p, args.carrier) for p in args.logs]
     try:
-        result = procedure.run(cfg.plant, exps)
+        results = procedure.run_carriers(cfg.plant, exps)
     except ValueError as e:
         raise ConfigError(None, "experiments", str(e)) from None
-    out = procedure.public(result)
-    P = procedure.identified_plant(result)
+    identified = {c: r["_written"] for c, r in results.items()}
+    _, _, marks = plantfile.plant_sections(cfg.plant, identified)
+    out = {"parameters": {**{k: {**results["rear"]["parameters"][k], "carrier": "rear"} for k in marks[""]},
+                          **{f"front.{k}": {**results["front"]["parameters"][k], "carrier": "front"}
+                             for k in marks["front"]}},
+           "carriers": {c: procedure.public(r) for c, r in results.items()}}
     if args.write:
-        plantfile.write(args.write, plantfile.render(P, result["_written"], [e.source for e in exps]))
+        plantfile.write(args.write, plantfile.render_carriers(cfg.plant, identified, [e.source for e in exps]))
         out["written"] = args.write
     if args.report:
         from .identify.report import write_report
-        out["report"] = [str(p) for p in write_report(cfg.plant, P, exps, result, args.report)]
+        out["report"] = []
+        for c, r in results.items():
+            d = Path(args.report) if len(results) == 1 else Path(args.report) / c
+            mine = [e for e in exps if e.carrier == c]
+            out["report"] += [str(p) for p in write_report(cfg.plant.carrier(c), procedure.identified_plant(r),
+                                                            mine, r, d)]
     if args.json:
         print(json.dumps(out))
         return 0
     print(f"config: {cfg.source}")
+    for c, r in out["carriers"].items():
+        _print_carrier(cfg, c, r, [e for e in exps if e.carrier == c])
+    if args.write:
+        print(f"\nplant fragment: {args.write}")
+    if args.report:
+        print("report: " + ", ".join(out["report"]))
+    return 0
+
+
+def _print_carrier(cfg, carrier: str, out: dict, exps) -> None:
+    conf_plant = cfg.plant.carrier(carrier)
+    speeds = ", ".join(f"{v:+.3g}" for v in out["v"]) or "-"
+    print(f"\n== {carrier} carrier (roller speed {speeds} m/s)")
     print("experiments: " + ", ".join(f"{e.name} ({e.kind})" for e in exps))
     print(f"\n{'parameter':<16}{'identified':>14}  {'95 % interval':<30}{'configured':>12}")
     for name, p in out["parameters"].items():
-        conf = cfg.plant
+        conf = conf_plant
         for part in name.split("."):
             conf = getattr(conf, part, None) if conf is not None else None
         lo, hi = p["ci95"]
@@ -83,8 +107,3 @@ def cmd_identify(args: argparse.Namespace) -> int:
     for s in out["skipped"]:
         print(f"skipped: {s}")
     print("\ntime per step (s): " + ", ".join(f"{k} {t:.2f}" for k, t in out["timing_s"].items()))
-    if args.write:
-        print(f"plant fragment: {args.write}")
-    if args.report:
-        print("report: " + ", ".join(out["report"]))
-    return 0

@@ -60,6 +60,9 @@ def run_attrs(cfg: RigConfig, scenario: Optional[Scenario], duration_s: float, e
              "config_source": cfg.source, "scenario": scenario.name if scenario else "",
              "scenario_source": scenario.source if scenario else "",
              "experiment": (scenario.experiment or "") if scenario else "",
+             # the identification's carrier and set-up (rig identify reads them)
+             "open_loop_carrier": scenario.open_loop.carrier if scenario and scenario.open_loop else "",
+             "lifted_carrier": (scenario.lifted_carrier or "") if scenario else "",
              "duration_s": float(duration_s), "controlled": list(cfg.controlled)}
     attrs.update(extra or {})
     return attrs

@@ -12,6 +12,11 @@
 
 Steps whose experiment is missing are skipped and their parameters keep the configured
 values (reported under ``skipped``). Each step's time is measured (``timing_s``).
+
+``run`` identifies one carrier from its own experiments, starting from that carrier's
+configured values (``Plant.carrier``); ``run_carriers`` groups the experiments by carrier
+(the rear's from the paper's set-up at v > 0, the front's from the mirrored one at v < 0)
+and runs the procedure once per carrier.
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 
-from rig_runtime.config import Plant as PlantParams
+from rig_runtime.config import CARRIERS, Plant as PlantParams
 from rig_runtime.errors import ConfigError
 
 from . import free_response, joint, lateral, sines, steps, verify, wheelspeed
@@ -35,10 +40,24 @@ def _param(fit_, name) -> dict:
     return {"value": float(fit_.values[i]), "ci95": [float(lo), float(hi)]}
 
 
-def run(P: PlantParams, exps: list[Experiment]) -> dict:
-    by = {k: [e for e in exps if e.kind == k] for k in ("free-response", "steps", "sine", "open-loop-steps")}
+def run_carriers(plant: PlantParams, exps: list[Experiment]) -> dict[str, dict]:
+    """carrier -> ``run``'s result on that carrier's experiments (carriers in CARRIERS order),
+    each from the carrier's configured values."""
     if not exps:
         raise ConfigError(None, "LOG", "at least one experiment log")
+    return {c: run(plant.carrier(c), [e for e in exps if e.carrier == c])
+            for c in CARRIERS if any(e.carrier == c for e in exps)}
+
+
+def run(P: PlantParams, exps: list[Experiment]) -> dict:
+    """One carrier's identification; ``P`` its configured values (start values and constants)."""
+    if not exps:
+        raise ConfigError(None, "LOG", "at least one experiment log")
+    carriers = sorted({e.carrier for e in exps})
+    if len(carriers) != 1:
+        raise ValueError("experiments of one carrier at a time (got " + ", ".join(carriers) + ")")
+    exps = [e if e.v is not None else replace(e, v=P.v) for e in exps]
+    by = {k: [e for e in exps if e.kind == k] for k in ("free-response", "steps", "sine", "open-loop-steps")}
     params: dict[str, dict] = {}
     written: dict[str, tuple] = {}
     experiments: list[dict] = []
@@ -65,8 +84,9 @@ def run(P: PlantParams, exps: list[Experiment]) -> dict:
         timing["relation_4"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         lat = lateral.identify(cur, ol)
-        put("l0", lat, "lateral (2b)")
-        put("y_off", lat, "lateral (2b)")
+        eq = "lateral (2a)" if exps[0].carrier == "front" else "lateral (2b)"
+        put("l0", lat, eq)
+        put("y_off", lat, eq)
         cur = replace(cur, l0=lat.value("l0"), y_off=lat.value("y_off"))
         timing["lateral"] = time.perf_counter() - t0
         exp_entry("open-loop-steps", ol, {"relation_4": ws, "lateral": lat},
@@ -155,8 +175,10 @@ def run(P: PlantParams, exps: list[Experiment]) -> dict:
                         "identified": [verify.errors(cur, e) for e in ol],
                         "configured": [verify.errors(P, e) for e in ol]}
         timing["verification"] = time.perf_counter() - t0
-    return {"parameters": params, "experiments": experiments, "verification": verification,
-            "skipped": skipped, "timing_s": timing, "_plant": cur, "_written": written}
+    speeds = sorted({float(e.v) for e in exps if e.kind != "free-response"})
+    return {"carrier": carriers[0], "v": speeds, "parameters": params, "experiments": experiments,
+            "verification": verification, "skipped": skipped, "timing_s": timing, "_plant": cur,
+            "_written": written}
 
 
 def _with_hysteresis(P: PlantParams, hy) -> PlantParams:
@@ -173,4 +195,4 @@ def identified_plant(result: dict) -> PlantParams:
     return result["_plant"]
 
 
-__all__ = ["run", "public", "identified_plant"]
+__all__ = ["run", "run_carriers", "public", "identified_plant"]

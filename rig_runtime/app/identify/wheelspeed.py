@@ -3,7 +3,10 @@
     dw = Γ(δ0) v b/(2 r0²) y + b/(2 r0) ψ̇ + v k_τ/(r0² c̄11) Δu + dw_off
 
 with y = y_meas, ψ̇ from the measured ψ by central differences, Δu the input held over the
-last period. The raw measurement is fitted; the 0.5 Hz forward-backward filter of the paper
+last period, v the experiment's speed (the same relation for either carrier in contact, with
+its own Γ, b, r0; the front's experiments run at v < 0). The input term has |v|: the creep
+forces of (3) go with the creepage, slip over |v| (as the simulator, sim_backend/plant.py),
+while the rolling-radius term Γ v y changes sign with the direction. The raw measurement is fitted; the 0.5 Hz forward-backward filter of the paper
 is only for the plot (``display_filter``).
 """
 
@@ -19,6 +22,7 @@ from rig_runtime.config import Plant as PlantParams
 
 from . import fit
 from .experiments import Experiment
+from .lateral import speed
 
 
 def _gamma(delta0: float, P: PlantParams) -> float:
@@ -27,17 +31,18 @@ def _gamma(delta0: float, P: PlantParams) -> float:
 
 def predict(P: PlantParams, e: Experiment, delta0: float, c11: float, dw_off: float) -> np.ndarray:
     h = e.h
+    v = speed(P, e)
     rate = np.full(len(e.psi), np.nan)
     rate[1:-1] = (e.psi[2:] - e.psi[:-2]) / (2 * h)
     u_last = np.concatenate(([e.u[0]], e.u[:-1]))
-    return (_gamma(delta0, P) * P.v * P.b / (2 * P.r0 ** 2) * e.y + P.b / (2 * P.r0) * rate
-            + P.v * P.k_tau / (P.r0 ** 2 * c11) * u_last + dw_off)
+    return (_gamma(delta0, P) * v * P.b / (2 * P.r0 ** 2) * e.y + P.b / (2 * P.r0) * rate
+            + abs(v) * P.k_tau / (P.r0 ** 2 * c11) * u_last + dw_off)
 
 
 def identify(P: PlantParams, exps: list[Experiment]) -> fit.Fit:
-    """Fitted in (δ0, k_u, dw_off) with k_u = v k_τ/(r0² c̄11) (rad/s per A: the input term is
-    linear in it and of a sensible size), reported as (δ0, c11, dw_off)."""
-    cu = P.v * P.k_tau / P.r0 ** 2
+    """Fitted in (δ0, k_u, dw_off) with k_u = k_τ/(r0² c̄11) (rad/s per A and m/s of |v|: the input
+    term is linear in it and of a sensible size), reported as (δ0, c11, dw_off)."""
+    cu = P.k_tau / P.r0 ** 2
 
     def res(x):
         out = []
