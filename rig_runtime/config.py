@@ -212,13 +212,15 @@ class Degraded:
     channel rule's fault, as without an observer; ``observe`` — the carriers whose y it
     feeds continue on their observer's ŷ under ``limits``, for at most ``max_s``; the laser
     is readmitted once it is fit and agrees with ŷ within ``readmit_tol_m`` for
-    ``readmit_s``."""
+    ``readmit_s``. The estimate's error σ (the design's outage covariance) beyond
+    ``sigma_y_max`` ends the degraded run in the normal clean stop."""
 
     on_lateral_loss: Literal["observe", "stop"] = "stop"
     max_s: float = check(positive, default=15.0)
     limits: DegradedLimits = field(default_factory=DegradedLimits)
     readmit_s: float = check(positive, default=1.0)
     readmit_tol_m: float = check(positive, default=0.1e-3)
+    sigma_y_max: float = check(positive, default=0.1e-3)    # m, ESTIMATE (docs/observer.md)
 
 
 # --------------------------------------------------------------------------- devices

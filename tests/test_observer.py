@@ -156,10 +156,11 @@ def test_no_observer_without_its_section(cfg):
     assert od.designs(dataclasses.replace(cfg, observer=None)) == {}
 
 
-def _stats(T_lat=0.0, T_psi=0.0, T_dw=0.0, full=True):
+def _stats(T_lat=0.0, T_psi=0.0, T_dw=0.0, full=True, lat_used=1.0):
     o = Observer(_toy())
     o.T_lat, o.T_psi, o.T_dw = T_lat, T_psi, T_dw
     o._n = o._N if full else 0
+    o.lat_used = lat_used
     return o
 
 
@@ -174,6 +175,10 @@ def test_innovation_rule_names_the_sensor(cfg):
     dev, *_, msg = innovation(_stats(T_dw=31.0), lim)
     assert dev == "b_r|rl/rr" and "cannot tell the lateral laser from the encoders" in msg
     assert innovation(_stats(T_lat=1e9), dataclasses.replace(lim, innovation_chi2=None)) is None
+    # the latest estimate did not use the lateral lasers (isolated, unfit): no lateral evidence,
+    # the window they left behind is not judged; Δω still is
+    assert innovation(_stats(T_lat=99.0, lat_used=0.0), lim) is None
+    assert innovation(_stats(T_lat=99.0, T_dw=31.0, lat_used=0.0), lim)[0] == "b_r|rl/rr"
 
 
 def test_the_cycle_modules_do_not_import_scipy():
