@@ -640,7 +640,7 @@ class Supervisor:
             if t - since > deg.max_s:
                 lasers = "/".join(n for n in self._obs_of[car].d.lateral_lasers if n in self.isolated)
                 return (lasers, "degraded", t - since, deg.max_s,
-                        f"{car} carrier DEGRADED (lateral laser {lasers} lost) for longer than "
+                        f"{car} carrier DEGRADED (lateral laser {lasers} isolated) for longer than "
                         f"degraded.max_s = {deg.max_s:g} s")
         if not self._deg_stop and self.state is State.RUNNING:
             for rule in DEGRADED_STOP_RULES:

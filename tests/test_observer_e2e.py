@@ -55,9 +55,12 @@ def test_no_false_alarm_on_a_fault_free_scenario(tmp_path, ocfg, seed):
 
 
 def test_drift_is_found_and_named_before_the_bias_reaches_0_3_mm(tmp_path, ocfg):
+    """With degraded.on_lateral_loss: stop the finding is the fault (tests/test_observer_degraded_e2e.py
+    has observe: the lasers are isolated and the run continues DEGRADED)."""
     sc = load_scenario("fault-drift")
     f = sc.faults[0]
-    summary, code = run_lockstep(ocfg, sc, tmp_path / "run.h5", duration_s=14.0)
+    cfg = dataclasses.replace(ocfg, degraded=config.Degraded())
+    summary, code = run_lockstep(cfg, sc, tmp_path / "run.h5", duration_s=14.0)
     assert summary["final_state"] == "FAULT" and code == 3
     fault = summary["faults"][0]
     assert fault["check"] == "innovation" and fault["device"].split("/")[0] == "b_r", fault
