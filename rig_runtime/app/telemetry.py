@@ -7,7 +7,8 @@ datagram of at most ``MAX_DATAGRAM`` bytes::
     {"timestamp": 1234.565, "t_run": 3.2,
      "state": {"code": 2, "name": "RUNNING"},
      "front": {"y": ..., "psi": ..., "delta_omega": ...},
-     "rear":  {"y": ..., "psi": ..., "dpsi": ..., "delta_omega": ..., "y_ref": ..., "psi_ref": ..., "u": ...},
+     "rear":  {"y": ..., "psi": ..., "dpsi": ..., "delta_omega": ..., "y_ref": ..., "psi_ref": ..., "u": ...,
+               "y_hat": ..., "degraded": 0},
      "timing": {"lateness": ..., "work": ...},
      "currents": {"fl": ..., "fr": ..., "rl": ..., "rr": ...},
      "health": {"deadline_misses": 0, "skipped_periods": 0, "recorder_healthy": 1},
@@ -122,6 +123,8 @@ class RowSignals:
                      ("delta_omega", f"dw_{s}")]
             if f"{carrier}_u_cmd" in pos:          # a controlled carrier: its reference and u
                 pairs += [("y_ref", "y_ref"), ("psi_ref", f"{carrier}_psi_ref"), ("u", f"{carrier}_u_cmd")]
+            # an observed carrier: the estimate and DEGRADED (1: the lane runs on y_hat)
+            pairs += [("y_hat", f"{carrier}_obs_y_hat"), ("degraded", f"{carrier}_obs_degraded")]
             group(carrier, pairs)
         group("timing", [("lateness", "lateness"), ("work", "work")])
         group("currents", [(w, f"i_{w}") for w in WHEELS])
