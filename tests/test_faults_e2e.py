@@ -1,9 +1,21 @@
 """Every fault scenario ends in FAULT with the right cause, zero current on the wire from
-the detecting cycle on, the cause in the log's event table, and a readable log."""
+the detecting cycle on, the cause in the log's event table, and a readable log — with
+``degraded.on_lateral_loss: stop`` (sim.yaml observes: a lost lateral laser is DEGRADED
+then, tests/test_observer_degraded_e2e.py)."""
+
+import dataclasses
 
 import pytest
 
+from rig_runtime import config
+
 from .e2e import assert_safe_stop, run
+
+
+@pytest.fixture(scope="module")
+def stop_cfg():
+    """The shipped simulated rig with a lost lateral laser a fault (the default ``stop``)."""
+    return dataclasses.replace(config.load(), degraded=config.Degraded())
 
 CASES = [
     ("fault-dropout", "b_f", "stale"),
@@ -20,8 +32,8 @@ CASES = [
 
 
 @pytest.mark.parametrize("scenario, device, check", CASES, ids=[c[0] for c in CASES])
-def test_fault_scenarios(tmp_path, scenario, device, check):
-    r = run(tmp_path, scenario)
+def test_fault_scenarios(tmp_path, stop_cfg, scenario, device, check):
+    r = run(tmp_path, scenario, cfg=stop_cfg)
     assert_safe_stop(r, device, check)
     if scenario == "fault-no_heartbeat":
         assert "rl" in r.fault["message"] and "heartbeat" in r.fault["message"].lower()
@@ -35,8 +47,8 @@ def test_fault_scenarios(tmp_path, scenario, device, check):
         assert max(abs(u) for u in r.col("rear_u_lim")[k - 20:k]) > 0.1
 
 
-def test_dropout_detection_latency(tmp_path, cfg):
-    r = run(tmp_path, "fault-dropout")
+def test_dropout_detection_latency(tmp_path, cfg, stop_cfg):
+    r = run(tmp_path, "fault-dropout", cfg=stop_cfg)
     t_inject = r.summary["run_started_t"] + 3.0
     bound = cfg.limits.stale_periods * cfg.controller.h
     latency_cycles = (r.fault["t"] - t_inject - bound) / cfg.controller.h

@@ -165,8 +165,8 @@ def degraded_intervals(run: RunLog) -> list[dict]:
     """Every interval in which a carrier ran on its observer's ŷ (its ``{carrier}_obs_degraded``
     column), in run time: ``carrier``, ``t_start``, ``t_end`` (None: the log ends DEGRADED),
     ``why`` (the DEGRADED event that began it: the laser, what was observed) and ``end``
-    (what ended it: the readmission or the stop's reason — the last degraded event of the
-    interval — else the fault or the state at its end)."""
+    (what ended it: the readmission or the stop's reason — the first degraded event after
+    the one that began it — else the fault or the state at its end)."""
     c, t, half = run.columns, run.t_rel, 0.5 * run.h
     out = []
     for car in CARRIERS:
@@ -187,7 +187,7 @@ def degraded_intervals(run: RunLog) -> list[dict]:
             at_end = [e for e in run.events if e.kind in ("fault", "state") and t1 is not None
                       and abs(e.t_run - t1) <= half]
             if later:
-                end = later[-1].message
+                end = later[0].message
             elif at_end:
                 end = at_end[0].message if at_end[0].kind == "fault" else at_end[-1].message
             else:
