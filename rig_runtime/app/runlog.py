@@ -342,7 +342,7 @@ def format_info(d: dict) -> list[str]:
             lines.append(f"  {g['carrier']} {g['t_start']:+.3f} s -> {end} ({g['duration_s']:.3f} s): {g['why']}")
             lines.append(f"    ended: {g['end']}")
     if d["steps"]:
-        lines.append("steps:")
+        lines.append("steps:" if not d.get("degraded") else "steps (on the y the lane controlled on: ŷ while DEGRADED):")
         for s in d["steps"]:
             lines.append(f"  {s['from_mm']:+.2f} -> {s['to_mm']:+.2f} mm at {s['t0']:.2f} s: rise "
                          f"{num(s['rise_time_s'], '.2f')} s, overshoot {num(s['overshoot_pct'], '.1f')} %, settling "
