@@ -17,7 +17,11 @@ before the next rule), then the pose rules (each applied to every controlled car
 the next rule), then the observer rules (each applied to every observed carrier, on the
 statistics of its latest estimate, and not while a channel rule is gathering evidence on one
 of the carrier's sensors: a channel rule that sees the fault names it first). The first rule
-that fails in a cycle trips the fault. The output rules check each lane's command in
+that fails in a cycle trips the fault — except, with ``degraded.on_lateral_loss: observe``
+while RUNNING, a lost lateral laser (an arm rule's breach) or one the lateral innovation rule
+finds disagreeing: those are isolated and the carriers they feed run DEGRADED on the
+observer's ŷ (docs/observer.md); while DEGRADED, ``max_s`` is a fault and the degraded stop
+rules (the estimate's covariance) end the run in the normal clean stop. The output rules check each lane's command in
 :meth:`Supervisor.limit`. Arming asks the same channel rules whether every channel is fit.
 """
 
