@@ -200,7 +200,8 @@ class Observer:
 
 @dataclass(frozen=True, kw_only=True)
 class DegradedLimits:
-    """The tighter limits a carrier runs under while it is controlled on the observer's ŷ."""
+    """The tighter limits a carrier runs under while it is controlled on the observer's ŷ
+    (each capped at the corresponding ``limits:`` value: never looser)."""
 
     u_max: float = check(positive, default=2.0)          # A
     y_max: float = check(positive, default=0.004)        # m, judged on ŷ
@@ -352,11 +353,9 @@ class RigConfig:
             if self.observer is None:
                 raise ConfigError(None, "degraded.on_lateral_loss", "'stop' without an observer: section "
                                   "(a carrier can only continue on an estimate it has)", d.on_lateral_loss)
-            for k in ("u_max", "y_max"):
-                if getattr(d.limits, k) > getattr(self.limits, k):
-                    raise ConfigError(None, f"degraded.limits.{k}", f"at most limits.{k} = "
-                                      f"{getattr(self.limits, k):g} (degraded limits are tighter)",
-                                      getattr(d.limits, k))
+            # degraded.limits looser than limits: are capped at them (safety.Supervisor), never
+            # an error — the shipped sim.yaml observes, and a config that tightens its limits
+            # must not have to tighten degraded.limits too
 
 
 _SECTION_FILES = ("geometry", "plant", "controller", "limits", "controlled", "tuning",

@@ -394,7 +394,9 @@ class Supervisor:
         # degraded mode (config.Degraded; docs/observer.md): only with on_lateral_loss "observe"
         self._deg = degraded if (degraded is not None and degraded.on_lateral_loss == "observe"
                                  and self.observers) else None
-        self._deg_limits = (dataclasses.replace(limits, u_max=degraded.limits.u_max, y_max=degraded.limits.y_max)
+        # the degraded limits, capped at the limits (never looser)
+        self._deg_limits = (dataclasses.replace(limits, u_max=min(degraded.limits.u_max, limits.u_max),
+                                                y_max=min(degraded.limits.y_max, limits.y_max))
                             if self._deg is not None else limits)
         self._obs_of = {o.d.carrier: o for o in self.observers}
         # lateral laser -> (since t, agreeing cycles, readmittable: lost, not found lying)
@@ -421,6 +423,11 @@ class Supervisor:
         self._latched: Fault | None = None          # the fault latched in the cycle under way
         self._started = False
         self._on_event = on_event or (lambda *a: None)
+
+    @property
+    def degraded_limits(self) -> Limits:
+        """The limits a DEGRADED carrier runs under (the limits when degraded mode is off)."""
+        return self._deg_limits
 
     @property
     def limits(self) -> Limits:

@@ -20,11 +20,8 @@ from .e2e import assert_safe_stop, run
 
 
 def with_limits(**kw):
-    """sim.yaml with these limits, and a lost lateral laser a fault (degraded mode ``stop``:
-    these tests provoke the other rules, and sim.yaml's degraded limits must stay within
-    the limits, which y_max = 1 mm would not)."""
     cfg = config.load()
-    return dataclasses.replace(cfg, limits=dataclasses.replace(cfg.limits, **kw), degraded=config.Degraded())
+    return dataclasses.replace(cfg, limits=dataclasses.replace(cfg.limits, **kw))
 
 
 STEP = load_scenario("single-step")
