@@ -83,8 +83,8 @@ def main() -> None:
                 summary, code = run_lockstep(cfg, sc, log, seed=seed, duration_s=dur)
                 T = largest_T(log)
             faults = summary["faults"]
-            if faults or summary["final_state"] != "IDLE":
-                alarms += 1
+            if faults or summary["final_state"] != "IDLE" or summary.get("degraded"):
+                alarms += 1             # (with observe a lateral finding DEGRADES: an alarm all the same)
             for m in MEASUREMENTS:
                 if math.isfinite(T[m]):
                     worst[m] = T[m] if math.isnan(worst[m]) else max(worst[m], T[m])

@@ -292,7 +292,8 @@ class Observer:
 
 @dataclass(frozen=True, kw_only=True)
 class DegradedLimits:
-    """The tighter limits a carrier runs under while it is controlled on the observer's ŷ."""
+    """The tighter limits a carrier runs under while it is controlled on the observer's ŷ
+    (each capped at the corresponding ``limits:`` value: never looser)."""
 
     u_max: float = check(positive, default=2.0)          # A
     y_max: float = check(positive, default=0.004)        # m, judged on ŷ
@@ -304,13 +305,15 @@ class Degraded:
     channel rule's fault, as without an observer; ``observe`` — the carriers whose y it
     feeds continue on their observer's ŷ under ``limits``, for at most ``max_s``; the laser
     is readmitted once it is fit and agrees with ŷ within ``readmit_tol_m`` for
-    ``readmit_s``."""
+    ``readmit_s``. The estimate's error σ (the design's outage covariance) beyond
+    ``sigma_y_max`` ends the degraded run in the normal clean stop."""
 
     on_lateral_loss: Literal["observe", "stop"] = "stop"
     max_s: float = check(positive, default=15.0)
     limits: DegradedLimits = field(default_factory=DegradedLimits)
     readmit_s: float = check(positive, default=1.0)
     readmit_tol_m: float = check(positive, default=0.1e-3)
+    sigma_y_max: float = check(positive, default=0.1e-3)    # m, ESTIMATE (docs/observer.md)
 
 
 # --------------------------------------------------------------------------- devices
@@ -442,11 +445,9 @@ class RigConfig:
             if self.observer is None:
                 raise ConfigError(None, "degraded.on_lateral_loss", "'stop' without an observer: section "
                                   "(a carrier can only continue on an estimate it has)", d.on_lateral_loss)
-            for k in ("u_max", "y_max"):
-                if getattr(d.limits, k) > getattr(self.limits, k):
-                    raise ConfigError(None, f"degraded.limits.{k}", f"at most limits.{k} = "
-                                      f"{getattr(self.limits, k):g} (degraded limits are tighter)",
-                                      getattr(d.limits, k))
+            # degraded.limits looser than limits: are capped at them (safety.Supervisor), never
+            # an error — the shipped sim.yaml observes, and a config that tightens its limits
+            # must not have to tighten degraded.limits too
 
 
 _SECTION_FILES = ("geometry", "plant", "controller", "limits", "controlled", "tuning",

@@ -27,7 +27,13 @@ Health (analytical redundancy): each measurement's innovation ``ν`` normalised 
 steady-state standard deviation ``√S``; over the last ``window`` cycles the statistic
 ``T = (Σ ν/√S)² / N`` is χ²(1) while the sensors agree with the model and with each other,
 and grows with N·(bias/√S)² when one of them carries a bias. The supervisor judges it
-(``safety.innovation``); the observer only computes it.
+(``safety.innovation_*``); the observer only computes it.
+
+Outage: the gains are steady-state, so the error covariance of ŷ while no lateral laser is
+used grows deterministically with the cycles since the last lateral update (from the full
+filter's steady state towards the yaw-and-Δω filter's); the design tabulates that growth
+(``sigma_y_outage``) and the observer reports ``sigma_y`` from it every cycle. Whether it is
+too large is the supervisor's rule (``safety.degraded_covariance``).
 """
 
 from __future__ import annotations
@@ -37,7 +43,7 @@ from dataclasses import dataclass
 
 MEASUREMENTS = ("lat", "psi", "dw")       # the filter's measurements, in gain-column order
 LOG_FIELDS = ("y_hat", "psi_hat", "psi_rate_hat", "nu_lat", "nu_psi", "nu_dw",
-              "T_lat", "T_psi", "T_dw", "lat_used", "degraded")
+              "T_lat", "T_psi", "T_dw", "lat_used", "degraded", "sigma_y")
 
 
 @dataclass(frozen=True)
@@ -50,7 +56,10 @@ class ObserverDesign:
     ``S_full`` (3), ``S_nolat`` (2): the steady-state innovation variances; ``window``:
     cycles of the health statistic; ``lateral_lasers``/``yaw_lasers``/``encoders``: the
     devices behind each measurement (for the supervisor's finding); ``ft_sensors``: the F/T
-    sensors whose Fy sum to the carrier's lateral force (empty: no force input)."""
+    sensors whose Fy sum to the carrier's lateral force (empty: no force input);
+    ``sigma_y_outage``: the standard deviation of ŷ's error (m) after k cycles without a
+    lateral update, k = 0, 1, …, up to where it has converged (its last value holds from
+    there on; empty: not tabulated, ``sigma_y`` NaN)."""
 
     carrier: str
     A: tuple[float, ...]
@@ -69,6 +78,7 @@ class ObserverDesign:
     yaw_lasers: tuple[str, ...]
     encoders: tuple[str, ...]
     ft_sensors: tuple[str, ...] = ()
+    sigma_y_outage: tuple[float, ...] = ()
 
     @property
     def channels(self) -> tuple[str, ...]:
@@ -81,7 +91,7 @@ class Observer:
 
     __slots__ = ("d", "carrier", "started", "y", "psi", "rate", "nu_lat", "nu_psi", "nu_dw",
                  "T_lat", "T_psi", "T_dw", "lat_used", "_ring", "_sum", "_i", "_n", "_N",
-                 "_is", "_is_nl", "mean_lat", "mean_dw", "degraded")
+                 "_is", "_is_nl", "mean_lat", "mean_dw", "degraded", "outage", "sigma_y", "_sig")
 
     def __init__(self, design: ObserverDesign):
         self.d = design
@@ -93,6 +103,9 @@ class Observer:
         self.mean_lat = self.mean_dw = 0.0      # window means of the innovations (m, rad/s)
         self.lat_used = 0.0
         self.degraded = 0.0                     # 1: the lane runs on this estimate (set by the loop)
+        self.outage = 0                         # cycles since the last update with the lateral lasers
+        self._sig = design.sigma_y_outage
+        self.sigma_y = self._sig[0] if self._sig else math.nan   # σ of ŷ's error after that outage (m)
         N = design.window
         self._N = N
         self._ring = [[0.0] * N for _ in MEASUREMENTS]     # normalised innovations per measurement
@@ -111,6 +124,8 @@ class Observer:
         self._sum[0] = self._sum[1] = self._sum[2] = 0.0
         self._i = self._n = 0
         self.T_lat = self.T_psi = self.T_dw = 0.0
+        self.outage = 0
+        self.sigma_y = self._sig[0] if self._sig else math.nan
 
     def step(self, y_meas: float, psi_meas: float, dw_meas: float, u_held: float, y_other: float,
              lat_ok: bool, f_lat: float = 0.0) -> None:
@@ -144,6 +159,7 @@ class Observer:
             inv = self._is
             z_lat = n_lat * inv[0]
             z_psi, z_dw = n_psi * inv[1], n_dw * inv[2]
+            self.outage = 0
         else:
             K = d.K_nolat
             self.y = yp + K[0] * n_psi + K[1] * n_dw
@@ -154,6 +170,11 @@ class Observer:
             inv = self._is_nl
             z_lat = 0.0                         # not in the update: no evidence this cycle
             z_psi, z_dw = n_psi * inv[0], n_dw * inv[1]
+            self.outage += 1
+        sig = self._sig
+        if sig:
+            k = self.outage
+            self.sigma_y = sig[k] if k < len(sig) else sig[-1]
         self._window(z_lat, z_psi, z_dw)
 
     def _window(self, z_lat: float, z_psi: float, z_dw: float) -> None:
@@ -182,7 +203,7 @@ class Observer:
     def log_values(self) -> tuple[float, ...]:
         """This cycle's values in ``LOG_FIELDS`` order."""
         return (self.y, self.psi, self.rate, self.nu_lat, self.nu_psi, self.nu_dw,
-                self.T_lat, self.T_psi, self.T_dw, self.lat_used, self.degraded)
+                self.T_lat, self.T_psi, self.T_dw, self.lat_used, self.degraded, self.sigma_y)
 
 
 def dw_row(cfg) -> tuple[float, float, float]:

@@ -17,7 +17,11 @@ before the next rule), then the pose rules (each applied to every controlled car
 the next rule), then the observer rules (each applied to every observed carrier, on the
 statistics of its latest estimate, and not while a channel rule is gathering evidence on one
 of the carrier's sensors: a channel rule that sees the fault names it first). The first rule
-that fails in a cycle trips the fault. The output rules check each lane's command in
+that fails in a cycle trips the fault — except, with ``degraded.on_lateral_loss: observe``
+while RUNNING, a lost lateral laser (an arm rule's breach) or one the lateral innovation rule
+finds disagreeing: those are isolated and the carriers they feed run DEGRADED on the
+observer's ŷ (docs/observer.md); while DEGRADED, ``max_s`` is a fault and the degraded stop
+rules (the estimate's covariance) end the run in the normal clean stop. The output rules check each lane's command in
 :meth:`Supervisor.limit`. Arming asks the same channel rules whether every channel is fit.
 """
 
@@ -316,40 +320,87 @@ def _joined(names: Sequence[str]) -> str:
     return "/".join(names)
 
 
-def innovation(o, lim: Limits) -> Optional[tuple]:
+def innovation_yaw(o, lim: Limits) -> Optional[tuple]:
     """Analytical redundancy (docs/observer.md): a measurement whose window-mean normalised
     innovation has χ²(1) ``T`` above ``limits.innovation_chi2`` disagrees with the model and
-    the other sensors. The yaw lasers are tested first (every other measurement leans on
-    ψ), then the lateral y, then Δω: the estimate follows the precise lateral lasers, so a
-    Δω that disagrees with it means the carrier's lateral lasers or its encoders — which of
-    them the test cannot tell, and the finding says so."""
+    the other sensors. The yaw lasers are tested first (every other measurement leans on ψ);
+    the test cannot tell the two apart."""
     thr = lim.innovation_chi2
-    if thr is None or not o.window_full:
+    if thr is None or not o.window_full or not o.T_psi > thr:
         return None
     d = o.d
-    car = d.carrier
-    if o.T_psi > thr:
-        return (_joined(d.yaw_lasers), "innovation", o.T_psi, thr,
-                f"{car} carrier: yaw lasers {_joined(d.yaw_lasers)} disagree with the model and the other "
-                f"sensors (chi2 {o.T_psi:.1f} > {thr:g}); the test cannot tell the two apart")
-    if o.T_lat > thr:
-        L = d.lateral_lasers
-        return (_joined(L), "innovation", o.T_lat, thr,
-                f"{car} carrier: lateral lasers {_joined(L)} disagree with the model driven by psi "
-                f"(window-mean innovation {o.mean_lat * 1e6:+.1f} um, chi2 {o.T_lat:.1f} > {thr:g}; "
-                f"y weights {L[0]} {d.lateral_weights[0]:.2f}, {L[1]} {d.lateral_weights[1]:.2f})")
-    if o.T_dw > thr:
-        L, enc = d.lateral_lasers, d.encoders
-        gy = d.dw_row[0]
-        return (f"{L[0]}|{_joined(enc)}", "innovation", o.T_dw, thr,
-                f"{car} carrier: {L[0]} (y weight {d.lateral_weights[0]:.2f}; {L[1]} {d.lateral_weights[1]:.2f}) "
-                f"and the encoders {_joined(enc)} disagree by {o.mean_dw * 1e3:+.2f} mrad/s of dw "
-                f"(= {o.mean_dw / gy * 1e3:+.3f} mm of y; chi2 {o.T_dw:.1f} > {thr:g}): the innovation "
-                "test cannot tell the lateral laser from the encoders")
+    return (_joined(d.yaw_lasers), "innovation", o.T_psi, thr,
+            f"{d.carrier} carrier: yaw lasers {_joined(d.yaw_lasers)} disagree with the model and the other "
+            f"sensors (chi2 {o.T_psi:.1f} > {thr:g}); the test cannot tell the two apart")
+
+
+def innovation_lateral(o, lim: Limits) -> Optional[tuple]:
+    """The lateral y disagrees with (2b) driven by the measured ψ — the reference that does
+    not follow a drifting laser. Judged only while the latest estimate used the lateral
+    lasers (``lat_used``): an isolated or unfit laser brings no evidence, and the window it
+    left behind must not find it again. With ``degraded.on_lateral_loss: observe`` the
+    supervisor isolates the lasers on this finding instead of tripping."""
+    thr = lim.innovation_chi2
+    if thr is None or not o.window_full or not o.lat_used or not o.T_lat > thr:
+        return None
+    d = o.d
+    L = d.lateral_lasers
+    return (_joined(L), "innovation", o.T_lat, thr,
+            f"{d.carrier} carrier: lateral lasers {_joined(L)} disagree with the model driven by psi "
+            f"(window-mean innovation {o.mean_lat * 1e6:+.1f} um, chi2 {o.T_lat:.1f} > {thr:g}; "
+            f"y weights {L[0]} {d.lateral_weights[0]:.2f}, {L[1]} {d.lateral_weights[1]:.2f})")
+
+
+def innovation_dw(o, lim: Limits) -> Optional[tuple]:
+    """Δω disagrees with the estimate, which follows the precise lateral lasers: the
+    carrier's lateral lasers or its encoders — which of them the test cannot tell, and the
+    finding says so (never a degradation: the observer cannot vouch for Δω, which carries
+    ŷ without the lateral lasers)."""
+    thr = lim.innovation_chi2
+    if thr is None or not o.window_full or not o.T_dw > thr:
+        return None
+    d = o.d
+    L, enc = d.lateral_lasers, d.encoders
+    gy = d.dw_row[0]
+    return (f"{L[0]}|{_joined(enc)}", "innovation", o.T_dw, thr,
+            f"{d.carrier} carrier: {L[0]} (y weight {d.lateral_weights[0]:.2f}; {L[1]} {d.lateral_weights[1]:.2f}) "
+            f"and the encoders {_joined(enc)} disagree by {o.mean_dw * 1e3:+.2f} mrad/s of dw "
+            f"(= {o.mean_dw / gy * 1e3:+.3f} mm of y; chi2 {o.T_dw:.1f} > {thr:g}): the innovation "
+            "test cannot tell the lateral laser from the encoders")
+
+
+OBSERVER_RULES = (innovation_yaw, innovation_lateral, innovation_dw)
+# the observer rules whose finding isolates sensors instead of tripping (degraded mode):
+# the rule -> the sensors it isolates, of the observer it judged
+ISOLATING_RULES = {innovation_lateral: lambda o: o.d.lateral_lasers}
+
+
+def innovation(o, lim: Limits) -> Optional[tuple]:
+    """The first finding of the observer rules on one observer, in their order (yaw, lateral,
+    Δω)."""
+    for rule in OBSERVER_RULES:
+        f = rule(o, lim)
+        if f is not None:
+            return f
     return None
 
 
-OBSERVER_RULES = (innovation,)
+# ---------------------------------------------------------------------- degraded rules
+# A degraded rule takes one DEGRADED carrier's observer and the degraded settings
+# (config.Degraded) and returns (device, check, value, limit, message) or None.
+def degraded_covariance(o, deg) -> Optional[tuple]:
+    """The estimate the carrier runs on is no longer good enough: the σ of ŷ's error after
+    this outage (the design's outage covariance, ``Observer.sigma_y``) beyond
+    ``degraded.sigma_y_max``. The supervisor ends the run in the normal clean stop."""
+    s = o.sigma_y
+    if s > deg.sigma_y_max:
+        return ("/".join(o.d.lateral_lasers), "sigma_y", s, deg.sigma_y_max,
+                f"{o.d.carrier} carrier: the estimate's sigma_y {s * 1e3:.4f} mm after {o.outage} cycles without "
+                f"a lateral laser is beyond degraded.sigma_y_max {deg.sigma_y_max * 1e3:g} mm")
+    return None
+
+
+DEGRADED_STOP_RULES = (degraded_covariance,)
 
 
 class Step(NamedTuple):
@@ -381,12 +432,16 @@ class Supervisor:
         # degraded mode (config.Degraded; docs/observer.md): only with on_lateral_loss "observe"
         self._deg = degraded if (degraded is not None and degraded.on_lateral_loss == "observe"
                                  and self.observers) else None
-        self._deg_limits = (dataclasses.replace(limits, u_max=degraded.limits.u_max, y_max=degraded.limits.y_max)
+        # the degraded limits, capped at the limits (never looser)
+        self._deg_limits = (dataclasses.replace(limits, u_max=min(degraded.limits.u_max, limits.u_max),
+                                                y_max=min(degraded.limits.y_max, limits.y_max))
                             if self._deg is not None else limits)
         self._obs_of = {o.d.carrier: o for o in self.observers}
-        self.isolated: dict[str, tuple[float, int]] = {}    # lateral laser -> (since t, agreeing cycles)
+        # lateral laser -> (since t, agreeing cycles, readmittable: lost, not found lying)
+        self.isolated: dict[str, tuple[float, int, bool]] = {}
         self.degraded_since: dict[str, float] = {}           # carrier -> DEGRADED since t
         self.degraded_log: list[dict] = []                   # the DEGRADED intervals, for the summary
+        self._deg_stop: str = ""                             # why degraded mode asked for the clean stop
         self.carriers = tuple(carriers)
         self.hw = hardware
         self.activate_timeout_s = activate_timeout_s
@@ -406,6 +461,11 @@ class Supervisor:
         self._latched: Fault | None = None          # the fault latched in the cycle under way
         self._started = False
         self._on_event = on_event or (lambda *a: None)
+
+    @property
+    def degraded_limits(self) -> Limits:
+        """The limits a DEGRADED carrier runs under (the limits when degraded mode is off)."""
+        return self._deg_limits
 
     @property
     def limits(self) -> Limits:
@@ -459,11 +519,14 @@ class Supervisor:
         elif new is State.FAULT or (new is State.IDLE and old is State.STOPPING):
             self.hw.deactivate(t)
         if new in (State.FAULT, State.IDLE) and self.degraded_since:
+            end = new.name + (f" ({self._deg_stop})" if self._deg_stop and new is State.IDLE else "")
             for e in self.degraded_log:         # the run ends DEGRADED: close the interval
                 if e["t_end"] is None:
-                    e["t_end"], e["end"] = t, new.name
+                    e["t_end"], e["end"] = t, end
             self.degraded_since.clear()
             self.isolated.clear()
+        if new in (State.FAULT, State.IDLE):
+            self._deg_stop = ""
 
     def trip(self, t: float, device: str, check: str, value: float, limit: float, message: str = "") -> None:
         """Latch a fault (the first one of a cycle is the cause recorded)."""
@@ -563,8 +626,10 @@ class Supervisor:
         for rule in rules:
             b = rule(chs, t, lim)
             if b is not None:
-                if not self._degrade(t, b):
-                    return self.trip(t, b[0].name, *b[1])
+                c, (check, _, _, message) = b
+                # a lost laser (an arm rule's breach), not a lying one (stuck, jumping, garbling)
+                if rule not in ARM_RULES or not self._degrade(t, (c.name,), check, message, readmit=True):
+                    return self.trip(t, c.name, *b[1])
                 chs = [c for c in chs if c.name not in self.isolated]      # judge the rest afresh
                 rules = iter(CHANNEL_RULES)
         if self.isolated:
@@ -589,49 +654,67 @@ class Supervisor:
                     continue
                 f = rule(o, lim)
                 if f is not None:
-                    return self.trip(t, *f)
+                    iso = ISOLATING_RULES.get(rule)
+                    if iso is None or not self._degrade(t, iso(o), f[1], f[4], readmit=False):
+                        return self.trip(t, *f)
 
     # ------------------------------------------------------------------ degraded mode
-    _LOSS = ("invalid", "stale", "not_finite", "out_of_range")     # a laser that is lost, not lying
 
-    def _degrade(self, t: float, b: tuple) -> bool:
-        """A channel rule's breach on a lateral laser of an observed carrier, a loss (not a
-        stuck or jumping value), while RUNNING with ``degraded.on_lateral_loss: observe``:
-        isolate the laser and run every carrier whose y it feeds on its observer's ŷ
-        (DEGRADED) instead of tripping. False: the breach is a fault as usual."""
-        c, (check, value, limit, message) = b
-        if self._deg is None or self.state is not State.RUNNING or check not in self._LOSS:
+    def _degrade(self, t: float, lasers: Sequence[str], check: str, message: str, readmit: bool) -> bool:
+        """Lateral lasers of an observed carrier lost (an arm rule's breach: invalid, stale,
+        not finite, out of range; ``readmit``) or found lying by the innovation test (not
+        readmitted: a creeping laser does not come back by itself), while RUNNING with
+        ``degraded.on_lateral_loss: observe``: isolate them and run every carrier whose y
+        they feed on its observer's ŷ (DEGRADED) instead of tripping. False: a fault as usual."""
+        if self._deg is None or self.state is not State.RUNNING:
             return False
-        carriers = [o.d.carrier for o in self.observers if c.name in o.d.lateral_lasers]
+        carriers = [o.d.carrier for o in self.observers if any(n in o.d.lateral_lasers for n in lasers)]
         if not carriers:
             return False
-        self.isolated[c.name] = (t, 0)
+        for n in lasers:
+            self.isolated[n] = (t, 0, readmit)
+        name = "/".join(lasers)
         for car in carriers:
             if car not in self.degraded_since:
                 self.degraded_since[car] = t
-                self.degraded_log.append({"carrier": car, "laser": c.name, "check": check, "t_start": t,
+                self.degraded_log.append({"carrier": car, "laser": name, "check": check, "t_start": t,
                                           "t_end": None, "end": ""})
         self._on_event(t, "degraded", None,
-                       f"DEGRADED: {c.name} {check} ({message}); {'/'.join(carriers)} carrier(s) on the "
+                       f"DEGRADED: {name} {check} ({message}); {'/'.join(carriers)} carrier(s) on the "
                        f"observer's estimate, u_max {self._deg_limits.u_max:g} A, y_max "
-                       f"{self._deg_limits.y_max * 1e3:g} mm, at most {self._deg.max_s:g} s")
+                       f"{self._deg_limits.y_max * 1e3:g} mm, at most {self._deg.max_s:g} s"
+                       + ("" if readmit else "; not readmitted in this run"))
         return True
 
     def _degraded_checks(self, t: float, poses: Sequence[Pose]) -> Optional[tuple]:
-        """While DEGRADED: ``max_s`` (a finding), and the readmission of each isolated laser
-        that is fit again and whose carriers' measured y agrees with ŷ within
-        ``readmit_tol_m`` for ``readmit_s`` without a break."""
+        """While DEGRADED: ``max_s`` (a finding: the fault), the degraded stop rules (the
+        estimate's covariance: the normal clean stop, asked once), and the readmission of each
+        readmittable isolated laser that is fit again and whose carriers' measured y agrees
+        with ŷ within ``readmit_tol_m`` for ``readmit_s`` without a break."""
         deg = self._deg
         for car, since in self.degraded_since.items():
             if t - since > deg.max_s:
                 lasers = "/".join(n for n in self._obs_of[car].d.lateral_lasers if n in self.isolated)
                 return (lasers, "degraded", t - since, deg.max_s,
-                        f"{car} carrier DEGRADED (lateral laser {lasers} lost) for longer than "
+                        f"{car} carrier DEGRADED (lateral laser {lasers} isolated) for longer than "
                         f"degraded.max_s = {deg.max_s:g} s")
+        if not self._deg_stop and self.state is State.RUNNING:
+            for rule in DEGRADED_STOP_RULES:
+                for car in self.degraded_since:
+                    f = rule(self._obs_of[car], deg)
+                    if f is not None:
+                        self._deg_stop = f"{f[1]} {f[2] * 1e3:.4f} mm > {f[3] * 1e3:g} mm"
+                        self._on_event(t, "degraded", None, f"DEGRADED ends: {f[4]}: clean stop")
+                        self.request_stop(t, f"degraded mode ended: {f[4]}")
+                        break
+                if self._deg_stop:
+                    break
         need = max(1, round(deg.readmit_s / self.h))
         y_meas = {p.carrier: p.y for p in poses}
         lim = self.limits
-        for name, (since, n) in list(self.isolated.items()):
+        for name, (since, n, readmit) in list(self.isolated.items()):
+            if not readmit:
+                continue
             c = (self._by_name[name],)
             ok = all(rule(c, t, lim) is None for rule in CHANNEL_RULES)
             if ok:
@@ -642,7 +725,7 @@ class Supervisor:
                             ok = False
             n = n + 1 if ok else 0
             if n < need:
-                self.isolated[name] = (since, n)
+                self.isolated[name] = (since, n, readmit)
                 continue
             del self.isolated[name]
             self._on_event(t, "degraded", None, f"{name} readmitted: fit and within "

@@ -55,7 +55,8 @@ def test_malformed_config_is_one_line(tmp_path):
 
 
 def test_fault_scenario_exit_code(tmp_path):
-    r = rig("dry-run", "--scenario", "fault-dropout", "--log", str(tmp_path / "f.h5"), "--json")
+    # a yaw laser's dropout (a lateral laser's is DEGRADED with sim.yaml's degraded mode)
+    r = rig("dry-run", "--scenario", "fault-during-step", "--log", str(tmp_path / "f.h5"), "--json")
     assert r.returncode == 3
     d = json.loads(r.stdout)
-    assert d["final_state"] == "FAULT" and d["faults"][0]["device"] == "b_f"
+    assert d["final_state"] == "FAULT" and d["faults"][0]["device"] == "s_rl"

@@ -90,9 +90,19 @@ def test_max_s_ends_the_degraded_run_in_a_fault(tmp_path, ocfg):
     assert summary["degraded"][0]["end"] == "FAULT"
 
 
-def test_observe_needs_an_observer_and_tighter_limits(tmp_path, ocfg):
+def test_observe_needs_an_observer_and_degraded_limits_are_never_looser(tmp_path, ocfg):
+    """degraded.limits above limits are capped at them (sim.yaml observes: a config that
+    tightens its limits need not tighten degraded.limits too)."""
+    from rig_runtime.app.observer_design import design
+    from rig_runtime.observer import Observer
+    from rig_runtime.safety import Supervisor
     with pytest.raises(ConfigError, match="observer"):
         dataclasses.replace(ocfg, observer=None)
-    with pytest.raises(ConfigError, match="degraded.limits.u_max"):
-        dataclasses.replace(ocfg, degraded=dataclasses.replace(
-            ocfg.degraded, limits=dataclasses.replace(ocfg.degraded.limits, u_max=ocfg.limits.u_max + 1)))
+    lim = dataclasses.replace(ocfg.limits, u_max=1.0, y_max=0.003)
+    cfg = dataclasses.replace(ocfg, limits=lim)          # degraded u_max 2.5 A, y_max 5 mm: looser
+    sup = Supervisor(cfg.limits, cfg.controller.h, [], ["rear"], None,
+                     observers=[Observer(design(cfg, "rear"))], degraded=cfg.degraded)
+    assert (sup.degraded_limits.u_max, sup.degraded_limits.y_max) == (1.0, 0.003)
+    sup = Supervisor(ocfg.limits, ocfg.controller.h, [], ["rear"], None,
+                     observers=[Observer(design(ocfg, "rear"))], degraded=ocfg.degraded)
+    assert (sup.degraded_limits.u_max, sup.degraded_limits.y_max) == (2.5, 0.005)

@@ -84,7 +84,9 @@ def test_lockstep_runs_are_deterministic_for_a_seed(tmp_path, shared_run):
     (conftest.py ``shared_run``: the very run test_faults_e2e.py judged, with its CAN tap);
     every other run is a plain lockstep dry run made here."""
     from rig_runtime.config import CONFIG_DIR
-    cfg = config.load(None)
+
+    from .conftest import lateral_loss_config
+    cfg = lateral_loss_config("stop")       # the variant test_faults_e2e.py's shared runs use
 
     def fresh(name: str, sc, duration):
         log = tmp_path / name
@@ -94,7 +96,7 @@ def test_lockstep_runs_are_deterministic_for_a_seed(tmp_path, shared_run):
     for p in sorted((CONFIG_DIR / "scenarios").glob("*.yaml")):
         sc = load_scenario(str(p))
         if sc.duration_s <= 6.0:
-            shared = shared_run(p.stem)
+            shared = shared_run(p.stem, on_lateral_loss="stop")
             first = shared.summary["seed"], shared.log_path
             second = fresh(f"{p.stem}.h5", sc, None)
         else:

@@ -169,8 +169,9 @@ def test_plot_cli_and_report_write_the_same_figures(step_log, tmp_path, capsys):
     c, out, _ = rig(capsys, "log", "plot", log, "--out", tmp_path / "plots")
     assert c == 0
     plotted = sorted(p.name for p in (tmp_path / "plots").iterdir())
-    assert plotted == ["forces.png", "response.png"] and out.split() == [str(tmp_path / "plots" / n) for n in
-                                                                      ("response.png", "forces.png")]
+    # observer.png: sim.yaml has an observer (tests/test_observer_degraded_e2e.py looks inside it)
+    assert plotted == ["forces.png", "observer.png", "response.png"] and \
+        out.split() == [str(tmp_path / "plots" / n) for n in ("response.png", "forces.png", "observer.png")]
     rep = write_report(log, tmp_path / "rep", load_scenario("single-step"), summary)
     assert sorted(p.name for p in rep) == plotted + ["summary.md"]
 

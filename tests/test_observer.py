@@ -153,13 +153,14 @@ def test_lateral_weights_of_the_geometry(cfg):
 
 
 def test_no_observer_without_its_section(cfg):
-    assert od.designs(dataclasses.replace(cfg, observer=None)) == {}
+    assert od.designs(dataclasses.replace(cfg, observer=None, degraded=config.Degraded())) == {}
 
 
-def _stats(T_lat=0.0, T_psi=0.0, T_dw=0.0, full=True):
+def _stats(T_lat=0.0, T_psi=0.0, T_dw=0.0, full=True, lat_used=1.0):
     o = Observer(_toy())
     o.T_lat, o.T_psi, o.T_dw = T_lat, T_psi, T_dw
     o._n = o._N if full else 0
+    o.lat_used = lat_used
     return o
 
 
@@ -174,6 +175,10 @@ def test_innovation_rule_names_the_sensor(cfg):
     dev, *_, msg = innovation(_stats(T_dw=31.0), lim)
     assert dev == "b_r|rl/rr" and "cannot tell the lateral laser from the encoders" in msg
     assert innovation(_stats(T_lat=1e9), dataclasses.replace(lim, innovation_chi2=None)) is None
+    # the latest estimate did not use the lateral lasers (isolated, unfit): no lateral evidence,
+    # the window they left behind is not judged; Δω still is
+    assert innovation(_stats(T_lat=99.0, lat_used=0.0), lim) is None
+    assert innovation(_stats(T_lat=99.0, T_dw=31.0, lat_used=0.0), lim)[0] == "b_r|rl/rr"
 
 
 def test_the_cycle_modules_do_not_import_scipy():
@@ -188,3 +193,54 @@ def test_the_cycle_modules_do_not_import_scipy():
     tree = ast.parse(open(loop_mod.__file__).read())
     names = {n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
     assert not any("observer_design" in n or "scipy" in n for n in names)
+
+
+def test_outage_sigma_grows_to_the_no_lateral_filters_steady_state(cfg):
+    """The design's σ_ŷ(k): the full filter's steady-state corrected σ at k = 0, never
+    falling, levelling off at the corrected σ of the yaw-and-Δω filter's own Riccati solution
+    (an independent check: the fixed no-lateral gain is that filter's optimal one)."""
+    from scipy.linalg import solve_discrete_are
+    d = od.design(cfg, "rear")
+    o = cfg.observer
+    A, Bc = od.continuous_model(cfg, "rear", cfg.plant.D_min if o.D is None else o.D)
+    Ad, _, Qd = od.discretise(A, Bc, np.diag([o.q_y ** 2, 0, o.q_psi_acc ** 2]), cfg.controller.h)
+    gy, gr, _ = od.dw_row(cfg)
+    C = np.array([[1.0, 0, 0], [0, 1, 0], [gy, 0, gr]])
+    w = od._lateral_weights(cfg, "rear")[1]
+    n = o.noise
+    R = np.diag([(w[0] ** 2 + w[1] ** 2) * n.lateral_laser_m ** 2, 2 * n.yaw_laser_m ** 2 / cfg.geometry.d0 ** 2,
+                 2 * n.encoder_rad_s ** 2])
+    corrected = []
+    for Cm, Rm in ((C, R), (C[1:], R[1:, 1:])):
+        s2 = 1e6
+        P = solve_discrete_are(Ad.T, Cm.T, Qd * s2, Rm * s2) / s2
+        K = P @ Cm.T @ np.linalg.inv(Cm @ P @ Cm.T + Rm)
+        corrected.append(math.sqrt(((np.eye(3) - K @ Cm) @ P)[0, 0]))
+    tab = np.array(d.sigma_y_outage)
+    assert tab[0] == pytest.approx(corrected[0], rel=1e-6)
+    assert tab[-1] == pytest.approx(corrected[1], rel=1e-4)
+    assert np.all(np.diff(tab) >= -1e-15 * tab[-1])
+    assert 1 < len(tab) <= math.ceil(cfg.degraded.max_s / cfg.controller.h) + 2
+
+
+def test_observer_reports_sigma_after_the_outage_it_counts():
+    o = Observer(dataclasses.replace(_toy(), sigma_y_outage=(1.0, 2.0, 3.0)))
+    assert o.sigma_y == 1.0
+    o.step(0.0, 0.0, 0.0, 0.0, 0.0, True)                  # start
+    for k, want in ((1, 2.0), (2, 3.0), (3, 3.0), (4, 3.0)):      # the last value holds
+        o.step(0.0, 0.0, 0.0, 0.0, 0.0, False)
+        assert (o.outage, o.sigma_y) == (k, want)
+    o.step(0.0, 0.0, 0.0, 0.0, 0.0, True)                  # a lateral update ends the outage
+    assert (o.outage, o.sigma_y) == (0, 1.0)
+    assert math.isnan(Observer(_toy()).sigma_y)             # no table: no σ
+
+
+def test_degraded_covariance_rule(cfg):
+    from rig_runtime.safety import degraded_covariance
+    o = Observer(dataclasses.replace(_toy(), sigma_y_outage=(1e-6, 2e-4)))
+    deg = dataclasses.replace(cfg.degraded, sigma_y_max=1e-4)
+    assert degraded_covariance(o, deg) is None
+    o.outage, o.sigma_y = 1, 2e-4
+    dev, check, value, limit, msg = degraded_covariance(o, deg)
+    assert (dev, check, value, limit) == ("b_r/b_f", "sigma_y", 2e-4, 1e-4)
+    assert "rear carrier" in msg and "degraded.sigma_y_max" in msg

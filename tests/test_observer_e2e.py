@@ -34,6 +34,7 @@ def test_estimate_follows_the_truth_and_no_false_alarm(tmp_path, ocfg):
     sc = load_scenario("single-step")
     summary, code = run_lockstep(ocfg, sc, tmp_path / "run.h5", duration_s=8.0)
     assert summary["final_state"] == "IDLE" and not summary["faults"], summary["faults"]
+    assert "degraded" not in summary
     data, truth, marked = _log(tmp_path / "run.h5")
     assert "SIMULATION" in str(marked)
     idx = np.clip(np.searchsorted(truth["t"], data["t"] - 1e-9), 0, len(truth["t"]) - 1)
@@ -52,12 +53,16 @@ def test_no_false_alarm_on_a_fault_free_scenario(tmp_path, ocfg, seed):
     sc = load_scenario("sine-hysteresis" if seed == 1 else "step-sequence")
     summary, code = run_lockstep(ocfg, sc, tmp_path / "run.h5", seed=seed, duration_s=12.0)
     assert summary["final_state"] == "IDLE" and not summary["faults"], summary["faults"]
+    assert "degraded" not in summary        # with observe, a lateral finding would DEGRADE, not trip
 
 
 def test_drift_is_found_and_named_before_the_bias_reaches_0_3_mm(tmp_path, ocfg):
+    """With degraded.on_lateral_loss: stop the finding is the fault (tests/test_observer_degraded_e2e.py
+    has observe: the lasers are isolated and the run continues DEGRADED)."""
     sc = load_scenario("fault-drift")
     f = sc.faults[0]
-    summary, code = run_lockstep(ocfg, sc, tmp_path / "run.h5", duration_s=14.0)
+    cfg = dataclasses.replace(ocfg, degraded=config.Degraded())
+    summary, code = run_lockstep(cfg, sc, tmp_path / "run.h5", duration_s=14.0)
     assert summary["final_state"] == "FAULT" and code == 3
     fault = summary["faults"][0]
     assert fault["check"] == "innovation" and fault["device"].split("/")[0] == "b_r", fault
@@ -85,6 +90,7 @@ def test_force_pulse_and_side_wind_raise_no_alarm(tmp_path, ocfg):
                                                dataclasses.replace(wind, t=4.5)))
     summary, code = run_lockstep(ocfg, sc, tmp_path / "run.h5", duration_s=7.0)
     assert summary["final_state"] == "IDLE" and not summary["faults"], summary["faults"]
+    assert "degraded" not in summary
     data, truth, _ = _log(tmp_path / "run.h5")
     force = data["ft_rl_fy"] + data["ft_rr_fy"]
     assert np.nanmax(force) > 400 and np.any(np.abs(force - 100) < 20)     # both were applied
@@ -105,7 +111,8 @@ def test_without_the_force_input_the_pulse_looks_like_a_laser_fault(tmp_path, oc
     orig = od.designs
     monkeypatch.setattr(runner, "observer_designs",
                         lambda cfg: {c: dataclasses.replace(d, ft_sensors=()) for c, d in orig(cfg).items()})
-    summary, code = run_lockstep(ocfg, sc, tmp_path / "run.h5", duration_s=5.0)
+    cfg = dataclasses.replace(ocfg, degraded=config.Degraded())     # the finding as a fault (observe: DEGRADED)
+    summary, code = run_lockstep(cfg, sc, tmp_path / "run.h5", duration_s=5.0)
     assert summary["final_state"] == "FAULT"
     assert summary["faults"][0]["check"] == "innovation" and summary["faults"][0]["device"].startswith("b_r")
 

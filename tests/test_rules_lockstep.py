@@ -3,6 +3,7 @@ time): a link that delivers only garbled frames is named as corrupted, not as si
 
 import dataclasses
 
+from rig_runtime import config
 from rig_runtime.scenario import FaultInjection, load_scenario
 
 from .e2e import assert_safe_stop, run
@@ -25,7 +26,9 @@ def test_a_laser_link_delivering_only_garbled_frames_is_named_corrupted(tmp_path
     assert n >= 1
 
 
-def test_a_silent_laser_is_named_stale_without_corruption(tmp_path):
-    r = run(tmp_path, "fault-dropout")
+def test_a_silent_laser_is_named_stale_without_corruption(tmp_path, cfg):
+    # a lost lateral laser with degraded.on_lateral_loss: stop (sim.yaml observes: DEGRADED,
+    # tests/test_observer_degraded_e2e.py)
+    r = run(tmp_path, "fault-dropout", cfg=dataclasses.replace(cfg, degraded=config.Degraded()))
     assert_safe_stop(r, "b_f", "stale")
     assert "garbled" not in r.fault["message"] and r.fault["message"].startswith("no valid value for ")

@@ -8,7 +8,9 @@ a red vertical line at every fault (labelled ``device check``), dashed ±u_max, 
 lines from the config stored in the log (in view when the signal comes within half of the
 limit, else noted in the corner), and every carrier in use (front blue, rear green).
 Artists that tests look for carry a ``gid``: ``state:<NAME>``, ``fault:<device>:<check>``,
-``limit:+u_max`` … , ``y:<carrier>``, ``u:<carrier>``.
+``limit:+u_max`` … , ``y:<carrier>``, ``u:<carrier>``; the observer figure ``y_hat:<carrier>``,
+``y_true:<carrier>`` (a dry run's simulated truth), ``err:<carrier>``, ``T_<m>:<carrier>`` and
+``degraded:<carrier>`` (the shaded DEGRADED intervals).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from typing import Optional
 import numpy as np
 
 from .plotting import pyplot
-from .runlog import CARRIER_COLUMNS, RunLog
+from .runlog import CARRIER_COLUMNS, RunLog, degraded_intervals
 
 CARRIER_COLOR = {"front": "tab:blue", "rear": "tab:green"}
 STATE_COLOR = {"IDLE": "0.4", "ARMED": "tab:orange", "RUNNING": "tab:blue", "STOPPING": "tab:purple",
@@ -229,14 +231,72 @@ def compare(runs: list[RunLog], labels: list[str]):
     return fig
 
 
+def observed(run: RunLog) -> list[str]:
+    """The carriers with an observer in the log (``{carrier}_obs_y_hat`` columns)."""
+    return [k for k in CARRIER_COLUMNS if f"{k}_obs_y_hat" in run.columns]
+
+
+def observer(run: RunLog, truth: Optional[dict] = None, title: str = ""):
+    """The observer of every observed carrier (docs/observer.md): the measured y, the estimate
+    ŷ and — when the log has the dry run's simulated truth — the true y; the estimate's error
+    against the truth (else against the measurement); the innovation statistics with the
+    threshold ``limits.innovation_chi2``. The DEGRADED intervals are shaded on every panel."""
+    plt = pyplot()
+    c, t = run.columns, run.t_rel
+    truth = truth or {}
+    fig, ax = plt.subplots(3, 1, figsize=(9, 9), sharex=True)
+    for k in observed(run):
+        cc, col = CARRIER_COLUMNS[k], CARRIER_COLOR[k]
+        y_hat = c[f"{k}_obs_y_hat"]
+        if cc["y"] in c:
+            ax[0].plot(t, c[cc["y"]] * 1e3, color="0.55", lw=0.8, label=f"y {k} (measured)", gid=f"y:{k}")
+        ax[0].plot(t, y_hat * 1e3, color=col, lw=1, label=f"ŷ {k} (observer)", gid=f"y_hat:{k}")
+        y_true = truth.get(cc["y"])
+        if y_true is not None:
+            ax[0].plot(t, y_true * 1e3, color="k", lw=0.8, ls="--", label=f"y {k} (simulated truth)",
+                       gid=f"y_true:{k}")
+            ax[1].plot(t, (y_hat - y_true) * 1e3, color=col, lw=0.8, label=f"ŷ − y_true {k}", gid=f"err:{k}")
+            if cc["y"] in c:
+                ax[1].plot(t, (c[cc["y"]] - y_true) * 1e3, color="0.55", lw=0.6,
+                           label=f"y measured − y_true {k}", gid=f"err_meas:{k}")
+        elif cc["y"] in c:
+            ax[1].plot(t, (y_hat - c[cc["y"]]) * 1e3, color=col, lw=0.8, label=f"ŷ − y measured {k}",
+                       gid=f"err:{k}")
+        for m, ls in (("lat", "-"), ("psi", "--"), ("dw", ":")):
+            name = f"{k}_obs_T_{m}"
+            if name in c:
+                ax[2].plot(t, c[name], color=col, ls=ls, lw=0.8, label=f"T_{m} {k}", gid=f"T_{m}:{k}")
+    thr = run.limits.get("innovation_chi2")
+    if thr is not None:
+        ax[2].axhline(thr, color="0.25", ls="--", lw=0.8, gid="limit:innovation_chi2",
+                      label=f"innovation_chi2 = {thr:g}")
+    ax[2].set_yscale("symlog", linthresh=1.0)
+    ax[2].set_ylim(bottom=0.0)
+    for g in degraded_intervals(run):
+        t1 = g["t_end"] if g["t_end"] is not None else float(t[-1])
+        for i, a in enumerate(ax):
+            a.axvspan(g["t_start"], t1, color=CARRIER_COLOR[g["carrier"]], alpha=0.12, lw=0,
+                      gid=f"degraded:{g['carrier']}", label=f"DEGRADED {g['carrier']}" if i == 0 else None)
+    ax[0].set_ylabel("lateral displacement (mm)")
+    ax[1].set_ylabel("error (mm)")
+    ax[2].set_ylabel("innovation statistic T (χ²(1))")
+    what = "ŷ against y and the simulated truth" if truth else "ŷ against y"
+    _time_panels(fig, ax, run, title or f"{run.path.name}: observer, {what}; DEGRADED shaded", ncol=3)
+    return fig
+
+
 def log_figures(run: RunLog, open_loop_carrier: Optional[str] = None, title: str = "") -> dict:
     """The figures of one run, by file stem: ``response`` always, ``forces`` when the log has
-    F/T data of a carrier in use, ``psi_over_u`` for an open-loop carrier."""
+    F/T data of a carrier in use, ``psi_over_u`` for an open-loop carrier, ``observer`` when
+    the log has an observer's columns (with the simulated truth when it has that)."""
+    from .runlog import truth
     figs = {"response": response(run, title)}
     if has_forces(run):
         figs["forces"] = forces(run)
     if open_loop_carrier in CARRIER_COLUMNS:       # one carrier's input ("both": no single one)
         figs["psi_over_u"] = psi_over_u(run, open_loop_carrier)
+    if observed(run):
+        figs["observer"] = observer(run, truth(run))
     return figs
 
 

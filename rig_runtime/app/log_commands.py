@@ -38,7 +38,8 @@ def _out_dir(path: str) -> Path:
 
 
 # ---------------------------------------------------------------------------------------- info
-@_action("info", "rows, duration, final state, faults in run time, scenario, config source, step metrics",
+@_action("info", "rows, duration, final state, faults in run time, DEGRADED intervals, scenario, config source, "
+                 "step metrics",
          _a("log", help="HDF5 log written by rig run / rig dry-run"),
          _a("--json", action="store_true", help="print one JSON object"))
 def log_info(args: argparse.Namespace) -> int:
@@ -60,7 +61,8 @@ def open_loop_carrier(run) -> str | None:
 
 
 @_action("plot", "PNG figures of a log (Figs. 15-18 style, the same as --report): y, psi, dw, u with states, "
-                 "faults and limits; F/T forces and moments",
+                 "faults and limits; F/T forces and moments; the observer's ŷ against y and the simulated truth "
+                 "(a dry run's), DEGRADED shaded",
          _a("log", help="HDF5 log"),
          _a("--out", metavar="DIR", help="directory for the PNGs (default: LOG without .h5, plus '-plots')"))
 def log_plot(args: argparse.Namespace) -> int:

@@ -8,6 +8,9 @@ normalised as ``r = (y − a)/(b − a)`` and ``y`` smoothed by a centred 50 ms 
 - overshoot: ``max(r) − 1`` in percent (0 if it never exceeds 1);
 - settling time: from ``t0`` to the last time ``|r − 1| > 0.02`` in the window;
 - steady-state error: mean of ``y − b`` over the last second of the window, in mm.
+
+``y`` is the y the lane controlled on: the measured one, the observer's ŷ while the carrier
+was DEGRADED (:func:`controlled_y`).
 """
 
 from __future__ import annotations
@@ -69,10 +72,22 @@ def clean(v):
     return v
 
 
+def controlled_y(columns: dict, carrier: str = "rear") -> np.ndarray:
+    """The y the carrier's lane controlled on, row by row: the measured y, and the observer's
+    ŷ where the carrier was DEGRADED (``{carrier}_obs_degraded``; the measured y is the lost
+    laser's stale value then, docs/observer.md)."""
+    y = columns["y_r" if carrier == "rear" else "y_f"]
+    deg = columns.get(f"{carrier}_obs_degraded")
+    if deg is None:
+        return y
+    return np.where(deg == 1.0, columns[f"{carrier}_obs_y_hat"], y)
+
+
 def steps_from_log(log, scenario, h: float) -> list[dict]:
     """``step_info`` for every reference step of ``scenario`` from a recorded run, per
     controlled carrier (the log's ``controlled``) on that carrier's own reference
-    (``scenario.reference_for``) and its own y; each step names its ``carrier``."""
+    (``scenario.reference_for``) and the y its lane controlled on (:func:`controlled_y`);
+    each step names its ``carrier``."""
     from ..scenario import Reference
     from .export import read_log
     if scenario is None:
@@ -88,9 +103,9 @@ def steps_from_log(log, scenario, h: float) -> list[dict]:
         return []
     out = []
     for c in carriers:
-        y = d.get(f"y_{c[0]}")
-        if y is None:
+        if f"y_{c[0]}" not in d:
             continue
+        y = controlled_y(d, c)
         for s in step_info(t, y[run], Reference(scenario.reference_for(c)).steps(), t_end=float(t[-1]) + h, h=h):
             out.append({"carrier": c, **s})
     return out

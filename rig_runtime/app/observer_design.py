@@ -5,7 +5,8 @@ without hysteresis, relation (4) as a measurement — held over h (zero-order ho
 matrix exponential), the process noise integrated over h (Van Loan), the sensor noise of
 ``observer.noise`` carried through the Sec. 2 geometry, and the steady-state Kalman gain
 from scipy's discrete algebraic Riccati solver, for the two measurement sets the cycle
-uses. The result is plain floats (:class:`rig_runtime.observer.ObserverDesign`): the cycle's
+uses, and the growth of ŷ's error covariance while no lateral laser is used (an outage: the
+fixed yaw-and-Δω gains run from the full filter's steady state). The result is plain floats (:class:`rig_runtime.observer.ObserverDesign`): the cycle's
 module imports neither this module nor numpy/scipy.
 """
 
@@ -63,14 +64,43 @@ def discretise(A: np.ndarray, Bc: np.ndarray, Qc: np.ndarray, h: float) -> tuple
     return Ad, E[:n, n:], 0.5 * (Qd + Qd.T)
 
 
-def steady_gain(Ad: np.ndarray, C: np.ndarray, Qd: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Steady-state Kalman gain K and innovation covariance S for the predictor covariance
+def steady_state(Ad: np.ndarray, C: np.ndarray, Qd: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Steady-state Kalman gain K, innovation covariance S and predictor covariance P (SI)
     of the discrete Riccati equation (solved in mm/mrad units for conditioning)."""
     s2 = _SCALE ** 2
     P = solve_discrete_are(Ad.T, C.T, Qd * s2, R * s2)
     S = C @ P @ C.T + R * s2
     K = P @ C.T @ np.linalg.inv(S)
-    return K, S / s2
+    return K, S / s2, P / s2
+
+
+def steady_gain(Ad: np.ndarray, C: np.ndarray, Qd: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Steady-state Kalman gain K and innovation covariance S (see :func:`steady_state`)."""
+    K, S, _ = steady_state(Ad, C, Qd, R)
+    return K, S
+
+
+def outage_sigma_y(Ad: np.ndarray, Qd: np.ndarray, P_full: np.ndarray, K_full: np.ndarray, C: np.ndarray,
+                   K_nl: np.ndarray, C_nl: np.ndarray, R_nl: np.ndarray, n_max: int,
+                   rtol: float = 1e-9) -> tuple[float, ...]:
+    """σ of ŷ's error (m) after k = 0, 1, … cycles without a lateral update: the corrected
+    covariance starts at the full filter's steady state (I − K C) P and is propagated with
+    the fixed no-lateral gain (Joseph form, exact for a suboptimal gain):
+    P⁻ = A P⁺ Aᵀ + Q, P⁺ = (I − K C) P⁻ (I − K C)ᵀ + K R Kᵀ. Stops once σ changes by less than
+    ``rtol`` relative (the last value then holds) or after ``n_max`` cycles."""
+    I = np.eye(Ad.shape[0])
+    P = (I - K_full @ C) @ P_full
+    M = I - K_nl @ C_nl
+    KRK = K_nl @ R_nl @ K_nl.T
+    out = [math.sqrt(P[0, 0])]
+    for _ in range(n_max):
+        P = M @ (Ad @ P @ Ad.T + Qd) @ M.T + KRK
+        s = math.sqrt(P[0, 0])
+        done = abs(s - out[-1]) <= rtol * s
+        out.append(s)
+        if done:
+            break
+    return tuple(out)
 
 
 def design(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None) -> ObserverDesign:
@@ -89,8 +119,12 @@ def design(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None) -> 
     r_psi = 2.0 * n.yaw_laser_m ** 2 / g.d0 ** 2
     r_dw = 2.0 * n.encoder_rad_s ** 2
     C = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [gy, 0.0, gr]])
-    K_full, S_full = steady_gain(Ad, C, Qd, np.diag([r_lat, r_psi, r_dw]))
-    K_nl, S_nl = steady_gain(Ad, C[1:], Qd, np.diag([r_psi, r_dw]))
+    K_full, S_full, P_full = steady_state(Ad, C, Qd, np.diag([r_lat, r_psi, r_dw]))
+    R_nl = np.diag([r_psi, r_dw])
+    K_nl, S_nl = steady_gain(Ad, C[1:], Qd, R_nl)
+    # an outage lasts at most degraded.max_s (then the run ends): tabulate no further
+    n_max = int(math.ceil(cfg.degraded.max_s / h)) + 1
+    sig = outage_sigma_y(Ad, Qd, P_full, K_full, C, K_nl, C[1:], R_nl, n_max)
     left, right = CARRIER_WHEELS[carrier]
     flat = lambda M: tuple(float(v) for v in np.asarray(M).ravel())     # noqa: E731
     return ObserverDesign(
@@ -99,7 +133,7 @@ def design(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None) -> 
         S_full=flat(np.diag(S_full)), S_nolat=flat(np.diag(S_nl)),
         window=cfg.limits.innovation_window, lateral_lasers=lasers, lateral_weights=weights,
         yaw_lasers=(f"s_{left}", f"s_{right}"), encoders=(left, right),
-        ft_sensors=_ft_sensors(cfg, (left, right)))
+        ft_sensors=_ft_sensors(cfg, (left, right)), sigma_y_outage=sig)
 
 
 def _ft_sensors(cfg: RigConfig, wheels: tuple[str, str]) -> tuple[str, ...]:

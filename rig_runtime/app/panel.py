@@ -2,7 +2,8 @@
 
 A sidecar output (``rig_runtime.app.panel:LivePanel``, constructed in the recording sidecar
 as ``LivePanel(info, stream=None, force=False, refresh_per_second=2)``). It shows the state
-with elapsed and remaining time, the reference and y/ψ/u of each controlled carrier, each
+with elapsed and remaining time (and DEGRADED: the carriers running on the observer's ŷ,
+and why — the latest DEGRADED event), the reference and y/ŷ/ψ/u of each controlled carrier, each
 device's health and counters, the faults with their cause, and the timing monitor (cycle
 work and wake-up lateness last/p50/p99/max, deadline misses, skipped/overrun periods).
 
@@ -82,6 +83,11 @@ def _clock(seconds: float | None) -> str:
     return f"{int(m)}:{s:04.1f}"
 
 
+def _degraded(row: Mapping) -> list[str]:
+    """The carriers the row shows DEGRADED (``{carrier}_obs_degraded`` = 1: on ŷ)."""
+    return [c for c in CARRIERS if _num(row.get(f"{c}_obs_degraded")) == 1.0]
+
+
 def _header(row, status, duration_s) -> Text:
     state = _state_name(row, status)
     t_run = _num(row.get("t_run"))
@@ -91,6 +97,10 @@ def _header(row, status, duration_s) -> Text:
     if duration is None:
         duration = _num(duration_s)
     text = Text.assemble(("rig ", "bold"), (f" {state} ", STATE_STYLE.get(state, "bold")))
+    deg = _degraded(row)
+    if deg:
+        text.append(" ")
+        text.append(f" DEGRADED: {', '.join(deg)} on ŷ ", "bold black on yellow")
     text.append(f"   elapsed {_clock(t_run)}")
     if duration is None:
         text.append("   remaining - (until stopped)")
@@ -115,19 +125,34 @@ def _controlled(row: Mapping, status: Mapping, controlled: Sequence[str] | None)
 
 def _carriers(row, status, controlled) -> Table:
     t = Table(title="carriers", title_justify="left", expand=False, box=None, pad_edge=False)
-    for name, just in (("carrier", "left"), ("y_ref mm", "right"), ("y mm", "right"), ("e_y mm", "right"),
-                       ("ψ_ref mrad", "right"), ("ψ mrad", "right"), ("u A", "right"), ("u_lim A", "right"),
-                       ("g", "right"), ("schedule", "left")):
+    for name, just in (("carrier", "left"), ("y_ref mm", "right"), ("y mm", "right"), ("ŷ mm", "right"),
+                       ("e_y mm", "right"), ("ψ_ref mrad", "right"), ("ψ mrad", "right"), ("u A", "right"),
+                       ("u_lim A", "right"), ("g", "right"), ("schedule", "left"), ("on", "left")):
         t.add_column(name, justify=just)
+    deg = _degraded(row)
     for c in _controlled(row, status, controlled):
         s = c[0]
         held = _num(row.get(f"{c}_held"))
+        on = Text("ŷ DEGRADED", "bold black on yellow") if c in deg else \
+            Text("y" if f"{c}_obs_degraded" in row else MISSING)
         t.add_row(c, _fmt(row.get(f"{c}_y_ref", row.get("y_ref")), 1e3), _fmt(row.get(f"y_{s}"), 1e3),
+                  _fmt(row.get(f"{c}_obs_y_hat"), 1e3),
                   _fmt(row.get(f"{c}_e_y"), 1e3), _fmt(row.get(f"{c}_psi_ref"), 1e3), _fmt(row.get(f"psi_a{s}"), 1e3),
                   _fmt(row.get(f"{c}_u_cmd"), 1.0, 3), _fmt(row.get(f"{c}_u_lim"), 1.0, 3),
                   _fmt(row.get(f"{c}_g"), 1.0, 2),
-                  MISSING if held is None else Text("HELD", "bold yellow") if held else "on")
+                  MISSING if held is None else Text("HELD", "bold yellow") if held else "on", on)
     return t
+
+
+def _degraded_why(row, events) -> Text | None:
+    """While a carrier is DEGRADED: why (the latest DEGRADED event's message)."""
+    deg = _degraded(row)
+    if not deg:
+        return None
+    why = [e[6] for e in events if len(e) >= 7 and e[1] == "degraded" and str(e[6]).startswith("DEGRADED:")]
+    text = Text(f"DEGRADED ({', '.join(deg)} on the observer's estimate): ", "bold")
+    text.append(str(why[-1]) if why else MISSING, "yellow")
+    return text
 
 
 def _devices(status) -> Table:
@@ -238,6 +263,9 @@ def render(row: Mapping[str, float] | None, status: Mapping | None, events: Sequ
     counters = _counters(status)
     if counters is not None:
         parts += [Text(""), counters]
+    why = _degraded_why(row, events)
+    if why is not None:
+        parts += [Text(""), why]
     parts += [Text(""), _faults(status, events), Text(""), _timing(row, status), _counts(status)]
     return Group(*parts)
 

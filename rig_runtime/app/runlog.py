@@ -20,8 +20,10 @@ from typing import Any
 import numpy as np
 
 from ..errors import LogError
-from .export import read_log, state_name
+from .export import _open, read_log, state_name
 from .metrics import steps_from_log
+
+TRUTH_GROUP = "sim_truth"       # a dry run's simulated truth (rig_runtime.app.dryrun writes it)
 
 CARRIERS = ("front", "rear")
 #: per carrier: the wheels (left, right) and the measurement columns of y, ψ (carrier to frame), Δω
@@ -144,6 +146,58 @@ def load(path: str | Path) -> RunLog:
     return RunLog(Path(path), c, events, attrs, d["rows"], h, cfg, t_start, reached)
 
 
+def truth(run: RunLog) -> dict[str, np.ndarray]:
+    """The simulated plant's true state a dry run recorded beside the log (group
+    ``sim_truth``: ``t``, ``y_f``, ``y_r``, ``psi_af``, ``psi_ar``), sampled at the log's
+    rows; {} when the log has none (a run on the rig)."""
+    with _open(run.path) as f:
+        g = f.get(TRUTH_GROUP)
+        if g is None or "t" not in g:
+            return {}
+        tr = {k: g[k][()].astype(np.float64) for k in g}
+    if not len(tr["t"]) or not run.rows:
+        return {}
+    idx = np.clip(np.searchsorted(tr["t"], run.columns["t"] - 1e-9), 0, len(tr["t"]) - 1)
+    return {k: v[idx] for k, v in tr.items()}
+
+
+def degraded_intervals(run: RunLog) -> list[dict]:
+    """Every interval in which a carrier ran on its observer's ŷ (its ``{carrier}_obs_degraded``
+    column), in run time: ``carrier``, ``t_start``, ``t_end`` (None: the log ends DEGRADED),
+    ``why`` (the DEGRADED event that began it: the laser, what was observed) and ``end``
+    (what ended it: the readmission or the stop's reason — the first degraded event after
+    the one that began it — else the fault or the state at its end)."""
+    c, t, half = run.columns, run.t_rel, 0.5 * run.h
+    out = []
+    for car in CARRIERS:
+        col = c.get(f"{car}_obs_degraded")
+        if col is None:
+            continue
+        on = np.concatenate(([False], col == 1.0, [False]))
+        edges = np.flatnonzero(np.diff(on.astype(np.int8)))
+        for a, b in zip(edges[::2], edges[1::2]):
+            t0 = float(t[a])
+            t1 = float(t[b]) if b < run.rows else None
+            hi = (t1 if t1 is not None else float(t[-1])) + half
+            starts = [e for e in run.events if e.kind == "degraded" and e.message.startswith("DEGRADED:")
+                      and e.t_run <= t0 + half]
+            why = starts[-1].message if starts else "-"
+            later = [e for e in run.events if e.kind == "degraded" and t0 + half < e.t_run <= hi
+                     and not e.message.startswith("DEGRADED:")]
+            at_end = [e for e in run.events if e.kind in ("fault", "state") and t1 is not None
+                      and abs(e.t_run - t1) <= half]
+            if later:
+                end = later[0].message
+            elif at_end:
+                end = at_end[0].message if at_end[0].kind == "fault" else at_end[-1].message
+            else:
+                end = "the log ends DEGRADED" if t1 is None else "-"
+            out.append({"carrier": car, "t_start": t0, "t_end": t1,
+                        "duration_s": (t1 if t1 is not None else float(t[-1]) + run.h) - t0,
+                        "why": why, "end": end})
+    return sorted(out, key=lambda d: d["t_start"])
+
+
 def scenario_of(run: RunLog):
     """The scenario the log names, from its recorded source path (else by name) if that file
     still gives the reference the log recorded; (scenario or None, why not)."""
@@ -241,6 +295,7 @@ def info(run: RunLog) -> dict:
                      "error": _str(run.attrs.get("recorder_error"))},
         "steps": st,
         "steps_note": why,
+        "degraded": degraded_intervals(run),
     }
     return out
 
@@ -281,8 +336,14 @@ def format_info(d: dict) -> list[str]:
                          f"limit={num(f['limit'], '.6g')} {f['message']}")
     else:
         lines.append("faults: none")
+    if d.get("degraded"):
+        lines.append("DEGRADED (run time; the carrier ran on the observer's estimate):")
+        for g in d["degraded"]:
+            end = f"{g['t_end']:+.3f} s" if g["t_end"] is not None else "end of log"
+            lines.append(f"  {g['carrier']} {g['t_start']:+.3f} s -> {end} ({g['duration_s']:.3f} s): {g['why']}")
+            lines.append(f"    ended: {g['end']}")
     if d["steps"]:
-        lines.append("steps:")
+        lines.append("steps:" if not d.get("degraded") else "steps (on the y the lane controlled on: ŷ while DEGRADED):")
         several = len({s.get("carrier") for s in d["steps"]}) > 1
         for s in d["steps"]:
             lines.append(f"  {s['carrier'] + ' ' if several else ''}{s['from_mm']:+.2f} -> {s['to_mm']:+.2f} mm at {s['t0']:.2f} s: rise "

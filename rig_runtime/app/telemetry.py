@@ -8,7 +8,7 @@ datagram of at most ``MAX_DATAGRAM`` bytes::
      "state": {"code": 2, "name": "RUNNING"},
      "front": {"y": ..., "psi": ..., "delta_omega": ...},
      "rear":  {"y": ..., "psi": ..., "dpsi": ..., "delta_omega": ..., "y_ref": ..., "psi_ref": ..., "u": ...,
-               "g": ..., "held": ...},
+               "g": ..., "held": ..., "y_hat": ..., "degraded": 0},
      "speed": {"v": ..., "rear": ...},
      "timing": {"lateness": ..., "work": ...},
      "currents": {"fl": ..., "fr": ..., "rl": ..., "rr": ...},
@@ -126,6 +126,8 @@ class RowSignals:
                 ref = f"{carrier}_y_ref" if f"{carrier}_y_ref" in pos else "y_ref"
                 pairs += [("y_ref", ref), ("psi_ref", f"{carrier}_psi_ref"), ("u", f"{carrier}_u_cmd"),
                           ("g", f"{carrier}_g"), ("held", f"{carrier}_held")]     # the speed schedule
+            # an observed carrier: the estimate and DEGRADED (1: the lane runs on y_hat)
+            pairs += [("y_hat", f"{carrier}_obs_y_hat"), ("degraded", f"{carrier}_obs_degraded")]
             group(carrier, pairs)
         group("speed", [("v", "v_meas"), ("front", "front_v"), ("rear", "rear_v")])     # measured, m/s
         group("timing", [("lateness", "lateness"), ("work", "work")])
