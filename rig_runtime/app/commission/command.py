@@ -78,7 +78,8 @@ def cmd_commission(args: argparse.Namespace) -> int:
         print(f"realtime: {line}", file=sys.stderr)
     rep = procedure.run(cfg, devices, RealtimeClock(cfg.realtime.spin_us * 1e-6), checks,
                         confirm=_confirm(args.yes), say=lambda s: print(f"rig commission: {s}", file=sys.stderr),
-                        passive_s=passive_s, stops=args.stops, log_prefix=report_path.with_suffix(""))
+                        passive_s=passive_s, stops=args.stops, log_prefix=report_path.with_suffix(""),
+                        config_hash=record.config_hash(cfg))
     if args.stops.requested:
         raise args.stops.interrupted("during commissioning: power stages off, no result on record")
     d = rep.as_dict()
@@ -89,5 +90,5 @@ def cmd_commission(args: argparse.Namespace) -> int:
         print(json.dumps(d, default=str))
     else:
         print(rep.text())
-        print(f"report: {report_path}   record: {rec}")
+        print(f"report: {report_path}   log: {rep.log}   record: {rec}")
     return EXIT_PASS if rep.passed else EXIT_FAILED
