@@ -398,7 +398,7 @@ class SimulatedRig:
         lifted = self.lifted_wheels.omega
         om = [lifted.get(w, pw) + (g(0.0, en) if en else 0.0)
               for w, pw in zip(WHEELS, (p.omega_fl, p.omega_fr, p.omega_rl, p.omega_rr))]
-        self.drives.set_wheel_speeds(miswire.wheel_speeds(self.miswire, om) if self.miswire.encoder_sign else om)
+        self.drives.set_wheel_speeds(miswire.wheel_speeds(self.miswire, om) if self.miswire.encoders else om)
 
     def set_wrenches(self) -> None:
         """The plant's force–torque readings, with noise on the forces, to the Modbus servers."""

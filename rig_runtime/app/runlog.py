@@ -219,6 +219,9 @@ def info(run: RunLog) -> dict:
         "faults": [{"t_run": e.t_run, "device": e.device, "check": e.check, "value": e.value, "limit": e.limit,
                     "message": e.message} for e in run.faults()],
         "operator": [{"t_run": e.t_run, "message": e.message} for e in run.events if e.kind == "operator"],
+        # rig commission's report (docs/commissioning.md): per check its result, measured values, likely faults
+        "commission": [{"check": e.device, "what": e.check, "message": e.message} for e in run.events
+                       if e.kind == "commission" and e.check != "window"],
         "scenario": _str(run.attrs.get("scenario")) or "-",
         "scenario_source": _str(run.attrs.get("scenario_source")) or "-",
         "config_source": _str(run.attrs.get("config_source")) or run.config.get("source") or "-",
@@ -280,6 +283,12 @@ def format_info(d: dict) -> list[str]:
                          f"limit={num(f['limit'], '.6g')} {f['message']}")
     else:
         lines.append("faults: none")
+    if d.get("commission"):
+        lines.append("commissioning:")
+        for e in d["commission"]:
+            lines.append(f"  {e['check']} {e['what'].upper()}: {e['message']}" if e["what"] in ("pass", "fail")
+                         else f"  {e['check']} log: {e['message']}" if e["what"] == "log"
+                         else f"    {e['what']}: {e['message']}")
     if d["steps"]:
         lines.append("steps:")
         for s in d["steps"]:

@@ -137,9 +137,12 @@ def rolling_wheels(cfg: RigConfig) -> tuple[str, ...]:
     return tuple(w for w in WHEELS if w[0] == "r" or cfg.plant.front_contact)
 
 
-def judge_encoders(series: Mapping[str, Sequence[float]], cfg: RigConfig) -> Item:
+def judge_encoders(series: Mapping[str, Sequence[float]], cfg: RigConfig,
+                   node_ids: Optional[Mapping[str, int]] = None) -> Item:
     """Every wheel on the rollers reports the roller speed v / r0, with its sign (a lifted
-    carrier's wheels are judged by its lifted bump)."""
+    carrier's wheels are judged by its lifted bump, but must not report the roller speed: a
+    rolling wheel's drive that reports no speed and a lifted wheel's drive that reports the
+    roller speed have their node IDs exchanged)."""
     expect = cfg.plant.v / cfg.plant.r0
     faults, meas = [], {}
     rolling = rolling_wheels(cfg)
@@ -155,6 +158,22 @@ def judge_encoders(series: Mapping[str, Sequence[float]], cfg: RigConfig) -> Ite
             faults.append(f"encoder {w} reports {om:+.2f} rad/s, expected {expect:+.2f} (velocity_factor?)")
     meas["expected_rad_s"] = expect
     lifted = [w for w in WHEELS if w not in rolling]
+    silent = [w for w in rolling if not abs(meas[f"omega_{w}_rad_s"]) >= (1 - ENCODER_TOLERANCE) * abs(expect)]
+    for w in lifted:
+        vals = [v for v in series.get(w, ()) if math.isfinite(v)]
+        om = median(vals) if vals else math.nan
+        if abs(om) >= (1 - ENCODER_TOLERANCE) * abs(expect):
+            meas[f"omega_{w}_rad_s"] = om
+            ids = node_ids or {}
+            if silent:
+                s = silent.pop(0)
+                faults = [f for f in faults if not f.startswith(f"encoder {s} does not report")]
+                faults.append(f"drives {s} and {w} appear swapped: drive node {ids.get(s, '?')} ({s}) reports no roller "
+                              f"speed, node {ids.get(w, '?')} ({w}, lifted) reports {om:+.2f} rad/s (node IDs; or "
+                              "their encoder cables, if a lifted bump found the encoders crossed between the carriers)")
+            else:
+                faults.append(f"the drive of {w} (node {ids.get(w, '?')}) reports the roller speed ({om:+.2f} rad/s) "
+                              f"though its carrier is lifted (node IDs, or the set-up is not this config's)")
     note = (f"{', '.join(lifted)}: lifted in this rig's set-up (plant.front_contact: false), not turned by the "
             "rollers; judged by the lifted bump" if lifted else "")
     return Item("encoders", not faults, meas, tuple(faults), note)
@@ -209,14 +228,16 @@ def judge_lifted(carrier: str, u_A: float, pulse_s: float, rec: Mapping[str, Seq
     faults = []
     strays = [w for w in WHEELS if w not in (l, r) and w in answered]
     if strays:
-        faults.append(f"the {carrier} pulse (drive nodes {node_ids[l]}, {node_ids[r]}) turned wheel "
-                      f"{' and '.join(strays)} ({', '.join(f'{dom[w]:+.2f} rad/s' for w in strays)}): those drives "
-                      f"sit on the other carrier's wheels (node IDs), or the encoders are crossed between the carriers")
+        faults.append(f"the {carrier} pulse (drive nodes {node_ids[l]}, {node_ids[r]}) is answered at drive node "
+                      + " and ".join(f"{node_ids[w]} ({w}: {dom[w]:+.2f} rad/s)" for w in strays)
+                      + f": an encoder of the {carrier} wheels is wired to a drive of the other carrier (encoder "
+                        "cables crossed between the carriers)")
     for w in (l, r):
         if w not in answered:
             faults.append(f"wheel {w} does not answer the pulse of its drive (node {node_ids[w]}, {cur[w]:+.2f} A: "
-                          f"Δω {dom[w]:+.3f} rad/s, about {expect[w]:+.2f} expected): is the {carrier} carrier lifted? "
-                          "(on the rollers the answer is ~100 times smaller)")
+                          f"Δω {dom[w]:+.3f} rad/s, about {expect[w]:+.2f} expected)"
+                          + ("" if strays else f": is the {carrier} carrier lifted? (on the rollers the answer is "
+                                               "~100 times smaller)"))
     backwards = [w for w in (l, r) if w in answered and math.copysign(1, dom[w]) != math.copysign(1, cur[w])]
     for w in (l, r):
         if w in answered:
@@ -247,12 +268,13 @@ def _slope(x: Sequence[float], y: Sequence[float]) -> float:
 
 def judge_bump(carrier: str, u_A: float, rec: Mapping[str, Sequence[float]], cfg: RigConfig,
                node_ids: Mapping[str, int], yaw_lasers_ok: Optional[bool] = None,
-               lifted: Optional[Item] = None) -> Item:
+               lifted: Optional[Item] = None, encoders_ok: Optional[bool] = None) -> Item:
     """A pulse of ``u_A`` on ``carrier``: its yaw angle moves with the sign of K·u (K > 0),
     its own pair's Δω answers (the other pair's does not), and Δω follows relation (4)
     (Δω = Γ v b / (2 r0²) y + b / (2 r0) ψ̇ + v k_τ / (r0² c11) u) when the carrier rolls.
     ``lifted``: the carrier's lifted bump, whose per-wheel polarity names the wheel when the
-    yaw angle does not move.
+    yaw angle does not move; ``yaw_lasers_ok``/``encoders_ok`` False: the faults say the
+    laser or encoder check failed for this carrier first.
 
     ``rec``: per cycle ``t``, ``running`` (1 while RUNNING), and for both carriers
     ``psi_<c>``, ``dw_<c>``, ``y_<c>``, ``u_<c>`` (the current let through)."""
@@ -293,6 +315,8 @@ def judge_bump(carrier: str, u_A: float, rec: Mapping[str, Sequence[float]], cfg
     moved = abs(dpsi) >= PSI_RESPONSE_RAD
     psi_sign_ok = moved and math.copysign(1, dpsi) == math.copysign(1, u_A)
     lasers_hint = "" if yaw_lasers_ok is not False else f" (the {carrier} yaw lasers failed the laser check: fix them first)"
+    if encoders_ok is False:
+        lasers_hint += f" (an encoder of {l}/{r} failed the encoders check: fix it first)"
     if not moved:
         if abs(dpsi_other) >= PSI_RESPONSE_RAD:
             faults.append(f"the {carrier} bump moved the {other} carrier: the drives of {l}/{r} appear to "
@@ -305,9 +329,11 @@ def judge_bump(carrier: str, u_A: float, rec: Mapping[str, Sequence[float]], cfg
                           f"(both wheels pushed the same way)")
     ratio_ok = not rolls or (math.isfinite(ratio) and RELATION4_BAND[0] <= ratio <= RELATION4_BAND[1])
     ratio_neg = rolls and math.isfinite(ratio) and ratio <= -RELATION4_BAND[0]
+    other_rolls = other == "rear" or p.front_contact
     if moved and rolls and abs(ddw) < DW_RESPONSE_RAD_S:
         faults.append(f"no encoder of the {carrier} pair answers the bump (Δω moved {ddw:+.3f} rad/s)"
-                      + (f"; the {other} pair's did ({ddw_other:+.3f} rad/s)" if abs(ddw_other) >= DW_RESPONSE_RAD_S else ""))
+                      + (f"; the {other} pair's did ({ddw_other:+.3f} rad/s)"
+                         if other_rolls and abs(ddw_other) >= DW_RESPONSE_RAD_S else ""))
     elif moved and not psi_sign_ok:
         if ratio_neg:
             faults.append(f"drives {l} and {r} appear swapped: drive node {node_ids[l]} moves wheel {r} and node "

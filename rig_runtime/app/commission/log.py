@@ -40,10 +40,10 @@ class CommissionLog:
         self.extra = list(devices.extra_columns)
         self.t_last = math.nan
 
-    def cycle(self, t: float, reading) -> None:
-        """One passive cycle's row, by column name (a column without a value: NaN)."""
-        v: dict[str, float] = {"t": t, "t_run": 0.0, "lateness": 0.0, "work": 0.0, "state": float(State.IDLE),
-                               "y_ref": 0.0}
+    def cycle(self, t: float, lateness: float, reading) -> None:
+        """One passive cycle's row, by column name (a column without a value: NaN; the cycle's
+        work is not measured here)."""
+        v: dict[str, float] = {"t": t, "t_run": 0.0, "lateness": lateness, "state": float(State.IDLE), "y_ref": 0.0}
         for name, col in self.chan_cols.items():
             s = reading.samples.get(name)
             if s is not None and math.isfinite(s.t):
@@ -56,9 +56,9 @@ class CommissionLog:
     def note(self, t: float, check: str, text: str) -> None:
         self.rec.event(t, EVENT_KIND, check, "window", message=text)
 
-    def items(self, t: float, items: Sequence[Item], sessions: Sequence[dict]) -> None:
+    def items(self, t: float, items: Sequence[Item], sessions: Sequence[dict], passed: bool) -> None:
         """The report: a pass/fail event per item with its measured values, one per likely fault
-        and note, one per bump session's log."""
+        and note, one per bump session's log, and the result."""
         for i in items:
             self.rec.event(t, EVENT_KIND, i.name, "pass" if i.passed else "fail", message=item_text(i))
             for f in i.faults:
@@ -68,6 +68,8 @@ class CommissionLog:
         for s in sessions:
             if s.get("log"):
                 self.rec.event(t, EVENT_KIND, s["check"], "log", message=str(s["log"]))
+        self.rec.event(t, EVENT_KIND, "commissioning", "pass" if passed else "fail",
+                       message=f"{sum(i.passed for i in items)} of {len(items)} checks passed")
 
     def close(self) -> None:
         self.rec.close()

@@ -10,6 +10,7 @@ from typing import Callable, Optional, Sequence
 
 from ...clock import Clock
 from ...config import LASER_ROLES, WHEELS, RigConfig
+from ...lanes import CARRIER_WHEELS
 from . import CHECKS
 from .judge import (Item, encoder_signs, judge_bump, judge_encoders, judge_lasers, judge_lifted,
                     rolling_wheels)
@@ -143,7 +144,7 @@ def run(cfg: RigConfig, devices, clock: Clock, checks: Sequence[str] = CHECKS,
                 lifted_recs[c] = rec
         encoders = None
         if "encoders" in checks and not stopped():
-            encoders = (judge_encoders(window("encoders", 1.0, WHEELS), cfg) if confirm(encoder_prompt(cfg))
+            encoders = (judge_encoders(window("encoders", 1.0, WHEELS), cfg, node_ids) if confirm(encoder_prompt(cfg))
                         else _declined("encoders"))
             items.append(encoders)
         # judged once the encoders' signs are known (from the rollers)
@@ -162,28 +163,32 @@ def run(cfg: RigConfig, devices, clock: Clock, checks: Sequence[str] = CHECKS,
             if rec is not None:
                 yaw_ok = None if lasers is None else not any(r in f for f in lasers.faults
                                                              for r in (f"s_{c[0]}l", f"s_{c[0]}r"))
+                enc_ok = None if encoders is None else not any(f"{w} " in f for f in encoders.faults
+                                                               for w in CARRIER_WHEELS[c])
                 items.append(judge_bump(c, 2 * BUMP_WIRE_A, rec, cfg, node_ids, yaw_lasers_ok=yaw_ok,
-                                        lifted=lifted_items.get(c)))
+                                        lifted=lifted_items.get(c), encoders_ok=enc_ok))
         items.sort(key=lambda i: CHECKS.index(i.name))
+        rep = Report(tuple(items), tuple(c for c in CHECKS if c in checks), tuple(sessions),
+                     str(log.path) if log is not None else None)
         if log is not None and not stopped():
-            log.items(clock.now(), items, sessions)
+            log.items(clock.now(), items, sessions, rep.passed)
     finally:
         try:
             devices.close()
         finally:
             if log is not None:
                 log.close()
-    return Report(tuple(items), tuple(c for c in CHECKS if c in checks), tuple(sessions),
-                  str(log.path) if log is not None else None)
+    return rep
 
 
 def run_lockstep(cfg: RigConfig, checks: Sequence[str] = CHECKS, *, seed: Optional[int] = None,
                  passive_s: float = 2.2, prepare: Optional[Callable] = None,
-                 log_prefix: Optional[Path] = None) -> Report:
+                 log_prefix: Optional[Path] = None, lifted_sessions: Optional[int] = None) -> Report:
     """``run`` against the simulated rig in this process, on the lockstep clock (the
     simulated operator moves the vehicle and lifts the carriers for the lifted bumps: ``sim:
     {operator: commission, operator_lifted_sessions: <the lifted checks asked for>}`` is set
-    here). ``prepare(sim)`` runs before anything is configured (tests tap the CAN wire)."""
+    here; ``lifted_sessions`` overrides it). ``prepare(sim)`` runs before anything is
+    configured (tests tap the CAN wire)."""
     import dataclasses
 
     from sim_backend.rig import SimulatedRig
@@ -191,7 +196,7 @@ def run_lockstep(cfg: RigConfig, checks: Sequence[str] = CHECKS, *, seed: Option
     from ...clock import LockstepClock
     from ...devices import RigDevices
     from . import record
-    n_lifted = sum(1 for c in checks if c.startswith("lifted-"))
+    n_lifted = sum(1 for c in checks if c.startswith("lifted-")) if lifted_sessions is None else lifted_sessions
     sim_cfg = dataclasses.replace(cfg, sim={**(cfg.sim or {}), "operator": "commission",
                                             "operator_lifted_sessions": n_lifted})
     sim = SimulatedRig(sim_cfg, None, seed=seed)

@@ -39,7 +39,7 @@ def passive(devices, clock: Clock, h: float, seconds: float, names: tuple[str, .
         r = devices.poll(t)
         devices.write(ZERO, t)
         if log is not None:
-            log.cycle(t, r)
+            log.cycle(t, t - (t0 + k * h), r)
         for n in names:
             s = r.samples.get(n)
             v = r.values.get(n, math.nan)
