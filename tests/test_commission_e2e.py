@@ -1,7 +1,9 @@
 """``rig commission`` unchanged against a real ``rig sim`` process with one miswiring (the
-drives of rl and rr at each other's node IDs): it fails and names the fault. The stated
-tolerance of the real-time tests (tests/e2e.py) applies; the simulated operator
-(``sim: {operator: commission}``) does the passive motions."""
+drives of rl and rr at each other's node IDs): it fails and names the fault; the lifted
+bumps, with the carriers the simulated operator lifted (``sim: {operator: commission}``),
+pass (a node swap moves a drive with its encoder: only the yaw on the rollers sees it), and
+``rig log info`` shows the report from the commissioning's log. The stated tolerance of the
+real-time tests (tests/e2e.py) applies."""
 
 from __future__ import annotations
 
@@ -31,7 +33,12 @@ def test_commission_against_rig_sim_names_swapped_drive_nodes(tmp_path):
     assert r.returncode == 3, (r.returncode, r.stderr[-2000:])
     rep = json.loads(r.stdout.strip().splitlines()[-1])
     items = {i["name"]: i for i in rep["items"]}
-    assert items["lasers"]["passed"] and items["encoders"]["passed"], rep
+    assert all(items[c]["passed"] for c in ("lasers", "lifted-rear", "lifted-front", "encoders")), rep
+    assert items["lifted-rear"]["measured"]["dw_rl_rad_s"] > 2 > -2 > items["lifted-rear"]["measured"]["dw_rr_rad_s"]
     assert not items["bump-rear"]["passed"]
     assert any("drives rl and rr appear swapped" in f for f in items["bump-rear"]["faults"]), rep
     assert json.loads((tmp_path / "record.jsonl").read_text().splitlines()[-1])["result"] == "fail"
+    info = subprocess.run([sys.executable, "-m", "rig_runtime", "log", "info", rep["log"]], capture_output=True,
+                          text=True, timeout=60)
+    assert info.returncode == 0 and "mode: commission" in info.stdout, info.stderr
+    assert "bump-rear FAIL" in info.stdout and "likely fault: drives rl and rr appear swapped" in info.stdout

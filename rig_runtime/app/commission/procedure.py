@@ -15,7 +15,7 @@ from . import CHECKS
 from .judge import (Item, encoder_signs, judge_bump, judge_encoders, judge_lasers, judge_lifted,
                     rolling_wheels)
 from .log import CommissionLog, item_text
-from .session import bump, passive
+from .session import bump, open_bump_log, passive
 
 BUMP_WIRE_A = 0.3           # each wheel's current during a bump (A); the differential u is twice it
 BUMP_S = 0.2                # the pulse
@@ -97,6 +97,7 @@ def run(cfg: RigConfig, devices, clock: Clock, checks: Sequence[str] = CHECKS,
     sessions: list[dict] = []
     node_ids = {d.wheel: d.node_id for d in cfg.devices.can.drives}
     log: Optional[CommissionLog] = None
+    bump_logs: dict[str, object] = {}       # check -> its session's recorder, open until the end
 
     def stopped() -> bool:
         return stops is not None and stops.requested
@@ -105,11 +106,11 @@ def run(cfg: RigConfig, devices, clock: Clock, checks: Sequence[str] = CHECKS,
         """One bump session on carrier ``c``; its captured series, or None (a failed item added)."""
         u = 2 * BUMP_WIRE_A
         say(f"{check}: u = {u:+.2f} A ({BUMP_WIRE_A:+.2f} A / {-BUMP_WIRE_A:+.2f} A on the wire) for {BUMP_S} s")
-        path = None if log_prefix is None else Path(f"{log_prefix}-{check}.h5")
+        recorder = bump_logs.get(check)
+        path = recorder.path if recorder is not None else None
         if log is not None:
             log.note(clock.now(), check, f"{check}: the session begins" + (f" (log {path})" if path else ""))
-        rec, res = bump(cfg, devices, clock, c, u, BUMP_S, AFTER_S, log_path=path, when_full=when_full,
-                        stops=stops, check=check)
+        rec, res = bump(cfg, devices, clock, c, u, BUMP_S, AFTER_S, recorder=recorder, stops=stops)
         res["log"] = str(path) if path is not None else None
         devices.resume(clock.now())     # the stop left the drives pre-operational: back to configure()'s state
         sessions.append({"check": check, **res})
@@ -125,8 +126,11 @@ def run(cfg: RigConfig, devices, clock: Clock, checks: Sequence[str] = CHECKS,
         return passive(devices, clock, h, seconds, names, stops, log)
 
     try:
-        if log_prefix is not None:
+        if log_prefix is not None:      # every log opened before the devices are configured (open_bump_log)
             log = CommissionLog(cfg, devices, Path(f"{log_prefix}.h5"), config_hash, when_full=when_full)
+            for check in (c for c in CHECKS if c in checks and "-" in c):
+                bump_logs[check] = open_bump_log(cfg, devices, check.split("-")[1], check, BUMP_S + AFTER_S,
+                                                 Path(f"{log_prefix}-{check}.h5"), when_full)
         devices.configure()
         if "lasers" in checks:
             items.append(judge_lasers(window("lasers", passive_s, LASER_ROLES)) if confirm(laser_prompt(passive_s))
@@ -176,6 +180,11 @@ def run(cfg: RigConfig, devices, clock: Clock, checks: Sequence[str] = CHECKS,
         try:
             devices.close()
         finally:
+            ran = {s["check"] for s in sessions}
+            for check, r in bump_logs.items():
+                r.close()
+                if check not in ran:        # not run (declined, stopped): no empty log left behind
+                    r.path.unlink(missing_ok=True)
             if log is not None:
                 log.close()
     return rep

@@ -80,30 +80,30 @@ class _Capture:
             r[f"omega_{w}"].append(c.value if c is not None else math.nan)
 
 
+def bump_config(cfg: RigConfig, carrier: str) -> RigConfig:
+    """A bump's config: the one lane is this carrier's, playing the open-loop pulse."""
+    return dataclasses.replace(cfg, controlled=(carrier,))
+
+
+def open_bump_log(cfg: RigConfig, devices, carrier: str, check: str, duration_s: float, path: Path,
+                  when_full: str = "drop"):
+    """The recorder of one bump session's normal log, open (its sidecar started). Opened before
+    the devices are configured, as ``rig run`` does: a sidecar takes most of a second to
+    start, longer than the drives' heartbeat consumers wait between two cycles."""
+    bump_cfg = bump_config(cfg, carrier)
+    attrs = run_attrs(bump_cfg, None, duration_s, {"scenario": f"commission {check}", "mode": "commission"})
+    return open_recorder(bump_cfg, devices, path, attrs, when_full=when_full)
+
+
 def bump(cfg: RigConfig, devices, clock: Clock, carrier: str, u_A: float, pulse_s: float, after_s: float,
-         log_path: Optional[Path] = None, when_full: str = "drop", stops=None,
-         check: str = "") -> tuple[dict[str, list[float]], dict]:
+         recorder=None, stops=None) -> tuple[dict[str, list[float]], dict]:
     """One pulse of ``u_A`` (differential, each wheel ±u/2) for ``pulse_s`` on ``carrier``,
     then zero current for ``after_s``, inside one armed session of the control loop
-    (devices configured by the caller), recorded as a normal log at ``log_path`` (None: not
-    recorded). The same for a lifted carrier and one on the rollers: the set-up is the
-    operator's. Returns (the captured series, the run's result)."""
-    bump_cfg = dataclasses.replace(cfg, controlled=(carrier,))     # the one lane: this carrier, open loop
-    if log_path is None:
-        return _bump(bump_cfg, devices, clock, carrier, u_A, pulse_s, after_s, None, stops)
-    attrs = run_attrs(bump_cfg, None, pulse_s + after_s, {"scenario": f"commission {check or 'bump-' + carrier}",
-                                                                "mode": "commission"})
-    rec = open_recorder(bump_cfg, devices, log_path, attrs, when_full=when_full)
-    try:
-        return _bump(bump_cfg, devices, clock, carrier, u_A, pulse_s, after_s, rec, stops)
-    finally:
-        rec.close()
-
-
-def _bump(bump_cfg: RigConfig, devices, clock: Clock, carrier: str, u_A: float, pulse_s: float, after_s: float,
-          recorder, stops) -> tuple[dict[str, list[float]], dict]:
+    (devices configured by the caller), recorded by ``recorder`` (``open_bump_log``; None:
+    not recorded; the caller closes it). The same for a lifted carrier and one on the
+    rollers: the set-up is the operator's. Returns (the captured series, the run's result)."""
     u = StepSequence(((0.0, u_A), (pulse_s, 0.0)))
-    loop = ControlLoop(bump_cfg, devices, clock, open_loop=(carrier, u), recorder=recorder,
+    loop = ControlLoop(bump_config(cfg, carrier), devices, clock, open_loop=(carrier, u), recorder=recorder,
                        mailbox=recorder.mailbox if recorder is not None else None)
     if stops is not None:           # a signal: the loop's own clean stop (ramp, power stages off)
         stops.on_stop(lambda: setattr(loop, "stop_requested", True))
