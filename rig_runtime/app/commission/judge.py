@@ -238,24 +238,25 @@ def judge_lifted(carrier: str, u_A: float, pulse_s: float, rec: Mapping[str, Seq
                           f"Δω {dom[w]:+.3f} rad/s, about {expect[w]:+.2f} expected)"
                           + ("" if strays else f": is the {carrier} carrier lifted? (on the rollers the answer is "
                                                "~100 times smaller)"))
-    backwards = [w for w in (l, r) if w in answered and math.copysign(1, dom[w]) != math.copysign(1, cur[w])]
+    # the way each wheel turned: its reading, corrected by its encoder's sign where the rollers told it
     for w in (l, r):
         if w in answered:
-            polarity[w] = (-1 if w in backwards else 1) * enc_signs.get(w, 1)
-    inverted = [w for w in backwards if enc_signs.get(w, 1) > 0]
-    unknown = [w for w in inverted if w not in enc_signs]
-    notes = [f"{w} turned backwards as its encoder reads (the encoders check found it inverted): its drive's current "
-             "polarity is right" for w in backwards if enc_signs.get(w, 1) < 0]
-    if len(inverted) == 2:
+            read = 1 if math.copysign(1, dom[w]) == math.copysign(1, cur[w]) else -1
+            polarity[w] = read * enc_signs.get(w, 1)
+    inverted = [w for w in (l, r) if polarity.get(w) == -1]
+    notes = [f"{w} read backwards as its encoder is inverted (the encoders check): its drive's current polarity "
+             "is right" for w in (l, r) if polarity.get(w) == 1 and enc_signs.get(w, 1) < 0]
+    if len(inverted) == 2 and not any(enc_signs.get(w, 1) < 0 for w in inverted):
         faults.append(f"wheels {l} and {r} both turned backwards: drives {l} and {r} both appear to have their "
                       f"current polarity inverted, or the encoders of {l} and {r} are exchanged (bump-{carrier} on "
                       "the rollers tells which: a wrong yaw sign is the polarity)")
     else:
         for w in inverted:
             faults.append(f"drive {w} current polarity appears inverted (node {node_ids[w]}: wheel {w} turned "
-                          f"{dom[w]:+.2f} rad/s for {cur[w]:+.2f} A)"
+                          f"{dom[w] * enc_signs.get(w, 1):+.2f} rad/s for {cur[w]:+.2f} A"
+                          + (", its encoder read inverted" if enc_signs.get(w, 1) < 0 else "") + ")"
                           + (f" — or encoder {w} reads with the wrong sign (not judged on the rollers)"
-                             if w in unknown else ""))
+                             if w not in enc_signs else ""))
     for w in WHEELS:
         measured[f"polarity_{w}"] = float(polarity[w]) if w in polarity else math.nan
     return Item(name, not faults, measured, tuple(faults), "; ".join(notes))
