@@ -81,7 +81,7 @@ def cmd_commission(args: argparse.Namespace) -> int:
     rep = procedure.run(cfg, devices, RealtimeClock(cfg.realtime.spin_us * 1e-6), checks,
                         confirm=_confirm(args.yes), say=lambda s: print(f"rig commission: {s}", file=sys.stderr),
                         passive_s=passive_s, stops=args.stops, log_prefix=report_path.with_suffix(""),
-                        config_hash=record.config_hash(cfg))
+                        config_hash=record.config_hash(cfg), prompts_wait=not args.yes)
     if args.stops.requested:
         raise args.stops.interrupted("during commissioning: power stages off, no result on record")
     d = rep.as_dict()

@@ -4,6 +4,7 @@ the simulated rig; ``run_lockstep`` builds the simulated rig in process (tests).
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional, Sequence
@@ -15,7 +16,7 @@ from . import CHECKS
 from .judge import (Item, encoder_signs, judge_bump, judge_encoders, judge_lasers, judge_lifted,
                     rolling_wheels)
 from .log import CommissionLog, item_text
-from .session import bump, open_bump_log, passive
+from .session import ZERO, bump, open_bump_log, passive
 
 BUMP_WIRE_A = 0.3           # each wheel's current during a bump (A); the differential u is twice it
 BUMP_S = 0.2                # the pulse
@@ -86,12 +87,16 @@ def _declined(name: str) -> Item:
 def run(cfg: RigConfig, devices, clock: Clock, checks: Sequence[str] = CHECKS,
         confirm: Callable[[str], bool] = lambda text: True, say: Callable[[str], None] = lambda s: None,
         passive_s: float = PASSIVE_S, stops=None, log_prefix: Optional[Path] = None,
-        when_full: str = "drop", config_hash: str = "") -> Report:
+        when_full: str = "drop", config_hash: str = "", prompts_wait: bool = False) -> Report:
     """Configure the devices (no power), then each selected check in ``CHECKS`` order; the
     devices are closed on every path. Recorded as normal logs (``log_prefix`` None: nothing
     recorded): the commissioning's own, ``<log_prefix>.h5`` (the passive windows and the
     report, :mod:`.log`), and one per bump session, ``<log_prefix>-<check>.h5``.
-    ``confirm(prompt)``: the operator's go (False: that check is not run, and fails)."""
+    ``confirm(prompt)``: the operator's go (False: that check is not run, and fails);
+    ``prompts_wait``: it waits for a person — the cycle goes on meanwhile (power stages off,
+    zero current), since the drives' heartbeat consumers fault within a fraction of a second
+    without the runtime's SYNC and heartbeat (the lockstep clock leaves it False: no
+    simulated time passes at a prompt)."""
     h = cfg.controller.h
     items: list[Item] = []
     sessions: list[dict] = []
@@ -120,6 +125,23 @@ def run(cfg: RigConfig, devices, clock: Clock, checks: Sequence[str] = CHECKS,
             return None
         return rec
 
+    def ask(text: str) -> bool:
+        """``confirm(text)``; while it waits for the operator, the devices are polled each
+        period with zero current (not recorded). A stop request ends the wait: declined."""
+        if not prompts_wait:
+            return confirm(text)
+        answer: list[bool] = []
+        asking = threading.Thread(target=lambda: answer.append(confirm(text)), name="commission-prompt", daemon=True)
+        asking.start()
+        t0 = clock.now() + h
+        k = 0
+        while asking.is_alive() and not stopped():
+            t = clock.wait_until(t0 + k * h)
+            devices.poll(t)
+            devices.write(ZERO, t)
+            k += 1
+        return bool(answer and answer[0]) and not stopped()
+
     def window(check: str, seconds: float, names: tuple[str, ...]) -> dict:
         if log is not None:
             log.note(clock.now(), check, f"{check}: the operator's window of {seconds:g} s begins")
@@ -133,10 +155,10 @@ def run(cfg: RigConfig, devices, clock: Clock, checks: Sequence[str] = CHECKS,
                                                  Path(f"{log_prefix}-{check}.h5"), when_full)
         devices.configure()
         if "lasers" in checks:
-            items.append(judge_lasers(window("lasers", passive_s, LASER_ROLES)) if confirm(laser_prompt(passive_s))
+            items.append(judge_lasers(window("lasers", passive_s, LASER_ROLES)) if ask(laser_prompt(passive_s))
                          else _declined("lasers"))
         lifted = [c for c in ("rear", "front") if f"lifted-{c}" in checks]
-        if lifted and not confirm(lifted_prompt()):
+        if lifted and not ask(lifted_prompt()):
             items += [_declined(f"lifted-{c}") for c in lifted]
             lifted = []
         lifted_recs: dict[str, dict] = {}
@@ -148,7 +170,7 @@ def run(cfg: RigConfig, devices, clock: Clock, checks: Sequence[str] = CHECKS,
                 lifted_recs[c] = rec
         encoders = None
         if "encoders" in checks and not stopped():
-            encoders = (judge_encoders(window("encoders", 1.0, WHEELS), cfg, node_ids) if confirm(encoder_prompt(cfg))
+            encoders = (judge_encoders(window("encoders", 1.0, WHEELS), cfg, node_ids) if ask(encoder_prompt(cfg))
                         else _declined("encoders"))
             items.append(encoders)
         # judged once the encoders' signs are known (from the rollers)
@@ -156,7 +178,7 @@ def run(cfg: RigConfig, devices, clock: Clock, checks: Sequence[str] = CHECKS,
                         for c, rec in lifted_recs.items()}
         items += lifted_items.values()
         bumps = [c for c in ("rear", "front") if f"bump-{c}" in checks]
-        if bumps and not stopped() and not confirm(bump_prompt()):
+        if bumps and not stopped() and not ask(bump_prompt()):
             items += [_declined(f"bump-{c}") for c in bumps]
             bumps = []
         lasers = next((i for i in items if i.name == "lasers"), None)
