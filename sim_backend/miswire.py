@@ -6,6 +6,8 @@ a miswired rig would send (docs/commissioning.md, "Simulated miswiring").
   target moving away reads as coming closer);
 - ``laser_swap``: two lasers' cables exchanged (each one's port carries the other's value);
 - ``encoder_sign``: the wheel's drive reports its speed with the wrong sign;
+- ``encoder_swap``: two wheels' encoder cables exchanged at their drives (each drive reports
+  the other wheel's speed, while its power stage still drives its own wheel);
 - ``current_sign``: the wheel's motor turns the drive's current the wrong way (phases swapped);
 - ``node_swap``: two drives' node IDs exchanged (the runtime's command for one wheel reaches
   the other wheel's drive, and that drive's speed comes back under the first wheel's name).
@@ -25,6 +27,7 @@ class Miswire:
     laser_sign: tuple[str, ...] = ()
     laser_swap: tuple[tuple[str, str], ...] = ()
     encoder_sign: tuple[str, ...] = ()
+    encoder_swap: tuple[tuple[str, str], ...] = ()
     current_sign: tuple[str, ...] = ()
     node_swap: tuple[tuple[str, str], ...] = ()
 
@@ -32,19 +35,26 @@ class Miswire:
         for key, names, known in (("laser_sign", self.laser_sign, LASER_ROLES),
                                   ("laser_swap", [n for p in self.laser_swap for n in p], LASER_ROLES),
                                   ("encoder_sign", self.encoder_sign, WHEELS),
+                                  ("encoder_swap", [n for p in self.encoder_swap for n in p], WHEELS),
                                   ("current_sign", self.current_sign, WHEELS),
                                   ("node_swap", [n for p in self.node_swap for n in p], WHEELS)):
             for n in names:
                 if n not in known:
                     raise ConfigError(None, key, f"one of {', '.join(known)}", n)
-        for key, pairs in (("laser_swap", self.laser_swap), ("node_swap", self.node_swap)):
+        for key, pairs in (("laser_swap", self.laser_swap), ("encoder_swap", self.encoder_swap),
+                           ("node_swap", self.node_swap)):
             flat = [n for p in pairs for n in p]
             if len(set(flat)) != len(flat):
                 raise ConfigError(None, key, "pairs of two different names, each name once", list(pairs))
 
     @property
     def any(self) -> bool:
-        return bool(self.laser_sign or self.laser_swap or self.encoder_sign or self.current_sign or self.node_swap)
+        return bool(self.laser_sign or self.laser_swap or self.encoders or self.current_sign or self.node_swap)
+
+    @property
+    def encoders(self) -> bool:
+        """Whether the wheel speeds the drives report are miswired (``wheel_speeds``)."""
+        return bool(self.encoder_sign or self.encoder_swap)
 
 
 NONE = Miswire()
@@ -66,9 +76,12 @@ def laser_values(mw: Miswire, values: Mapping[str, float], mid: Mapping[str, flo
 
 
 def wheel_speeds(mw: Miswire, omegas: Sequence[float]) -> list[float]:
-    """The speeds (rad/s, ``WHEELS`` order) the wheels' drives report (a swapped node's
-    drive still sits on its own wheel: that is ``drive_config``'s part)."""
-    return [-om if w in mw.encoder_sign else om for w, om in zip(WHEELS, omegas)]
+    """The speeds (rad/s, ``WHEELS`` order) the wheels' drives report: signs flipped at the
+    encoders, then the swapped encoder cables exchanged (a swapped node's drive still sits
+    on its own wheel: that is ``drive_config``'s part)."""
+    om = {w: (-o if w in mw.encoder_sign else o) for w, o in zip(WHEELS, omegas)}
+    p = _partner(mw.encoder_swap)
+    return [om[p.get(w, w)] for w in WHEELS]
 
 
 def motor_currents(mw: Miswire, currents: Sequence[float]) -> list[float]:

@@ -205,9 +205,11 @@ class RealtimeSim:
                 self.session_t0 = t
                 self.sessions += 1
                 self.sim.start_scenario(t - self.t_wall0)
+                self.sim.power_observed(True)
             elif kind == "end" and self.session_active:
                 self.session_active = False
                 self.sim.end_scenario()
+                self.sim.power_observed(False)
         return bool(events)
 
     # ------------------------------------------------------------------ plant thread

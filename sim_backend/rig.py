@@ -39,7 +39,7 @@ from rig_runtime.errors import ConfigError
 from rig_runtime.geometry import ideal_readings, pose_from_carriers
 from rig_runtime.scenario import Scenario
 
-from . import hands, miswire, virtual_drive, virtual_ft, virtual_laser
+from . import hands, lifted_wheels, miswire, virtual_drive, virtual_ft, virtual_laser
 from .lockstep_bus import LockstepBus
 from .plant import LiftedCarrier, Plant
 from .simconfig import sim_config
@@ -71,6 +71,12 @@ class SimulatedRig:
         self._check_scenario()
         self.t_run0 = math.nan                  # scenario time 0 (simulated time); NaN: not started
         self.powered_once = False               # every power stage was on at least once (the hands let go)
+        self.power_sessions = [0, 0]            # power-on sessions started, ended (the operator's set-ups)
+        self._power_on = False
+        # the wheels of a carrier off the rollers spin freely (sim_backend/lifted_wheels.py)
+        self.lifted_wheels = lifted_wheels.LiftedWheels(p.J_x, p.k_tau)
+        self._lifted_by_setup = (() if p.front_contact else ("front",)) + (("rear",) if lifted else ())
+        self._update_lifted()
         self._events = self._schedule()
         self._active_faults: set[int] = set()
         self._stalls_done: set[int] = set()
@@ -312,6 +318,28 @@ class SimulatedRig:
                 d += f.duration_s
         return d
 
+    def power_observed(self, on: bool) -> None:
+        """Every power stage on (``on``) or not: counts the power-on sessions, which the
+        simulated operator's set-ups follow (lockstep: :meth:`advance`; ``rig sim``: the CAN
+        responder's session events)."""
+        if on != self._power_on:
+            self._power_on = on
+            self.power_sessions[0 if on else 1] += 1
+            self._update_lifted()
+
+    def _update_lifted(self) -> None:
+        """Which carriers are off the rollers now: the set-up's (``plant.front_contact: false``,
+        a scenario's ``lifted_carrier``) and those the simulated operator holds lifted."""
+        by_hand = self.sc.operator == "commission" and hands.carriers_lifted(
+            self.power_sessions[1], self.sc.operator_lifted_sessions)
+        lw = self.lifted_wheels
+        for carrier, wheels in (("front", ("fl", "fr")), ("rear", ("rl", "rr"))):
+            for w in wheels:
+                if carrier in self._lifted_by_setup or by_hand:
+                    lw.lift(w, 0.0)             # off the rollers (from the start: at rest)
+                else:
+                    lw.lower(w)
+
     # ------------------------------------------------------------------ the plant
     def step(self, dt: float, currents: Sequence[float]) -> None:
         """One plant step of ``dt`` from ``self.t`` with the wheels' applied ``currents``
@@ -332,6 +360,8 @@ class SimulatedRig:
         fl, fr, rl, rr = currents
         self.plant.set_speed(self.speed(tau))   # the roller speed, held over the step (ZOH)
         self.plant.step(dt, fl - fr, rl - rr, *forces)
+        if self.lifted_wheels.omega:
+            self.lifted_wheels.step(dt, dict(zip(WHEELS, currents)))
         self.t += dt
 
     def applied_currents(self) -> list[float]:
@@ -359,7 +389,9 @@ class SimulatedRig:
         drives.hold()
         try:
             drives.service(self.t)          # SYNC/RPDOs the runtime sent last cycle; TPDOs back
-            if not self.scenario_started and drives.operation_enabled():
+            on = drives.operation_enabled()
+            self.power_observed(on)
+            if not self.scenario_started and on:
                 self.start_scenario(self.t)
             t_rel = t + self._stall_s(t)
             while self.t < t_rel - 1e-12:
@@ -390,7 +422,7 @@ class SimulatedRig:
         """The distances the six lasers see for the plant's pose (no frames are emitted)."""
         p, geo = self.plant, self.cfg.geometry
         hand = hands.offset(self.t) if self.sc.operator == "commission" and not self.powered_once else hands.NO_HANDS
-        pose = pose_from_carriers(p.y_f + hand.dy, p.y_r + hand.dy, p.psi_af + hand.dpsi_af,
+        pose = pose_from_carriers(p.y_f + hand.dy_f, p.y_r + hand.dy_r, p.psi_af + hand.dpsi_af,
                                   p.psi_ar + hand.dpsi_ar, geo)
         r = ideal_readings(pose, geo, s0=0.0)
         mw = self.miswire
@@ -406,12 +438,15 @@ class SimulatedRig:
                 vl.set_distance(v + s0)
 
     def set_wheel_speeds(self) -> None:
-        """The plant's wheel speeds, with encoder noise, to the virtual drives."""
+        """The wheel speeds — the plant's, a lifted wheel's own (``lifted_wheels``) — with
+        encoder noise, to the virtual drives."""
         p = self.plant
         g = self._rng.gauss
         en = self.sc.encoder_noise_rad_s
-        om = [w + (g(0.0, en) if en else 0.0) for w in (p.omega_fl, p.omega_fr, p.omega_rl, p.omega_rr)]
-        self.drives.set_wheel_speeds(miswire.wheel_speeds(self.miswire, om) if self.miswire.encoder_sign else om)
+        lifted = self.lifted_wheels.omega
+        om = [lifted.get(w, pw) + (g(0.0, en) if en else 0.0)
+              for w, pw in zip(WHEELS, (p.omega_fl, p.omega_fr, p.omega_rl, p.omega_rr))]
+        self.drives.set_wheel_speeds(miswire.wheel_speeds(self.miswire, om) if self.miswire.encoders else om)
 
     def set_wrenches(self) -> None:
         """The plant's force–torque readings, with noise on the forces, to the Modbus servers."""

@@ -33,6 +33,9 @@ class SimConfig:
     # "commission": the simulated operator moves the vehicle by hand as `rig commission`'s
     # passive prompt asks, until the power stages are first on (sim_backend/hands.py)
     operator: Literal["none", "commission"] = "none"
+    # with operator "commission": the power-on sessions the operator holds the carriers lifted
+    # for (rig commission's lifted bumps: lifted-rear, lifted-front), from the first power-on
+    operator_lifted_sessions: int = check(nonneg, default=2)
 
 
 def sim_config(cfg: RigConfig) -> SimConfig:

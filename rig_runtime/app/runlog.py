@@ -274,6 +274,9 @@ def info(run: RunLog) -> dict:
         "faults": [{"t_run": e.t_run, "device": e.device, "check": e.check, "value": e.value, "limit": e.limit,
                     "message": e.message} for e in run.faults()],
         "operator": [{"t_run": e.t_run, "message": e.message} for e in run.events if e.kind == "operator"],
+        # rig commission's report (docs/commissioning.md): per check its result, measured values, likely faults
+        "commission": [{"check": e.device, "what": e.check, "message": e.message} for e in run.events
+                       if e.kind == "commission" and e.check != "window"],
         "scenario": _str(run.attrs.get("scenario")) or "-",
         "scenario_source": _str(run.attrs.get("scenario_source")) or "-",
         "config_source": _str(run.attrs.get("config_source")) or run.config.get("source") or "-",
@@ -342,6 +345,12 @@ def format_info(d: dict) -> list[str]:
             end = f"{g['t_end']:+.3f} s" if g["t_end"] is not None else "end of log"
             lines.append(f"  {g['carrier']} {g['t_start']:+.3f} s -> {end} ({g['duration_s']:.3f} s): {g['why']}")
             lines.append(f"    ended: {g['end']}")
+    if d.get("commission"):
+        lines.append("commissioning:")
+        for e in d["commission"]:
+            lines.append(f"  {e['check']} {e['what'].upper()}: {e['message']}" if e["what"] in ("pass", "fail")
+                         else f"  {e['check']} log: {e['message']}" if e["what"] == "log"
+                         else f"    {e['what']}: {e['message']}")
     if d["steps"]:
         lines.append("steps:" if not d.get("degraded") else "steps (on the y the lane controlled on: ŷ while DEGRADED):")
         several = len({s.get("carrier") for s in d["steps"]}) > 1

@@ -41,14 +41,16 @@ def _confirm(yes: bool):
     return confirm
 
 
-@command("commission", "wiring checks before the first closed loop: lasers and encoders by hand (power "
-                       "stages off), then short current bumps through the supervisor's ARM; a report and "
-                       "a record (exit 0 all passed, 3 a check failed, 2 bad input)", stops=True)
+@command("commission", "wiring checks before the first closed loop: the lasers by hand (power stages off), "
+                       "short current bumps through the supervisor's ARM with the carriers lifted, the "
+                       "encoders and the bumps on the rollers; a report recorded as a normal log, and a "
+                       "record (exit 0 all passed, 3 a check failed, 2 bad input)", stops=True)
 @arg("--config", default=None, help="config file (default: configs/rig.yaml; for `rig sim`: its generated config)")
 @arg("--only", metavar="CHECK,…", help=f"run only these checks (of {', '.join(CHECKS)})")
 @arg("--yes", action="store_true", help="no prompts: the operator has prepared every step (needed without a terminal)")
 @arg("--passive-s", type=float, default=None, help="the operator's window for the passive motions (default 8 s)")
-@arg("--report", metavar="PATH", help="write the report as JSON (default: logs/commission-<time>.json)")
+@arg("--report", metavar="PATH", help="write the report as JSON (default: logs/commission-<time>.json; the "
+                                      "commissioning's log beside it, .h5)")
 @arg("--record", metavar="PATH", help="the commissioning record file (default: see docs/commissioning.md)")
 @arg("--json", action="store_true", help="print the report as one JSON object")
 def cmd_commission(args: argparse.Namespace) -> int:
@@ -78,7 +80,8 @@ def cmd_commission(args: argparse.Namespace) -> int:
         print(f"realtime: {line}", file=sys.stderr)
     rep = procedure.run(cfg, devices, RealtimeClock(cfg.realtime.spin_us * 1e-6), checks,
                         confirm=_confirm(args.yes), say=lambda s: print(f"rig commission: {s}", file=sys.stderr),
-                        passive_s=passive_s, stops=args.stops, log_prefix=report_path.with_suffix(""))
+                        passive_s=passive_s, stops=args.stops, log_prefix=report_path.with_suffix(""),
+                        config_hash=record.config_hash(cfg), prompts_wait=not args.yes)
     if args.stops.requested:
         raise args.stops.interrupted("during commissioning: power stages off, no result on record")
     d = rep.as_dict()
@@ -89,5 +92,5 @@ def cmd_commission(args: argparse.Namespace) -> int:
         print(json.dumps(d, default=str))
     else:
         print(rep.text())
-        print(f"report: {report_path}   record: {rec}")
+        print(f"report: {report_path}   log: {rep.log}   record: {rec}")
     return EXIT_PASS if rep.passed else EXIT_FAILED
