@@ -74,8 +74,10 @@ class SimulatedRig:
         self.power_sessions = [0, 0]            # power-on sessions started, ended (the operator's set-ups)
         self._power_on = False
         # the wheels of a carrier off the rollers spin freely (sim_backend/lifted_wheels.py)
+        p = cfg.plant
+        lifted = scenario.lifted_carrier if scenario is not None else None
         self.lifted_wheels = lifted_wheels.LiftedWheels(p.J_x, p.k_tau)
-        self._lifted_by_setup = (() if p.front_contact else ("front",)) + (("rear",) if lifted else ())
+        self._lifted_by_setup = tuple(c for c in ("front", "rear") if c == lifted or not self.plant.rolling(c))
         self._update_lifted()
         self._events = self._schedule()
         self._active_faults: set[int] = set()
