@@ -134,6 +134,11 @@ class Plant:
         return dataclasses.replace(self, front=None, rear=None, **(own.overrides() if own else {}))
 
     @property
+    def in_contact(self) -> tuple[str, ...]:
+        """The carriers on the rollers by the config (``front_contact``, ``rear_contact``)."""
+        return tuple(c for c, on in (("front", self.front_contact), ("rear", self.rear_contact)) if on)
+
+    @property
     def per_carrier(self) -> bool:
         """Whether a carrier has values of its own."""
         return self.front is not None or self.rear is not None

@@ -48,8 +48,8 @@ GRID_STEP = 0.05        # m/s: the largest spacing of the analysed speeds over s
 
 # --------------------------------------------------------------------------- the set-up
 def in_contact(cfg: RigConfig) -> tuple[str, ...]:
-    """The carriers on the rollers: both with ``plant.front_contact``, else the rear alone."""
-    return CARRIERS if cfg.plant.front_contact else ("rear",)
+    """The carriers on the rollers (``Plant.in_contact``)."""
+    return cfg.plant.in_contact
 
 
 def applies(cfg: RigConfig) -> bool:

@@ -26,10 +26,10 @@ DEFAULT_FILTER_HZ = 2.0      # Hz: the schedule's default v_filter_hz (config.Sc
 
 
 def in_contact(plant: Plant) -> tuple[str, ...]:
-    """The carriers on the rollers: the front if ``plant.front_contact``, the rear always (the
-    paper lifts only the front in its closed-loop set-up; a lifted rear is a scenario's
-    identification set-up, where nothing is scheduled)."""
-    return ("front", "rear") if plant.front_contact else ("rear",)
+    """The carriers on the rollers by the config (``plant.front_contact``,
+    ``plant.rear_contact``); a carrier lifted by an identification scenario's
+    ``lifted_carrier`` is not looked at: nothing is scheduled there."""
+    return plant.in_contact
 
 
 def columns(plant: Plant) -> list[str]:
