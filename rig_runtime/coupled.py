@@ -41,7 +41,7 @@ from typing import Mapping, Optional
 
 import numpy as np
 
-from .config import CARRIERS, RigConfig
+from .config import RigConfig
 
 GRID_STEP = 0.05        # m/s: the largest spacing of the analysed speeds over schedule.v_range
 
