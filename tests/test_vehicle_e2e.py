@@ -2,16 +2,10 @@
 rollers and controlled with configs/vehicle.yaml, forwards, backwards, through standstill, with
 the controller off; the speed rules on injected encoder offsets; the paper's set-up unchanged
 bit for bit. One run per scenario, shared by its assertions.
+The simulator follows a scenario's roller speed profile (``speed:``) itself."""
 
-The roller speed profile of a scenario (``speed:``) is the simulator's to follow (h-plant's
-``set_speed``). Where the simulator does not follow it itself, ``run_vehicle`` plays it here:
-whenever the profile's v changes, the simulated plant is rebuilt with that v from the state it
-had (``Plant.state`` / ``set_state``): the rollers' speed changes, nothing else."""
-
-import dataclasses
 import hashlib
 import json
-import math
 import subprocess
 import sys
 from pathlib import Path
@@ -22,18 +16,12 @@ import pytest
 from rig_runtime import config
 from rig_runtime.app.export import read_log
 from rig_runtime.app.metrics import steps_from_log
-from rig_runtime.app.runner import execute
 from rig_runtime.app.dryrun import run_lockstep
-from rig_runtime.clock import LockstepClock
-from rig_runtime.devices import RigDevices
 from rig_runtime.scenario import load_scenario
-from sim_backend.plant import Plant
-from sim_backend.rig import SimulatedRig
 
 from tests import e2e
 
 VEHICLE = config.CONFIG_DIR / "vehicle.yaml"
-SIM_FOLLOWS_SPEED = hasattr(Plant, "set_speed") or hasattr(SimulatedRig, "set_speed")
 
 
 @pytest.fixture(scope="module")
@@ -42,35 +30,10 @@ def vcfg():
 
 
 def run_vehicle(cfg, scenario, log: Path):
-    """A lockstep dry run of ``scenario`` (as ``run_lockstep``) with the roller speed following
-    the scenario's profile (see the module docstring). Returns (summary, code, columns)."""
+    """A lockstep dry run of ``scenario`` (the simulator follows its speed profile).
+    Returns (summary, code, columns)."""
     sc = load_scenario(scenario) if isinstance(scenario, str) else scenario
-    if SIM_FOLLOWS_SPEED or not sc.speed:
-        s, code = run_lockstep(cfg, sc, log, seed=0)
-        return s, code, read_log(log)["columns"]
-    profile = sc.speed_profile(cfg.plant.v)
-    sim = SimulatedRig(cfg, sc, seed=0)
-    v_now = [cfg.plant.v]
-
-    def advance(t):
-        v = profile(0.0 if math.isnan(sim.t_run0) else t - sim.t_run0)
-        v = v if abs(v) > 1e-9 else 1e-9          # (2)'s coefficients divide by v: standstill is 1 nm/s
-        if v != v_now[0]:
-            state = sim.plant.state
-            plant = Plant(dataclasses.replace(cfg.plant, v=v), wheel_dynamics=sim.sc.wheel_dynamics)
-            plant.set_state(state)
-            sim.plant, v_now[0] = plant, v
-        return sim.advance(t)
-
-    try:
-        clock = LockstepClock(advance=advance)
-        devices = RigDevices(cfg, laser_ports=sim.laser_ports, can_bus=sim.runtime_bus(),
-                             ft_endpoints=sim.ft_endpoints)
-        s, code, _ = execute(cfg, devices, clock, scenario=sc, duration_s=None, log_path=log, status=False,
-                             extra_attrs={"mode": "dry-run lockstep", "seed": sim.seed}, recorder_when_full="wait")
-    finally:
-        sim.close()
-    s["steps"] = steps_from_log(log, sc, cfg.controller.h)
+    s, code = run_lockstep(cfg, sc, log, seed=0)
     return s, code, read_log(log)["columns"]
 
 
