@@ -41,7 +41,7 @@ class PIPDController:
     tells the controller what was actually applied after the safety limits, so that the
     outer integrator does not wind up against a limit it did not impose itself.
 
-    The speed schedule (docs/vehicle/runtime.md) acts through two calls between steps:
+    The speed schedule (docs/vehicle.md) acts through two calls between steps:
     ``set_gain_factor(g)`` makes the outer PI's gains K_P_y·g and K_I_y·g (the integrator
     integrates g·e_y, so its share of ψ_ref does not jump when g changes: it holds the yaw
     angle the offsets need, which does not depend on the speed); ``hold(ramp_s)`` freezes

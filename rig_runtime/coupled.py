@@ -1,5 +1,5 @@
 """The coupled closed loop of the vehicle: both wheel carriers on the rollers, both running
-directions, the controllers as implemented and the speed schedule (issue 18; docs/vehicle/analysis.md).
+directions, the controllers as implemented and the speed schedule (issue 18; docs/vehicle.md).
 
 Plant, per carrier c in the set ``carriers`` (each with its own parameters, ``cfg.plant.carrier(c)``):
 
@@ -23,7 +23,7 @@ differentiator by Tustin, u_k computed from the samples of cycle k (as ``sampled
 of :mod:`rig_runtime.analysis`, whose loop this is with the front lifted). A carrier in contact
 that is not controlled has Δu = 0.
 
-THE SCHEDULE LAW (docs/vehicle/runtime.md implements it): g = v_d / v with
+THE SCHEDULE LAW (docs/vehicle.md implements it): g = v_d / v with
 v_d = ``schedule.v_design`` (else ``plant.v``), sign included, on the outer PI only. Without a
 schedule g = 1 and the loop runs at ``plant.v`` only. Speeds with |v| < ``schedule.v_min``
 are held (the lateral loop open by design) and not analysed.
@@ -113,7 +113,7 @@ def damping_cases(cfg: RigConfig, v: float, lay: "Layout") -> list[dict[str, flo
       the paper's set-up keeps today's gate (plant (10) at D_min, then D_max). Where they are
       not (both carriers in contact; a leading carrier alone), holding y needs a moving input,
       and a mode growing at σ with input amplitude |u| has |u̇| ≈ σ|u|: it leaves D_max (7) at
-      |u| ≈ c_udot_max/σ, a fraction of a mA (docs/vehicle/analysis.md). These cases, and the
+      |u| ≈ c_udot_max/σ, a fraction of a mA (docs/vehicle.md). These cases, and the
       mixed ones (one carrier at D_max), are computed and reported by ``rig tune``, not gated."""
     lo = {c: cfg.plant.carrier(c).D_min for c in lay.carriers}
     hi = {c: cfg.plant.carrier(c).D_max for c in lay.carriers}

@@ -81,7 +81,7 @@ class Lane:
 
     def schedule(self, v_hat: float) -> None:
         """The speed schedule on the measured speed ``v_hat`` (the schedule law,
-        docs/vehicle/runtime.md): outside the standstill band the outer PI's gain factor is
+        docs/vehicle.md): outside the standstill band the outer PI's gain factor is
         g = v_design / v̂ (sign included); inside it (|v̂| < v_min, or no speed measured) the
         lateral loop holds, and it resumes bumplessly on leaving it. Nothing without a
         ``controller.schedule``."""

@@ -36,7 +36,7 @@ for the rear (the mirrored set-up of the front's identification, v < 0).
 ``rear_lifted`` (a ``LiftedCarrier``) lifts the rear carrier off the rollers, the set-up of the
 free-response experiment (Sec. 4.3.2): its yaw follows (6) with the contact-free damping and
 offset of ``LiftedCarrier`` and no hysteresis, y_r stays where it is, dw_r = 0;
-``front_lifted`` is its mirror for the front. docs/vehicle/plant.md has the vehicle's part.
+``front_lifted`` is its mirror for the front. docs/vehicle.md has the vehicle's part.
 
 The integrator (``Plant.step``) is pure-Python scalar code: an exact solution of the yaw
 oscillator linearised about the (sub)step start (D frozen at its exact average over the
@@ -157,7 +157,7 @@ def _hermite_weights(lam: float, h: float) -> tuple[float, float, float, float, 
     (g0, g0', g1, g1'):  y(h) = phi y0 + w0 g0 + w1 g0' + w2 g1 + w3 g1'.
 
     Uses J_j = int_0^1 exp(-x (1-s)) s^j ds, x = lam h (``_exp_ints``).  Pure math, cheap
-    enough to redo whenever dt or the speed changes (cost: docs/vehicle/plant.md).
+    enough to redo whenever dt or the speed changes (cost: docs/vehicle.md).
     """
     x = lam * h
     (J0, J1, J2, J3), _ = _exp_ints(x)
@@ -607,13 +607,13 @@ class Plant:
     # ---------------------------------------------------------------- the roller speed
     def set_speed(self, v: float) -> None:
         """Set the roller speed v (m/s, sign = direction) for the following steps; the
-        speed-dependent constants are recomputed only when v changes (cost: docs/vehicle/plant.md).
+        speed-dependent constants are recomputed only when v changes (cost: docs/vehicle.md).
 
         Which terms scale with v: the lateral pole and input gain c̄_y v (2), the offset
         v y_off/(2 l0), the lateral creep of a force |v|/(2 c22), the kinematic terms of (4)
         (Γ v b/(2 r0²) y, the nominal wheel speed v/r0) and the creep term of the input in (4),
         |v| k_τ/(r0² c̄11) (a creep slip needs |v|, the paper's v > 0 form writes v). The yaw (6)
-        has none: the v and 1/v terms of (5) cancel against (4) (docs/vehicle/plant.md).
+        has none: the v and 1/v terms of (5) cancel against (4) (docs/vehicle.md).
         ``wheel_dynamics="dynamic"`` keeps its fixed v: the creep pole -c̄11 r0²/(J_x v) of (3)
         is unstable for v < 0 as the paper writes it and unbounded at v = 0."""
         v = float(v)

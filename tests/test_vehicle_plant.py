@@ -199,7 +199,7 @@ def _mixed_inputs(n):
 def test_per_carrier_values_and_a_speed_reversal_match_radau(P, hyst):
     """Both carriers in contact with different values, both driven, pulses and side wind, the
     speed ramping from +1 through 0 to -1 m/s and back up (held per step): the integrator
-    against Radau (rtol 1e-10). Measured errors: docs/vehicle/plant.md."""
+    against Radau (rtol 1e-10). Measured errors: docs/vehicle.md."""
     Pp = front_differs(P if hyst else replace(P, bouc_wen=None))
     n = 500
     t, U = _mixed_inputs(n)
