@@ -656,10 +656,13 @@ def test_sigkill_converter_watchdog_cuts_current(sim, tmp_path):
 @pytest.mark.slow
 def test_scenario_faults_act_in_scenario_time(tmp_path):
     """`rig sim --scenario fault-dropout`: laser b_f falls silent 3 s into the session
-    (scenario time starts when the runtime has enabled every drive, about when it goes RUNNING)."""
+    (scenario time starts when the runtime has enabled every drive, about when it goes RUNNING).
+    A lost lateral laser a fault (degraded mode ``stop``; sim.yaml observes: DEGRADED)."""
+    from .e2e import REALTIME_CEILINGS, REALTIME_TOLERANCE, config_with
     with start_sim_process(config=realtime_sim_config(tmp_path), scenario="fault-dropout", workdir=tmp_path / "sim",
                            extra_args=SIM_RT_ARGS) as sp:
-        run_config = realtime_config(sp.config_path, tmp_path / "rig-run.yaml")    # the stated tolerance
+        run_config = config_with(sp.config_path, tmp_path / "rig-run.yaml",      # the stated tolerance
+                                 {**REALTIME_TOLERANCE, "degraded.on_lateral_loss": "stop"}, ceilings=REALTIME_CEILINGS)
         log = tmp_path / "dropout.h5"
         proc = subprocess.Popen(rig_run_cmd("--config", str(run_config), "--scenario", "fault-dropout",
                                             "--json", "--log", str(log), "--ctl-socket", str(log.with_suffix(".sock"))),
