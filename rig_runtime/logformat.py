@@ -20,6 +20,7 @@ LOG_FORMAT = "rig-runtime-log"
 LOG_FORMAT_VERSION = 1
 
 EVENT_FIELDS = ("t", "kind", "device", "check", "value", "limit", "message")
+TRUTH_GROUP = "sim_truth"       # a dry run's simulated truth (the plant's y, ψ per carrier), marked as simulation
 EVENT_STR_FIELDS = ("kind", "device", "check", "message")
 EVENT_NUM_FIELDS = ("t", "value", "limit")
 

@@ -15,13 +15,13 @@ from sim_backend.rig import SimulatedRig
 from ..clock import LockstepClock
 from ..config import RigConfig
 from ..devices import RigDevices
+from ..logformat import TRUTH_GROUP
 from ..scenario import Scenario
 from .metrics import steps_from_log
 from .runner import execute
 from .signals import StopSignals
 
 
-TRUTH_GROUP = "sim_truth"
 TRUTH_FIELDS = ("t", "y_f", "y_r", "psi_af", "psi_ar")
 
 

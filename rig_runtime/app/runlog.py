@@ -20,10 +20,10 @@ from typing import Any
 import numpy as np
 
 from ..errors import LogError
+from ..logformat import TRUTH_GROUP
 from .export import _open, read_log, state_name
 from .metrics import steps_from_log
 
-TRUTH_GROUP = "sim_truth"       # a dry run's simulated truth (rig_runtime.app.dryrun writes it)
 
 CARRIERS = ("front", "rear")
 #: per carrier: the wheels (left, right) and the measurement columns of y, ψ (carrier to frame), Δω
