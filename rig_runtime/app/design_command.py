@@ -19,6 +19,14 @@ def _ev(ev) -> str:
     return "[" + ", ".join(f"{e.real:.2f}" + (f"{e.imag:+.2f}j" if abs(e.imag) > 1e-9 else "") for e in ev) + "]"
 
 
+def _write_new(path: str, text: str) -> None:
+    """``--write``: the designed controller fragment into a new file (never overwritten)."""
+    p = Path(path)
+    if p.exists():
+        raise ConfigError(str(p), "", "a new file (refusing to overwrite)")
+    p.write_text(text)
+
+
 def run_design(cfg: RigConfig, args: argparse.Namespace) -> int:
     if not args.design:
         raise ConfigError(None, "--write", "--design as well (--write writes the designed gains)")
@@ -30,10 +38,7 @@ def run_design(cfg: RigConfig, args: argparse.Namespace) -> int:
     except ValueError as e:
         raise ConfigError(cfg.source, "plant", str(e)) from None
     if args.write:
-        p = Path(args.write)
-        if p.exists():
-            raise ConfigError(str(p), "", "a new file (refusing to overwrite)")
-        p.write_text(_design.controller_yaml(cfg, d.gains))
+        _write_new(args.write, _design.controller_yaml(cfg, d.gains))
     g, c = d.gains, cfg.controller.pipd
     if args.json:
         out = _design.to_json(d)
@@ -72,10 +77,7 @@ def run_vehicle_design(cfg: RigConfig, args: argparse.Namespace) -> int:
     except ValueError as e:
         raise ConfigError(cfg.source, "controller", str(e)) from None
     if args.write:
-        p = Path(args.write)
-        if p.exists():
-            raise ConfigError(str(p), "", "a new file (refusing to overwrite)")
-        p.write_text(_design.vehicle_yaml(cfg, d.gains))
+        _write_new(args.write, _design.vehicle_yaml(cfg, d.gains))
     ok = all(v["ok"] for v in d.checks.values())
     if args.json:
         out = _design.vehicle_json(d)
