@@ -16,6 +16,7 @@ import io
 import json
 import multiprocessing
 import os
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import replace
 from pathlib import Path
 
@@ -178,17 +179,16 @@ def record_and_identify(names, tmp: Path, workers: int = 2) -> dict:
     dirs = {n: tmp / n for n in names}
     for d in dirs.values():
         d.mkdir(parents=True, exist_ok=True)
-    ctx = multiprocessing.get_context("spawn")
-    with ctx.Pool(max(1, min(workers, os.cpu_count() or 1))) as pool:
-        recs = {n: [pool.apply_async(_record_one, (n, k, str(dirs[n]))) for k in kinds] for n in names}
+    # A process pool that notices a dead worker (BrokenProcessPool) instead of waiting for its
+    # lost task forever, as multiprocessing.Pool does.
+    with ProcessPoolExecutor(max(1, min(workers, os.cpu_count() or 1)),
+                             mp_context=multiprocessing.get_context("spawn")) as pool:
+        recs = {n: [pool.submit(_record_one, n, k, str(dirs[n])) for k in kinds] for n in names}
+        plant_of = {f: n for n, fs in recs.items() for f in fs}
         idents = {}
-        pending = list(names)
-        while pending:
-            for n in list(pending):
-                if all(r.ready() for r in recs[n]):
-                    logs = [r.get() for r in recs[n]]
-                    idents[n] = pool.apply_async(_identify, (n, logs, str(dirs[n])))
-                    pending.remove(n)
-            if pending:
-                recs[pending[0]][-1].wait(0.2)
-        return {n: r.get() for n, r in idents.items()}
+        for f in as_completed(plant_of):
+            n = plant_of[f]
+            f.result()                                  # a failed recording fails here, named
+            if n not in idents and all(r.done() for r in recs[n]):
+                idents[n] = pool.submit(_identify, n, [r.result() for r in recs[n]], str(dirs[n]))
+        return {n: r.result() for n, r in idents.items()}
