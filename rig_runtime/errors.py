@@ -40,13 +40,22 @@ class ConfigError(RigError):
         parts = [p for p in (file, key_path) if p]
         super().__init__(": ".join(parts + [f"expected {expected}{got_txt}"]))
 
+    def __reduce__(self):
+        """Picklable with its fields (a worker process or a Dask task sends it back whole)."""
+        return (type(self), (self.file, self.key_path, self.expected, self.got))
+
 
 class DeviceError(RigError):
     """A device could not be used; names the device."""
 
     def __init__(self, device: str, message: str):
         self.device = device
+        self.message = message
         super().__init__(f"{device}: {message}")
+
+    def __reduce__(self):
+        """Picklable with its fields (see ConfigError)."""
+        return (type(self), (self.device, self.message))
 
 
 class DeviceInitError(DeviceError):

@@ -232,10 +232,14 @@ def test_standard_scenarios_contain_what_each_fit_needs(carrier):
 
 def test_front_identification_config_is_the_shipped_plant_in_the_mirrored_set_up():
     """configs/sim-ident-front.yaml carries plant.yaml's values (a section replaces the
-    included one whole) with only the contact set-up changed, and runs the front lane only."""
+    included one whole) with only the contact set-up and the direction changed (v = -1), runs
+    the front lane only, and carries controller.yaml's gains with a schedule that flips the
+    outer loop's sign at v < 0."""
     front = config.load(config.CONFIG_DIR / "sim-ident-front.yaml")
     P = config.load().plant
-    assert front.plant == replace(P, front_contact=True, rear_contact=False)
+    assert front.plant == replace(P, front_contact=True, rear_contact=False, v=-1.0)
+    assert replace(front.controller, schedule=None) == config.load().controller
+    assert front.controller.schedule.v_design == 1.0 and max(front.controller.schedule.v_range) < 0
     assert front.controlled == ("front",)
 
 

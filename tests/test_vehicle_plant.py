@@ -401,16 +401,9 @@ def test_simulated_rig_mirrored_set_ups():
 
 # --------------------------------------------------------------------------- configs/vehicle-plant.yaml
 def _vehicle_cfg(tmp_path):
-    """configs/vehicle-plant.yaml with the rest of the simulated rig (sim.yaml's devices),
-    without configs/vehicle.yaml's controller (h-run's): the plant part on its own."""
-    import yaml
+    """configs/vehicle.yaml: configs/vehicle-plant.yaml with the rest of the simulated vehicle."""
     from rig_runtime.config import CONFIG_DIR
-    devices = yaml.safe_load((CONFIG_DIR / "sim.yaml").read_text())["devices"]
-    p = tmp_path / "vehicle-plant-check.yaml"
-    p.write_text(yaml.safe_dump({"include": [str(CONFIG_DIR / f) for f in
-                                             ("hardware.yaml", "vehicle-plant.yaml", "controller.yaml", "geometry.yaml")],
-                                 "devices": devices}))
-    return load(p)
+    return load(CONFIG_DIR / "vehicle.yaml")
 
 
 def test_vehicle_plant_config_has_both_carriers_in_contact_and_a_front_of_its_own(tmp_path):
@@ -423,7 +416,7 @@ def test_vehicle_plant_config_has_both_carriers_in_contact_and_a_front_of_its_ow
         assert 0.02 <= abs(getattr(Pf, k) / getattr(Pr, k) - 1) <= 0.06, k   # "a few % off"
     pl = Plant(P)
     assert pl.a_f - pl.a_r == pytest.approx(0.050, abs=0.002)               # the docs' numbers
-    assert cfg.sim == load().sim                                            # sim.yaml's sim: section
+    assert cfg.sim == load().sim                                            # as sim.yaml's sim: section
 
 
 def test_open_loop_vehicle_drifts_as_the_coupled_model_says(tmp_path):
@@ -435,7 +428,7 @@ def test_open_loop_vehicle_drifts_as_the_coupled_model_says(tmp_path):
     from rig_runtime.app.dryrun import run_lockstep
     from rig_runtime.scenario import OpenLoop, Scenario as Sc
     cfg = _vehicle_cfg(tmp_path)
-    sc = Sc(name="vehicle-drift", duration_s=1.5, open_loop=OpenLoop(carrier="rear", steps=((0.0, 0.0),)))
+    sc = Sc(name="vehicle-drift", duration_s=1.5, open_loop=OpenLoop(carrier="both", steps=((0.0, 0.0),)))
     log = tmp_path / "drift.h5"
     summary, code = run_lockstep(cfg, sc, log)
     assert code == 0 and summary["max_abs_current_A"] == 0.0
