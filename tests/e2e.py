@@ -37,6 +37,19 @@ class Run:
         return int(np.argmin(np.abs(t - self.fault["t"])))
 
 
+SCENARIO_CONFIGS = (("vehicle-", "vehicle.yaml"),         # both carriers on the rollers (issue 18)
+                    ("ident-front-", "sim-ident-front.yaml"))  # the front's mirrored identification set-up
+
+
+def shipped_config_for(scenario_name: str) -> Path | None:
+    """The shipped config a shipped scenario is written for, when it is not the default
+    ``sim.yaml`` (None)."""
+    for prefix, name in SCENARIO_CONFIGS:
+        if scenario_name.startswith(prefix):
+            return config.CONFIG_DIR / name
+    return None
+
+
 def run(tmp_path: Path, scenario, cfg=None, **kw) -> Run:
     cfg = cfg or config.load()
     sc = load_scenario(scenario) if isinstance(scenario, str) else scenario

@@ -16,6 +16,8 @@ from rig_runtime.scenario import load_scenario
 from rig_runtime.safety import State
 from sim_backend.lockstep_bus import LockstepBus
 
+from .e2e import shipped_config_for
+
 
 def _rows(log):
     with h5py.File(log, "r") as f:
@@ -88,14 +90,18 @@ def test_lockstep_runs_are_deterministic_for_a_seed(tmp_path, shared_run):
     from .conftest import lateral_loss_config
     cfg = lateral_loss_config("stop")       # the variant test_faults_e2e.py's shared runs use
 
-    def fresh(name: str, sc, duration):
+    def fresh(name: str, sc, duration, run_cfg=cfg):
         log = tmp_path / name
-        summary, _ = run_lockstep(cfg, sc, log, duration_s=duration)
+        summary, _ = run_lockstep(run_cfg, sc, log, duration_s=duration)
         return summary["seed"], log
 
     for p in sorted((CONFIG_DIR / "scenarios").glob("*.yaml")):
         sc = load_scenario(str(p))
-        if sc.duration_s <= 6.0:
+        own = shipped_config_for(p.stem)
+        if own is not None:                 # written for another set-up: two fresh runs on it
+            own_cfg = config.load(own)
+            first, second = (fresh(f"{p.stem}-{i}.h5", sc, min(sc.duration_s, 6.0), own_cfg) for i in range(2))
+        elif sc.duration_s <= 6.0:
             shared = shared_run(p.stem, on_lateral_loss="stop")
             first = shared.summary["seed"], shared.log_path
             second = fresh(f"{p.stem}.h5", sc, None)
