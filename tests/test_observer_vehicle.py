@@ -21,6 +21,8 @@ from rig_runtime.lanes import make_lanes
 from rig_runtime.observer import Observer, dw_row_at
 from rig_runtime.scenario import load_scenario
 
+from .e2e import read_with_truth
+
 
 @pytest.fixture(scope="module")
 def vcfg():
@@ -197,3 +199,28 @@ def test_a_lateral_laser_lost_at_v_minus_1_degrades_and_ends_idle(tmp_path, vcfg
     assert c["state"][first + 1] == 2.0 and c["state"][first + 2] == 3.0
     assert 0.0 < c["t_run"][first] - 4.0 < 0.2
     assert c["rear_u_lim"][-1] == 0.0 and c["front_u_lim"][-1] == 0.0
+
+
+# ------------------------------------------------------------------ lockstep: through standstill
+def test_through_the_reversal_the_estimate_follows_and_the_innovation_test_stays_quiet(tmp_path, vcfg):
+    """vehicle-reversal (+1 → −1 through standstill, then a 2 mm step at −1 at 16 s) with the
+    innovation rule on (sim-observer.yaml's 30 over 200 cycles): no finding, no degradation, and
+    ŷ on the simulated truth. A design for the wrong direction would predict Δω's y-term with
+    the wrong sign (2 Γ|v|b/(2r0²)·2 mm ≈ 0.05 rad/s off, σ of the Δω innovation ≈ 0.06 rad/s):
+    T_dw over a 1 s window would pass 30 after the step."""
+    lim = dataclasses.replace(vcfg.limits, innovation_chi2=30.0, innovation_window=200)
+    cfg = dataclasses.replace(vcfg, limits=lim)
+    summary, code = run_lockstep(cfg, load_scenario("vehicle-reversal"), tmp_path / "run.h5", seed=0,
+                                 duration_s=21.0)
+    assert code == 0 and summary["final_state"] == "IDLE" and not summary["faults"], summary["faults"]
+    assert not summary.get("degraded")
+    data, truth, _, _ = read_with_truth(tmp_path / "run.h5")
+    idx = np.clip(np.searchsorted(truth["t"], data["t"] - 1e-9), 0, len(truth["t"]) - 1)
+    run = (data["state"] == 2.0) & (data["t_run"] > 2.0)
+    assert np.min(data["v_meas"][run]) < -0.99                 # it got to −1 …
+    for car, key in (("front", "y_f"), ("rear", "y_r")):
+        e = data[f"{car}_obs_y_hat"][run] - truth[key][idx][run]
+        assert np.max(np.abs(e)) < 0.01e-3                     # 10 µm (measured: 2.7 µm)
+        assert np.nanmax(data[f"{car}_obs_T_dw"][run]) < 10.0   # … and the Δω innovation stayed χ²(1)-sized
+    k_end = np.nonzero(run)[0][-1]
+    assert abs(data["y_f"][k_end] - 2e-3) < 0.1e-3 and abs(data["y_r"][k_end] - 2e-3) < 0.1e-3   # the step at −1
