@@ -84,10 +84,13 @@ class Lane:
         docs/vehicle.md): outside the standstill band the outer PI's gain factor is
         g = v_design / v̂ (sign included); inside it (|v̂| < v_min, or no speed measured) the
         lateral loop holds, and it resumes bumplessly on leaving it. Nothing without a
-        ``controller.schedule``."""
+        ``controller.schedule``. The lane's observer (with a schedule: a table of designs over
+        speed) takes the design for v̂ here, for its next prediction over the coming period."""
         sch = self.sched
         if sch is None:
             return
+        if self.observer is not None:
+            self.observer.select(v_hat)
         c = self.controller
         if abs(v_hat) >= sch.v_min:         # False for NaN: no speed, no lateral control
             c.set_gain_factor(self.v_design / v_hat)

@@ -15,7 +15,10 @@ three measurements
 
     lateral:  y from the lateral lasers (Sec. 2 geometry)   — used only when they are fit
     yaw:      ψ from the yaw lasers
-    (4)       Δω = Γvb/(2r0²) y + b/(2r0) ψ̇ + v k_τ/(r0² c̄11) u     — carries y through Δω
+    (4)       Δω = Γvb/(2r0²) y + b/(2r0) ψ̇ + |v| k_τ/(r0² c̄11) u   — carries y through Δω
+
+(each carrier with its own plant values; the input term of (4) has |v|, as the plant's:
+docs/vehicle/plant.md).
 
 The gains are the steady-state Kalman gains of the predictor/corrector pair for two
 measurement sets (all three; yaw and Δω only when a lateral laser is not fit in this cycle),
@@ -29,6 +32,12 @@ steady-state standard deviation ``√S``; over the last ``window`` cycles the st
 and grows with N·(bias/√S)² when one of them carries a bias. The supervisor judges it
 (``safety.innovation_*``); the observer only computes it.
 
+Speed (a ``controller.schedule``): the design carries a table of designs over a grid of
+speeds (``SpeedTable``); :meth:`Observer.select` switches to the grid point nearest the
+measured speed — a reference swap, nothing allocated, nothing interpolated (each grid point
+is one consistent Riccati solution: model, gains, innovation variances and outage table
+belong together; docs/observer.md, "vehicle").
+
 Outage: the gains are steady-state, so the error covariance of ŷ while no lateral laser is
 used grows deterministically with the cycles since the last lateral update (from the full
 filter's steady state towards the yaw-and-Δω filter's); the design tabulates that growth
@@ -40,6 +49,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Optional
 
 MEASUREMENTS = ("lat", "psi", "dw")       # the filter's measurements, in gain-column order
 LOG_FIELDS = ("y_hat", "psi_hat", "psi_rate_hat", "nu_lat", "nu_psi", "nu_dw",
@@ -79,6 +89,8 @@ class ObserverDesign:
     encoders: tuple[str, ...]
     ft_sensors: tuple[str, ...] = ()
     sigma_y_outage: tuple[float, ...] = ()
+    v: float = math.nan                       # the speed the design is for (m/s)
+    table: Optional["SpeedTable"] = None      # designs over the schedule's speeds (None: this one only)
 
     @property
     def channels(self) -> tuple[str, ...]:
@@ -86,12 +98,28 @@ class ObserverDesign:
         return self.lateral_lasers + self.yaw_lasers + self.encoders
 
 
+@dataclass(frozen=True)
+class SpeedTable:
+    """A carrier's designs over a grid of speeds, made at configure time: grid index k is the
+    speed ±``v_ref``·``ratio``ᵏ, k = ``k_lo`` … ``k_hi``; ``forward``/``backward`` hold the
+    designs at +/− those speeds, in k order. The lowest grid speed lies inside the standstill
+    band; below it, and beyond the highest, the end design is used."""
+
+    v_ref: float
+    ratio: float
+    k_lo: int
+    k_hi: int
+    forward: tuple[ObserverDesign, ...]
+    backward: tuple[ObserverDesign, ...]
+
+
 class Observer:
     """One carrier's filter and health statistics, updated in place by :meth:`step`."""
 
     __slots__ = ("d", "carrier", "started", "y", "psi", "rate", "nu_lat", "nu_psi", "nu_dw",
                  "T_lat", "T_psi", "T_dw", "lat_used", "_ring", "_sum", "_i", "_n", "_N",
-                 "_is", "_is_nl", "mean_lat", "mean_dw", "degraded", "outage", "sigma_y", "_sig")
+                 "_is", "_is_nl", "mean_lat", "mean_dw", "degraded", "outage", "sigma_y", "_sig",
+                 "_fw", "_bw", "_lref", "_ilr", "_klo", "_khi")
 
     def __init__(self, design: ObserverDesign):
         self.d = design
@@ -112,8 +140,28 @@ class Observer:
         self._sum = [0.0, 0.0, 0.0]
         self._i = 0
         self._n = 0                              # samples in the window so far (up to N)
-        self._is = tuple(1.0 / math.sqrt(s) for s in design.S_full)
-        self._is_nl = tuple(1.0 / math.sqrt(s) for s in design.S_nolat)
+        self._is, self._is_nl = _inverse_stds(design)
+        # the speed table, ready to swap in: (design, 1/√S_full, 1/√S_nolat, σ table) per grid point
+        t = design.table
+        self._fw = self._bw = None
+        if t is not None:
+            self._fw = tuple((e,) + _inverse_stds(e) + (e.sigma_y_outage,) for e in t.forward)
+            self._bw = tuple((e,) + _inverse_stds(e) + (e.sigma_y_outage,) for e in t.backward)
+            self._lref, self._ilr = math.log(t.v_ref), 1.0 / math.log(t.ratio)
+            self._klo, self._khi = t.k_lo, t.k_hi
+
+    def select(self, v: float) -> None:
+        """Use the design of the grid speed nearest the measured speed ``v`` (a schedule's
+        table only; nothing for v = 0 or NaN: the last design stays). Below the grid's lowest
+        speed — inside the standstill band — that speed's design of v's sign."""
+        fw = self._fw
+        if fw is None or v == 0.0 or v != v:
+            return
+        k = round((math.log(v if v > 0.0 else -v) - self._lref) * self._ilr)
+        k = self._klo if k < self._klo else self._khi if k > self._khi else k
+        ch = (fw if v > 0.0 else self._bw)[k - self._klo]
+        if ch[0] is not self.d:
+            self.d, self._is, self._is_nl, self._sig = ch
 
     def reset(self) -> None:
         """Forget the estimate and the health window (the next step starts afresh)."""
@@ -206,9 +254,19 @@ class Observer:
                 self.T_lat, self.T_psi, self.T_dw, self.lat_used, self.degraded, self.sigma_y)
 
 
+def _inverse_stds(d: ObserverDesign) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    return tuple(1.0 / math.sqrt(s) for s in d.S_full), tuple(1.0 / math.sqrt(s) for s in d.S_nolat)
+
+
+def dw_row_at(p, v: float) -> tuple[float, float, float]:
+    """(∂Δω/∂y, ∂Δω/∂ψ̇, ∂Δω/∂u) of relation (4) for plant values ``p`` (a config Plant: a
+    carrier's, ``cfg.plant.carrier(c)``) at speed ``v``: Δω = Γvb/(2r0²)·y + b/(2r0)·ψ̇ +
+    |v| k_τ/(r0² c̄11)·u (the kinematic term keeps v's sign, the creep term of the input has |v|:
+    docs/vehicle/plant.md)."""
+    return (p.Gamma * v * p.b / (2 * p.r0 ** 2), p.b / (2 * p.r0), abs(v) * p.k_tau / (p.r0 ** 2 * p.c11))
+
+
 def dw_row(cfg) -> tuple[float, float, float]:
-    """(∂Δω/∂y, ∂Δω/∂ψ̇, ∂Δω/∂u) of relation (4) for the configured plant (``cfg``: a
-    RigConfig): Δω = Γvb/(2r0²)·y + b/(2r0)·ψ̇ + v k_τ/(r0² c̄11)·u."""
-    p = cfg.plant
-    return (p.Gamma * p.v * p.b / (2 * p.r0 ** 2), p.b / (2 * p.r0), p.v * p.k_tau / (p.r0 ** 2 * p.c11))
+    """:func:`dw_row_at` for the configured common plant at plant.v (``cfg``: a RigConfig)."""
+    return dw_row_at(cfg.plant, cfg.plant.v)
 

@@ -1,17 +1,23 @@
 """Design of the lateral-displacement observers at configure time (docs/observer.md).
 
-The linear model of Sec. 4 per carrier — lateral (2b) (or (2a) for the front), yaw (6)
-without hysteresis, relation (4) as a measurement — held over h (zero-order hold, by the
+The linear model of Sec. 4 per carrier, with that carrier's own plant values
+(``cfg.plant.carrier(c)``: a_c, c̄_y,c, l0_c, K, ω0, D, offsets) at a speed v — lateral (2b)
+(or (2a) for the front, with its own offset term v/(2 l0_f) y_off,f as the plant has it),
+yaw (6) without hysteresis, relation (4) as a measurement (its input term with |v|) — held over h (zero-order hold, by the
 matrix exponential), the process noise integrated over h (Van Loan), the sensor noise of
 ``observer.noise`` carried through the Sec. 2 geometry, and the steady-state Kalman gain
 from scipy's discrete algebraic Riccati solver, for the two measurement sets the cycle
 uses, and the growth of ŷ's error covariance while no lateral laser is used (an outage: the
-fixed yaw-and-Δω gains run from the full filter's steady state). The result is plain floats (:class:`rig_runtime.observer.ObserverDesign`): the cycle's
+fixed yaw-and-Δω gains run from the full filter's steady state). With a speed schedule
+(``controller.schedule``) the design is repeated over a grid of speeds (:func:`speed_table`;
+the lane picks the nearest grid point of v̂ each cycle); without one it is the single design at
+``plant.v``. The result is plain floats (:class:`rig_runtime.observer.ObserverDesign`): the cycle's
 module imports neither this module nor numpy/scipy.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -20,9 +26,16 @@ from scipy.linalg import expm, solve_discrete_are
 from ..config import Observer as ObserverConfig
 from ..config import RigConfig
 from ..lanes import CARRIER_WHEELS
-from ..observer import ObserverDesign, dw_row
+from ..observer import ObserverDesign, SpeedTable, dw_row, dw_row_at  # noqa: F401 (dw_row: tests)
 
 _SCALE = 1e3        # solve in mm, mrad: the covariances are ~1e-12 in SI
+#: the speed grid's ratio: neighbouring grid speeds 15 % apart, so the design the lane uses is
+#: at most √1.15 − 1 = 7.2 % off the measured speed (the grid is anchored at the design speed,
+#: exact there); the model's v-terms (a, c̄_y v, Γvb/(2r0²), offsets) are off by as much.
+SPEED_RATIO = 1.15
+#: the grid's lowest |v| as a fraction of schedule.v_min (inside the standstill band): below it
+#: the design of that lowest speed (of v̂'s sign) is used.
+SPEED_FLOOR = 0.5
 
 
 def _lateral_weights(cfg: RigConfig, carrier: str) -> tuple[tuple[str, str], tuple[float, float]]:
@@ -35,18 +48,23 @@ def _lateral_weights(cfg: RigConfig, carrier: str) -> tuple[tuple[str, str], tup
     return (own, other), (0.5 + k, 0.5 - k)
 
 
-def continuous_model(cfg: RigConfig, carrier: str, D: float) -> tuple[np.ndarray, np.ndarray]:
+def continuous_model(cfg: RigConfig, carrier: str, D: float, v: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A (3×3) and the input matrix for (u, y_other, F_y, 1) of the carrier's model
-    (x = y, ψ, ψ̇). The lateral force enters as the plant's creep velocity |v| F_y/(2 c22),
+    (x = y, ψ, ψ̇) at speed ``v`` (None: plant.v), with the carrier's own values
+    (sim_backend/plant.py): a_c = c̄_y,c v/(2 l0_c), input gain c̄_y,c v, offset
+    v/(2 l0_c) y_off,c — the same sign on both carriers, (2a) written like the paper's (2b) —
+    and ψ_off,c. The lateral force enters as the plant's creep velocity |v| F_y/(2 c22),
     c22 ≈ c̄11 (the plant model's ESTIMATE, docs/plant-model.md §3)."""
-    p = cfg.plant
-    a, cyv, w0 = p.a_lat, p.c_y * p.v, p.omega0
-    fy = abs(p.v) / (2.0 * p.c11)
+    p = cfg.plant.carrier(carrier)
+    v = p.v if v is None else v
+    a, cyv, w0 = p.c_y * v / (2 * p.l0), p.c_y * v, p.omega0
+    fy = abs(v) / (2.0 * p.c11)
     w2 = w0 * w0
+    off = v / (2 * p.l0) * p.y_off
     if carrier == "rear":
-        a_own, a_other, off = -a, a, p.v / (2 * p.l0) * p.y_off
+        a_own, a_other = -a, a
     else:
-        a_own, a_other, off = a, -a, 0.0
+        a_own, a_other = a, -a
     A = np.array([[a_own, cyv, 0.0], [0.0, 0.0, 1.0], [0.0, -w2, -2 * D * w0]])
     Bc = np.array([[0.0, a_other, fy, off], [0.0, 0.0, 0.0, 0.0], [p.K * w2, 0.0, 0.0, w2 * p.psi_off]])
     return A, Bc
@@ -92,6 +110,9 @@ def outage_sigma_y(Ad: np.ndarray, Qd: np.ndarray, P_full: np.ndarray, K_full: n
     P = (I - K_full @ C) @ P_full
     M = I - K_nl @ C_nl
     KRK = K_nl @ R_nl @ K_nl.T
+    fast = _outage_closed_form(M @ Ad, M @ Qd @ M.T + KRK, P, n_max, rtol)
+    if fast is not None:
+        return fast
     out = [math.sqrt(P[0, 0])]
     for _ in range(n_max):
         P = M @ (Ad @ P @ Ad.T + Qd) @ M.T + KRK
@@ -103,16 +124,41 @@ def outage_sigma_y(Ad: np.ndarray, Qd: np.ndarray, P_full: np.ndarray, K_full: n
     return tuple(out)
 
 
-def design(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None) -> ObserverDesign:
-    """The carrier's filter as plain numbers (see the module docstring)."""
+def _outage_closed_form(Phi: np.ndarray, W: np.ndarray, P0: np.ndarray, n_max: int,
+                        rtol: float) -> tuple[float, ...] | None:
+    """The recursion P_k+1 = Φ P_k Φᵀ + W of :func:`outage_sigma_y` in closed form,
+    P_k = P∞ + Φᵏ (P0 − P∞) Φᵏᵀ with P∞ its fixed point, by Φ's eigenvectors (vectorised
+    over k: the table of a design costs ~1 ms instead of a loop of n_max matrix products), cut
+    where the loop would stop. None where Φ is not safely diagonalisable (the loop then)."""
+    lam, V = np.linalg.eig(Phi)
+    if not np.all(np.abs(lam) < 1.0) or np.linalg.cond(V) > 1e8:
+        return None
+    from scipy.linalg import solve_discrete_lyapunov
+    P_inf = solve_discrete_lyapunov(Phi, W)
+    Vi = np.linalg.inv(V)
+    G = Vi @ (P0 - P_inf) @ Vi.T
+    k = np.arange(n_max + 1)[:, None]
+    Lk = lam[None, :] ** k                                   # (n_max+1) × 3
+    vy = V[0]
+    s2 = P_inf[0, 0] + np.einsum("ki,i,ij,j,kj->k", Lk, vy, G, vy, Lk).real
+    sig = np.sqrt(np.maximum(s2, 0.0))
+    step = np.abs(np.diff(sig)) <= rtol * sig[1:]
+    n = int(np.argmax(step)) + 2 if step.any() else len(sig)
+    return tuple(float(x) for x in sig[:n])
+
+
+def design(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None, v: float | None = None) -> ObserverDesign:
+    """The carrier's filter as plain numbers at speed ``v`` (None: plant.v; see the module
+    docstring)."""
     o = ocfg if ocfg is not None else (cfg.observer or ObserverConfig())
-    p, g = cfg.plant, cfg.geometry
+    p, g = cfg.plant.carrier(carrier), cfg.geometry
+    v = p.v if v is None else float(v)
     h = cfg.controller.h
     D = o.D if o.D is not None else p.D_min
-    A, Bc = continuous_model(cfg, carrier, D)
+    A, Bc = continuous_model(cfg, carrier, D, v)
     Qc = np.diag([o.q_y ** 2, 0.0, o.q_psi_acc ** 2])
     Ad, Bd, Qd = discretise(A, Bc, Qc, h)
-    gy, gr, gu = dw_row(cfg)
+    gy, gr, gu = dw_row_at(p, v)
     lasers, weights = _lateral_weights(cfg, carrier)
     n = o.noise
     r_lat = sum(w * w for w in weights) * n.lateral_laser_m ** 2
@@ -133,7 +179,26 @@ def design(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None) -> 
         S_full=flat(np.diag(S_full)), S_nolat=flat(np.diag(S_nl)),
         window=cfg.limits.innovation_window, lateral_lasers=lasers, lateral_weights=weights,
         yaw_lasers=(f"s_{left}", f"s_{right}"), encoders=(left, right),
-        ft_sensors=_ft_sensors(cfg, (left, right)), sigma_y_outage=sig)
+        ft_sensors=_ft_sensors(cfg, (left, right)), sigma_y_outage=sig, v=v)
+
+
+def speed_table(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None) -> ObserverDesign:
+    """The carrier's designs over a grid of speeds for the schedule (docs/observer.md,
+    "vehicle"): |v_k| = |v_d| ρᵏ (v_d = schedule.v_design or plant.v, ρ = ``SPEED_RATIO``) for
+    both signs, from ``SPEED_FLOOR``·v_min (inside the standstill band) to the largest |v| of
+    v_range; returned as the design at v_d carrying the table (``ObserverDesign.table``)."""
+    sch = cfg.controller.schedule
+    v_d = sch.v_design if sch.v_design is not None else cfg.plant.v
+    ref = abs(v_d)
+    lr = math.log(SPEED_RATIO)
+    k_lo = math.floor(math.log(SPEED_FLOOR * sch.v_min / ref) / lr)
+    k_hi = math.ceil(math.log(max(abs(sch.v_range[0]), abs(sch.v_range[1])) / ref) / lr)
+    speeds = [ref * SPEED_RATIO ** k for k in range(k_lo, k_hi + 1)]
+    fw = tuple(design(cfg, carrier, ocfg, v) for v in speeds)
+    bw = tuple(design(cfg, carrier, ocfg, -v) for v in speeds)
+    base = (fw if v_d > 0 else bw)[-k_lo]
+    table = SpeedTable(v_ref=ref, ratio=SPEED_RATIO, k_lo=k_lo, k_hi=k_hi, forward=fw, backward=bw)
+    return dataclasses.replace(base, table=table)
 
 
 def _ft_sensors(cfg: RigConfig, wheels: tuple[str, str]) -> tuple[str, ...]:
@@ -146,9 +211,12 @@ def _ft_sensors(cfg: RigConfig, wheels: tuple[str, str]) -> tuple[str, ...]:
 
 
 def designs(cfg: RigConfig) -> dict[str, ObserverDesign]:
-    """A design per controlled carrier when the config has an ``observer:`` section (else none)."""
+    """A design per controlled carrier when the config has an ``observer:`` section (else
+    none): with a speed schedule the carrier's speed table, else the single design at plant.v."""
     if cfg.observer is None:
         return {}
+    if cfg.controller.schedule is not None:
+        return {c: speed_table(cfg, c) for c in cfg.controlled}
     return {c: design(cfg, c) for c in cfg.controlled}
 
 
