@@ -65,13 +65,12 @@ def short_text(kind: str, carrier: str = "rear") -> str:
     return text
 
 
-def short_scenarios(tmp: Path, carrier: str = "rear") -> dict:
-    out = {}
-    for kind in SHORT:
-        p = tmp / f"t-{carrier}-{kind}.yaml"
-        p.write_text(short_text(kind, carrier))
-        out[kind] = load_scenario(p)
-    return out
+def short_scenario(tmp: Path, kind: str, carrier: str = "rear"):
+    """The short scenario of ``kind`` for ``carrier``, written to ``tmp`` and loaded (each
+    kind its own file: the experiments of one plant are recorded in parallel)."""
+    p = tmp / f"t-{carrier}-{kind}.yaml"
+    p.write_text(short_text(kind, carrier))
+    return load_scenario(p)
 
 
 def standard_scenarios(carrier: str = "rear") -> dict:
@@ -145,7 +144,7 @@ def record(cfg, scenarios: dict, tmp: Path, seed: int = 0, prefix: str = "") -> 
 # ------------------------------------------------------------------ shared runs for the tests
 def _record_one(name: str, kind: str, tmp: str) -> str:
     cfg, _, carrier = all_plants()[name]
-    sc = short_scenarios(Path(tmp), carrier)[kind]
+    sc = short_scenario(Path(tmp), kind, carrier)       # only its own file: the other kinds' workers write theirs
     (log,) = record(cfg, {kind: sc}, Path(tmp), prefix=name)
     return str(log)
 
