@@ -195,6 +195,14 @@ def read_with_truth(path: Path) -> tuple[dict, dict, dict, list[str]]:
 
 
 
+def read_with_rear_truth(path: Path) -> tuple[dict, np.ndarray, list[str]]:
+    """The log's cycle columns, the simulated true y_r at each cycle's time, and the event
+    messages (:func:`read_with_truth`)."""
+    data, truth, _, messages = read_with_truth(path)
+    idx = np.clip(np.searchsorted(truth["t"], data["t"] - 1e-9), 0, len(truth["t"]) - 1)
+    return data, truth["y_r"][idx], messages
+
+
 def assert_steps_tracked(r: Run, cfg, n_steps: int) -> None:
     """Sec. 5.2.4 ("negligible steady-state error") for a closed-loop run of steps (the
     step-sequence scenario or a part of it): ``n_steps`` steps, each tracked with a

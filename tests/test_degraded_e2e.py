@@ -15,18 +15,12 @@ from rig_runtime.app.dryrun import run_lockstep
 from rig_runtime.config import ConfigError
 from rig_runtime.scenario import load_scenario
 
-from .e2e import read_with_truth
+from .e2e import read_with_rear_truth
 
 
 @pytest.fixture(scope="module")
 def ocfg():
     return config.load(config.resolve_config_path("sim-observer.yaml"))
-
-
-def _log(path):
-    data, truth, _, messages = read_with_truth(path)
-    idx = np.clip(np.searchsorted(truth["t"], data["t"] - 1e-9), 0, len(truth["t"]) - 1)
-    return data, truth["y_r"][idx], messages
 
 
 def test_degraded_dropout_ends_idle_on_the_estimate_and_readmits_b_r(tmp_path, ocfg):
@@ -46,7 +40,7 @@ def test_degraded_dropout_ends_idle_on_the_estimate_and_readmits_b_r(tmp_path, o
     back = drop.t + drop.duration_s
     assert back + readmit - 0.05 <= iv["t_end"] - t0 < back + readmit + 0.5
     assert iv["end"] == "b_r readmitted"
-    data, y_true, messages = _log(tmp_path / "run.h5")
+    data, y_true, messages = read_with_rear_truth(tmp_path / "run.h5")
     assert any(m.startswith("DEGRADED: b_r stale") for m in messages)
     assert any(m.startswith("b_r readmitted") for m in messages)
     t_run = data["t_run"]

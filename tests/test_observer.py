@@ -99,14 +99,21 @@ def cfg():
     return config.load()
 
 
-def test_design_solves_its_riccati_equation(cfg):
-    """K and S of the design satisfy the steady-state Kalman relations of the held model."""
-    d = od.design(cfg, "rear")
+def _rear_model(cfg):
+    """The rear carrier's held model as the design builds it, built here from its parts:
+    Ad, Qd (zero-order hold of the continuous model) and C (y, ψ, Δω by relation (4))."""
     o = cfg.observer
     A, Bc = od.continuous_model(cfg, "rear", cfg.plant.D_min if o.D is None else o.D)
     Ad, _, Qd = od.discretise(A, Bc, np.diag([o.q_y ** 2, 0, o.q_psi_acc ** 2]), cfg.controller.h)
     gy, gr, _ = od.dw_row(cfg)
-    C = np.array([[1.0, 0, 0], [0, 1, 0], [gy, 0, gr]])
+    return Ad, Qd, np.array([[1.0, 0, 0], [0, 1, 0], [gy, 0, gr]])
+
+
+def test_design_solves_its_riccati_equation(cfg):
+    """K and S of the design satisfy the steady-state Kalman relations of the held model."""
+    d = od.design(cfg, "rear")
+    o = cfg.observer
+    Ad, Qd, C = _rear_model(cfg)
     K = np.array(d.K_full).reshape(3, 3)
     S = np.diag(d.S_full)
     assert np.allclose(np.array(d.A).reshape(3, 3), Ad)
@@ -202,10 +209,7 @@ def test_outage_sigma_grows_to_the_no_lateral_filters_steady_state(cfg):
     from scipy.linalg import solve_discrete_are
     d = od.design(cfg, "rear")
     o = cfg.observer
-    A, Bc = od.continuous_model(cfg, "rear", cfg.plant.D_min if o.D is None else o.D)
-    Ad, _, Qd = od.discretise(A, Bc, np.diag([o.q_y ** 2, 0, o.q_psi_acc ** 2]), cfg.controller.h)
-    gy, gr, _ = od.dw_row(cfg)
-    C = np.array([[1.0, 0, 0], [0, 1, 0], [gy, 0, gr]])
+    Ad, Qd, C = _rear_model(cfg)
     w = od._lateral_weights(cfg, "rear")[1]
     n = o.noise
     R = np.diag([(w[0] ** 2 + w[1] ** 2) * n.lateral_laser_m ** 2, 2 * n.yaw_laser_m ** 2 / cfg.geometry.d0 ** 2,

@@ -23,18 +23,12 @@ from rig_runtime.app.dryrun import run_lockstep
 from rig_runtime.app.metrics import step_info
 from rig_runtime.scenario import Reference, load_scenario
 
-from .e2e import read_with_truth
+from .e2e import read_with_rear_truth
 
 
 @pytest.fixture(scope="module")
 def ocfg():
     return config.load(config.resolve_config_path("sim-observer.yaml"))
-
-
-def _truth_y_r(path):
-    data, truth, _, messages = read_with_truth(path)
-    idx = np.clip(np.searchsorted(truth["t"], data["t"] - 1e-9), 0, len(truth["t"]) - 1)
-    return data, truth["y_r"][idx], messages
 
 
 def test_a_drifting_laser_found_by_the_innovation_test_degrades_the_carrier(tmp_path, ocfg):
@@ -52,7 +46,7 @@ def test_a_drifting_laser_found_by_the_innovation_test_degrades_the_carrier(tmp_
     bias_mm = f.rate_mm_s * (iv["t_start"] - summary["run_started_t"] - f.t)
     assert 0.0 < bias_mm < 0.3, bias_mm
     assert iv["end"] == "IDLE"                      # not readmitted: a lying laser does not come back
-    data, y_true, messages = _truth_y_r(tmp_path / "run.h5")
+    data, y_true, messages = read_with_rear_truth(tmp_path / "run.h5")
     assert any(m.startswith("DEGRADED: b_r/b_f innovation") and "not readmitted" in m for m in messages)
     t_run = data["t_run"]
     after = (data["state"] == 2.0) & (t_run > iv["t_start"] - summary["run_started_t"] + 0.01)
