@@ -47,11 +47,6 @@ GRID_STEP = 0.05        # m/s: the largest spacing of the analysed speeds over s
 
 
 # --------------------------------------------------------------------------- the set-up
-def in_contact(cfg: RigConfig) -> tuple[str, ...]:
-    """The carriers on the rollers (``Plant.in_contact``)."""
-    return cfg.plant.in_contact
-
-
 def applies(cfg: RigConfig) -> bool:
     """Whether the config is a vehicle one (a second carrier in contact or a speed schedule):
     ``rig tune`` then reports the coupled analysis; the paper's set-up has neither."""
@@ -145,7 +140,7 @@ class Layout:
 
 
 def layout(cfg: RigConfig, carriers: Optional[tuple[str, ...]] = None) -> Layout:
-    cs = in_contact(cfg) if carriers is None else carriers
+    cs = cfg.plant.in_contact if carriers is None else carriers
     return Layout(cs, tuple(c for c in cs if c in cfg.controlled), 3 * len(cs))
 
 

@@ -8,7 +8,7 @@ running direction). Each carrier's speed is low-passed (first order at
 the carriers in contact. The supervisor judges them (``safety.SPEED_RULES``: |v̂| within the
 hardware's v_max, the carriers agreeing); the gain schedule uses v̂.
 
-Which carriers are in contact is a config fact, answered in one place: :func:`in_contact`.
+Which carriers are in contact is a config fact, answered in one place: ``Plant.in_contact``.
 A wheel value that is not finite (no sample yet, a lost drive: the channel rules judge it)
 leaves that carrier's filtered speed where it was. Scalar arithmetic on preallocated lists:
 this runs every cycle.
@@ -25,16 +25,9 @@ from .lanes import CARRIER_WHEELS
 DEFAULT_FILTER_HZ = 2.0      # Hz: the schedule's default v_filter_hz (config.Schedule)
 
 
-def in_contact(plant: Plant) -> tuple[str, ...]:
-    """The carriers on the rollers by the config (``plant.front_contact``,
-    ``plant.rear_contact``); a carrier lifted by an identification scenario's
-    ``lifted_carrier`` is not looked at: nothing is scheduled there."""
-    return plant.in_contact
-
-
 def columns(plant: Plant) -> list[str]:
     """The log's columns of this stage: v̂, then each carrier in contact's speed (m/s)."""
-    return ["v_meas"] + [f"{c}_v" for c in in_contact(plant)]
+    return ["v_meas"] + [f"{c}_v" for c in plant.in_contact]
 
 
 def filter_hz(cfg: RigConfig) -> float:
@@ -60,7 +53,7 @@ class SpeedEstimate:
 
     @classmethod
     def from_config(cls, cfg: RigConfig) -> "SpeedEstimate":
-        carriers = in_contact(cfg.plant)
+        carriers = cfg.plant.in_contact
         return cls(carriers, {c: cfg.plant.carrier(c).r0 for c in carriers}, cfg.controller.h, filter_hz(cfg))
 
     def update(self, values: Mapping[str, float]) -> float:

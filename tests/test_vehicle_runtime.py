@@ -14,7 +14,7 @@ from rig_runtime.control import PController, PIPDController, make_controller
 from rig_runtime.lanes import make_lanes
 from rig_runtime.loop import log_columns
 from rig_runtime.safety import SPEED_RULES, State, speed_disagree, speed_range
-from rig_runtime.speed import SpeedEstimate, columns, in_contact
+from rig_runtime.speed import SpeedEstimate, columns
 
 from tests.test_safety import OK, chans, samples, supervisor
 
@@ -36,8 +36,8 @@ def wheels(v, r0=0.075, dw_f=0.0, dw_r=0.0, **over):
 
 # ------------------------------------------------------------------ the measured speed
 def test_contact_is_a_config_fact(cfg, vcfg):
-    assert in_contact(cfg.plant) == ("rear",)                  # the paper's set-up: front lifted
-    assert in_contact(vcfg.plant) == ("front", "rear")
+    assert cfg.plant.in_contact == ("rear",)                  # the paper's set-up: front lifted
+    assert vcfg.plant.in_contact == ("front", "rear")
     assert columns(cfg.plant) == ["v_meas", "rear_v"]
     assert columns(vcfg.plant) == ["v_meas", "front_v", "rear_v"]
     cols = log_columns(vcfg, [], [])

@@ -262,7 +262,7 @@ def describe(plan: Plan) -> list[str]:
     if "coupled" in plan.slowest:
         v, r, n, band = plan.slowest["coupled"]
         held = f"; held for |v| < {band[1]:g} m/s" if band else ""
-        out.append(f"sampled closed loop (coupled, carriers in contact: {', '.join(coupled.in_contact(cfg))}): "
+        out.append(f"sampled closed loop (coupled, carriers in contact: {', '.join(cfg.plant.in_contact)}): "
                    f"stable at {n} speed(s) in both directions in the gate's damping cases (largest |z| = {r:.6f} "
                    f"at v = {v:+g} m/s{held})")
     else:
