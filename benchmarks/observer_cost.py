@@ -34,7 +34,7 @@ def main() -> None:
     chans = [Channel(n, "laser", 0.0, 1.0, 0.02) for n in ("b_f", "b_r")]
     sup = Supervisor(cfg.limits, cfg.controller.h, chans, ["rear"], hardware=None)
     for c in chans:
-        c.observe(Sample(0.07, 1.0, Health(Freshness.FRESH)))
+        c.observe(Sample(0.07, 1.0, Health(Freshness.FRESH)), 1.0, cfg.controller.h)
     for _ in range(300):
         o.step(1e-3, 1e-3, 0.01, 0.1, 0.0, True)
     res = {

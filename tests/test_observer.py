@@ -175,17 +175,17 @@ def test_innovation_rule_names_the_sensor(cfg):
     lim = dataclasses.replace(cfg.limits, innovation_chi2=30.0)
     assert innovation(_stats(), lim) is None
     assert innovation(_stats(T_lat=100.0, full=False), lim) is None        # window not full yet
-    dev, check, value, limit, msg = innovation(_stats(T_lat=31.0), lim)
-    assert (dev, check, value, limit) == ("b_r/b_f", "innovation", 31.0, 30.0)
-    dev, *_ , msg = innovation(_stats(T_psi=31.0, T_lat=99.0), lim)
-    assert dev == "s_rl/s_rr" and "cannot tell" in msg
-    dev, *_, msg = innovation(_stats(T_dw=31.0), lim)
-    assert dev == "b_r|rl/rr" and "cannot tell the lateral laser from the encoders" in msg
+    f = innovation(_stats(T_lat=31.0), lim)
+    assert (f.device, f.check, f.value, f.limit) == ("b_r/b_f", "innovation", 31.0, 30.0)
+    f = innovation(_stats(T_psi=31.0, T_lat=99.0), lim)
+    assert f.device == "s_rl/s_rr" and "cannot tell" in f.message
+    f = innovation(_stats(T_dw=31.0), lim)
+    assert f.device == "b_r|rl/rr" and "cannot tell the lateral laser from the encoders" in f.message
     assert innovation(_stats(T_lat=1e9), dataclasses.replace(lim, innovation_chi2=None)) is None
     # the latest estimate did not use the lateral lasers (isolated, unfit): no lateral evidence,
     # the window they left behind is not judged; Δω still is
     assert innovation(_stats(T_lat=99.0, lat_used=0.0), lim) is None
-    assert innovation(_stats(T_lat=99.0, T_dw=31.0, lat_used=0.0), lim)[0] == "b_r|rl/rr"
+    assert innovation(_stats(T_lat=99.0, T_dw=31.0, lat_used=0.0), lim).device == "b_r|rl/rr"
 
 
 def test_the_cycle_modules_do_not_import_scipy():
@@ -245,6 +245,6 @@ def test_degraded_covariance_rule(cfg):
     deg = dataclasses.replace(cfg.degraded, sigma_y_max=1e-4)
     assert degraded_covariance(o, deg) is None
     o.outage, o.sigma_y = 1, 2e-4
-    dev, check, value, limit, msg = degraded_covariance(o, deg)
-    assert (dev, check, value, limit) == ("b_r/b_f", "sigma_y", 2e-4, 1e-4)
-    assert "rear carrier" in msg and "degraded.sigma_y_max" in msg
+    f = degraded_covariance(o, deg)
+    assert (f.device, f.check, f.value, f.limit) == ("b_r/b_f", "sigma_y", 2e-4, 1e-4)
+    assert "rear carrier" in f.message and "degraded.sigma_y_max" in f.message

@@ -87,10 +87,9 @@ def test_speed_disagree_names_both_carriers_and_their_speeds(cfg):
     lim = cfg.limits
     assert speed_disagree(Speed(("front", "rear"), [1.0, 1.0 + 0.9 * lim.v_disagree_max], 1.0), lim, 2.0) is None
     f = speed_disagree(Speed(("front", "rear"), [1.0, 1.2], 1.1), lim, 2.0)
-    dev, check, value, limit, msg = f
-    assert (dev, check, limit) == ("encoders", "speed_disagree", lim.v_disagree_max)
-    assert value == pytest.approx(0.2)
-    assert "front +1.000 m/s" in msg and "rear +1.200 m/s" in msg
+    assert (f.device, f.check, f.limit) == ("encoders", "speed_disagree", lim.v_disagree_max)
+    assert f.value == pytest.approx(0.2)
+    assert "front +1.000 m/s" in f.message and "rear +1.200 m/s" in f.message
     assert speed_disagree(Speed(("rear",), [5.0], 5.0), lim, 2.0) is None        # one carrier: nothing to compare
 
 
@@ -99,8 +98,8 @@ def test_speed_range_both_directions(cfg):
     for v in (1.99, -1.99, math.nan):
         assert speed_range(Speed(("rear",), [v], v), lim, 2.0) is None
     for v in (2.01, -2.01):
-        dev, check, value, limit, msg = speed_range(Speed(("rear",), [v], v), lim, 2.0)
-        assert (dev, check, value, limit) == ("encoders", "speed_range", v, 2.0)
+        f = speed_range(Speed(("rear",), [v], v), lim, 2.0)
+        assert (f.device, f.check, f.value, f.limit) == ("encoders", "speed_range", v, 2.0)
     assert SPEED_RULES == (speed_disagree, speed_range)
 
 
