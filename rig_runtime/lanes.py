@@ -6,37 +6,22 @@ the supervisor let through, and the two wheels that current goes to. A second ca
 per-carrier reference or a new stage (an estimator) is one more lane or one more step of a
 lane, never new indices.
 
-``split`` is the one place that turns a carrier's differential current u = i_left − i_right
-into its wheels' currents (±u/2); the loop, the log and the summaries use it.
+How a carrier's differential current u = i_left − i_right reaches its wheels is the
+allocation's (``rig_runtime.allocation``: ±u/2, or the remaining wheel alone after a drive
+loss); ``split`` and ``wheel_currents`` are re-exported from there.
 """
 
 from __future__ import annotations
 
-from typing import Callable, Mapping, MutableMapping, Optional, Sequence
+from typing import Callable, Mapping, Optional
 
-from .config import WHEELS, RigConfig, Schedule
+from .allocation import split, wheel_currents  # noqa: F401 - the allocation's, re-exported
+from .config import RigConfig, Schedule
 from .control import make_controller
 from .geometry import Measurement
 from .observer import Observer, ObserverDesign
 
 CARRIER_WHEELS: dict[str, tuple[str, str]] = {"front": ("fl", "fr"), "rear": ("rl", "rr")}   # (left, right)
-
-
-def split(u: float) -> tuple[float, float]:
-    """A carrier's differential current ``u`` (A) as the currents of its (left, right) wheels."""
-    half = 0.5 * u
-    return half, -half
-
-
-def wheel_currents(lanes: Sequence["Lane"], out: MutableMapping[str, float]) -> MutableMapping[str, float]:
-    """Every wheel's current from the lanes' limited outputs (in place; a wheel no lane owns
-    gets 0 A)."""
-    for w in WHEELS:
-        out[w] = 0.0
-    for lane in lanes:
-        left, right = lane.wheels
-        out[left], out[right] = split(lane.u)
-    return out
 
 
 class Lane:
