@@ -314,6 +314,10 @@ class Degraded:
     ``sigma_y_max`` ends the degraded run in the normal clean stop."""
 
     on_lateral_loss: Literal["observe", "stop"] = "stop"
+    # a drive lost while RUNNING (docs/safety.md, "Drive outages"): ``reallocate`` — if the
+    # outage analysis finds the reconfigured loop stable at the measured speed, the carrier runs
+    # RECONFIGURED on its remaining wheel(s) under ``limits``; ``stop`` — the converter fault
+    on_drive_loss: Literal["reallocate", "stop"] = "stop"
     max_s: float = check(positive, default=15.0)
     limits: DegradedLimits = field(default_factory=DegradedLimits)
     readmit_s: float = check(positive, default=1.0)

@@ -156,12 +156,18 @@ class RigDevices:
         values: dict[str, float] = {}
         rd = self.drives.poll(now)
         ok, cause = True, ""
+        lost, off = [], []          # per wheel: each INVALID drive's cause, each power stage not enabled
         for w, r in rd.wheels.items():
             samples[w] = Sample(r.omega, r.t, r.health, r.syncs_unanswered)
             values[w] = r.omega
-            if ok and r.health.state is Freshness.INVALID:
-                ok, cause = False, f"drive {r.wheel} (node {r.node_id}): {r.health.cause}"
-        if ok and rd.bus.state is Freshness.INVALID:
+            if r.health.state is Freshness.INVALID:
+                lost.append((w, f"drive {r.wheel} (node {r.node_id}): {r.health.cause}"))
+                if ok:
+                    ok, cause = False, lost[-1][1]
+            if not r.enabled or r.health.state is Freshness.INVALID:     # as the driver's `enabled`
+                off.append(w)
+        bus_ok = rd.bus.state is not Freshness.INVALID
+        if ok and not bus_ok:
             ok, cause = False, f"CAN bus: {rd.bus.cause}"
         extra: list[float] = []
         if self.ft is not None:
@@ -177,7 +183,7 @@ class RigDevices:
             samples[r.role] = Sample(r.value_m, r.t, r.health)
             values[r.role] = r.value_m
         return Reading(now, samples, values, tuple(extra),
-                       Converters(ok, cause, rd.enabled, rd.bus_error_t, rd.bus.cause))
+                       Converters(ok, cause, rd.enabled, rd.bus_error_t, rd.bus.cause, tuple(lost), tuple(off), bus_ok))
 
     def write(self, currents: Mapping[str, float], now: float) -> None:
         """Each wheel's current (A) by wheel name."""

@@ -32,6 +32,7 @@ from .gains import TuningError, admissible
 from .geometry import Measurement, measure
 from .hardware import Hardware
 from .lanes import Lane, make_lanes, wheel_currents
+from .reconfig_analysis import table as outage_table
 from .mailbox import Command
 from .observer import LOG_FIELDS as OBSERVER_FIELDS
 from .observer import ObserverDesign
@@ -52,6 +53,7 @@ class RunResult:
     wall_time_s: float = 0.0
     arm_blockers: list = field(default_factory=list)
     degraded: list = field(default_factory=list)    # DEGRADED intervals (carrier, laser, t_start, t_end, end)
+    reconfigured: list = field(default_factory=list)    # RECONFIGURED intervals (carrier, device, t_start, t_end, end)
 
 
 CYCLE_FIELDS = ("t", "t_run", "lateness", "work", "state", "y_ref")
@@ -126,7 +128,11 @@ class ControlLoop:
         self.speed = SpeedEstimate.from_config(cfg)
         self.supervisor = Supervisor(cfg.limits, self.h, self.channels, [l.carrier for l in self.lanes], devices,
                                      on_event=self._event, observers=[l.observer for l in self.observed],
-                                     degraded=cfg.degraded, v_max=cfg.hardware.ceilings.v_max)
+                                     degraded=cfg.degraded, v_max=cfg.hardware.ceilings.v_max,
+                                     outages=outage_table(cfg) if cfg.degraded.on_drive_loss == "reallocate" else None,
+                                     v_fixed=cfg.plant.v)
+        self._i_wheel = min((d.rated_current_A for d in cfg.devices.can.drives),
+                            default=cfg.hardware.drive_rated_current_A)   # each wheel's current limit (allocation)
         self.stats = CycleStats()
         self.stop_requested = False
         self.stop_reason = "stop requested (signal)"
@@ -299,7 +305,7 @@ class ControlLoop:
                          cycles=summary.pop("cycles"), max_abs_current_A=self.max_abs_current,
                          timing=summary, t_start=self.t_start, wall_time_s=time.perf_counter() - wall0,
                          arm_blockers=sup.arm_blockers if sup.arm_failed or self.t_start is None else [],
-                         degraded=list(sup.degraded_log))
+                         degraded=list(sup.degraded_log), reconfigured=list(sup.reconfigured_log))
 
     # ---- the stages, in cycle order
     def _operator_command(self, t: float) -> None:
@@ -386,7 +392,7 @@ class ControlLoop:
                 self.max_abs_current = abs(u)
         fault = sup.end_cycle(t)
         cy.state = float(sup.state)
-        wheel_currents(self.lanes, cy.currents)
+        wheel_currents(self.lanes, cy.currents, sup.wheels_lost, self._i_wheel)
         return fault
 
     def _account(self, t0: float, k: int, t: float, t_done: float) -> int:

@@ -74,13 +74,15 @@ class Disturbance:
 
 @dataclass(frozen=True, kw_only=True)
 class FaultInjection:
-    kind: Literal["dropout", "corrupt", "stuck", "offset", "out_of_range", "no_heartbeat", "bus_error", "stall", "drift"]
+    kind: Literal["dropout", "corrupt", "stuck", "offset", "out_of_range", "no_heartbeat", "bus_error", "stall", "drift",
+                  "motor_outage"]
     t: float = check(nonneg)
     duration_s: float = check(positive, default=1e9)
     device: str = ""                 # laser role, wheel (fl…rr) or F/T name; "" for stall
     fraction: float = check(probability, default=0.5)   # corrupt / bus_error
     amount: float = 0.0              # offset: m for lasers, rad/s for wheels, N for F/T
     rate_mm_s: float = 0.0           # drift (lasers): the reading creeps off the truth at this rate, mm/s
+    mode: Literal["announced", "silent"] = "announced"   # motor_outage (drives): the drive faults, or not
 
 
 @dataclass(frozen=True, kw_only=True)

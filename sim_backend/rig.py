@@ -293,7 +293,7 @@ class SimulatedRig:
             if not on:
                 return self.drives.clear(f.kind, wheel=dev)
             kw = {"bus_error": {"fraction": f.fraction}, "corrupt": {"fraction": f.fraction},
-                  "offset": {"amount": f.amount}}.get(f.kind, {})
+                  "offset": {"amount": f.amount}, "motor_outage": {"mode": f.mode}}.get(f.kind, {})
             return self.drives.inject(f.kind, wheel=dev, **kw)
         if not on:
             return self.ft.clear(dev, f.kind)

@@ -72,7 +72,11 @@ FAULT_KINDS: dict[str, dict[str, Any]] = {
     "stuck": {},                                    # TPDO1 repeats its last payload
     "offset": {"omega_rad_s": 1.0},                 # velocity actual off by this much (alias: amount)
     "corrupt": {"dlc": 5, "fraction": 1.0},         # this fraction of TPDO1s truncated to dlc bytes
+    # the wheel gets no torque: "announced" the drive faults (EMCY 0x5000); "silent" it stays
+    # OPERATION ENABLED, answers every SYNC and reports the torque it was asked for (a lost phase)
+    "motor_outage": {"mode": "announced"},
 }
+EMCY_MOTOR_OUTAGE = 0x5000      # device hardware
 _ALIASES = {("offset", "amount"): "omega_rad_s"}
 
 _POWER_ON = (SWITCHED_ON, OPERATION_ENABLED, QUICK_STOP_ACTIVE)
@@ -199,6 +203,8 @@ class VirtualDrive:
             self._load_config()
         if self.state != OPERATION_ENABLED or self.node.nmt._state != NMT_OPERATIONAL or self.mode != MODE_CST:
             return 0.0
+        if self.faults and "motor_outage" in self.faults:
+            return 0.0
         return self._effective_permille() * self.rated_A / 1000.0
 
     def _effective_permille(self) -> int:
@@ -215,6 +221,8 @@ class VirtualDrive:
         return sw
 
     def torque_actual(self) -> int:
+        if self.faults and "motor_outage" in self.faults and self.state == OPERATION_ENABLED:
+            return self._effective_permille()       # silent outage: it reports what it was asked for
         return self._effective_permille() if self.current_A() != 0.0 else 0
 
     # ------------------------------------------------------------------ object dictionary hooks
@@ -434,6 +442,9 @@ class VirtualDrive:
             self._load_config()
         if self.faults and self._persistent_fault() and self.state in _POWER_ON:
             self.fault(EMCY_OVERCURRENT)
+        mo = self.faults.get("motor_outage") if self.faults else None
+        if mo is not None and mo["mode"] == "announced" and self.state in _POWER_ON:
+            self.fault(EMCY_MOTOR_OUTAGE)
         last = self.consumer_last
         if last is not None and t - last > self.consumer_s:
             self.consumer_last = None                   # re-armed by the next heartbeat
@@ -570,6 +581,8 @@ class VirtualDriveSet:
         p = {**FAULT_KINDS[kind], **params}
         if kind == "out_of_range" and p["mode"] not in ("overcurrent", "saturate"):
             raise ValueError("out_of_range mode is 'overcurrent' or 'saturate'")
+        if kind == "motor_outage" and p["mode"] not in ("announced", "silent"):
+            raise ValueError("motor_outage mode is 'announced' or 'silent'")
         if kind == "corrupt" and not 0 <= p["dlc"] <= 7:
             raise ValueError("corrupt dlc must be 0..7 (8 is the valid length)")
         if "fraction" in p and not 0.0 <= p["fraction"] <= 1.0:

@@ -165,6 +165,8 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     }
     if result.degraded:
         summary["degraded"] = result.degraded       # DEGRADED intervals (docs/observer.md)
+    if result.reconfigured:
+        summary["reconfigured"] = result.reconfigured   # RECONFIGURED intervals (docs/safety.md)
     if stops.requested:
         summary["stopped_by"] = stops.name
     elif operator_stop:

@@ -62,6 +62,10 @@ class Reconfiguration:
                 self.since[car] = t
                 self.log.append({"carrier": car, self.device_key: name, "check": check, "t_start": t,
                                  "t_end": None, "end": "", **(extra or {})})
+            else:                   # a further loss in the carrier's open interval: named there too
+                for e in self.log:
+                    if e["carrier"] == car and e["t_end"] is None and name not in e[self.device_key].split("/"):
+                        e[self.device_key] += "/" + name
         return carriers
 
     def isolated_any(self, devices: Sequence[str]) -> bool:

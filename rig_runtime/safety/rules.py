@@ -11,7 +11,7 @@ redundancy), the degraded stop rules and the output rules (a lane's command)."""
 from __future__ import annotations
 
 import math
-from typing import Callable, NamedTuple, Optional, Sequence
+from typing import Callable, Collection, NamedTuple, Optional, Sequence
 
 from ..config import Limits
 from ..hardware import Freshness
@@ -31,6 +31,7 @@ class System(NamedTuple):
     recorder_cause: str
     conv: Converters
     running: bool           # the state is RUNNING (power stages must be enabled)
+    lost: Collection[str] = ()      # the wheels whose drive the run does without (RECONFIGURED)
 
 
 def overrun(s: System, lim: Limits) -> Optional[Finding]:
@@ -48,10 +49,17 @@ def recorder(s: System, lim: Limits) -> Optional[Finding]:
 
 
 def converter(s: System, lim: Limits) -> Optional[Finding]:
-    """A drive or the bus INVALID (the driver's cause)."""
-    if not s.conv.ok:
-        return Finding("converters", "converter", math.nan, math.nan, s.conv.cause)
-    return None
+    """A drive or the bus INVALID (the driver's cause) — but for a drive the run does
+    without (RECONFIGURED: its wheel is lost, its report no longer matters)."""
+    conv = s.conv
+    if conv.ok:
+        return None
+    for w, cause in conv.drives:
+        if w not in s.lost:
+            return Finding("converters", "converter", math.nan, math.nan, cause)
+    if conv.drives and conv.bus_ok:
+        return None
+    return Finding("converters", "converter", math.nan, math.nan, conv.cause)
 
 
 def bus_error(s: System, lim: Limits) -> Optional[Finding]:
@@ -65,7 +73,9 @@ def bus_error(s: System, lim: Limits) -> Optional[Finding]:
 
 
 def disabled(s: System, lim: Limits) -> Optional[Finding]:
-    if s.running and not s.conv.enabled:
+    """A power stage left OPERATION ENABLED while RUNNING (not one of a lost wheel's drive)."""
+    conv = s.conv
+    if s.running and not conv.enabled and not (conv.not_enabled and all(w in s.lost for w in conv.not_enabled)):
         return Finding("converters", "disabled", math.nan, math.nan,
                        "a power stage left OPERATION ENABLED while running")
     return None

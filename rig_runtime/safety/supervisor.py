@@ -32,7 +32,7 @@ from ..hardware import Hardware
 from .limiter import Limiter
 from .reconfig import Reconfiguration
 from .rules import (ARM_RULES, CHANNEL_RULES, DEGRADED_STOP_RULES, ISOLATING_RULES, OBSERVER_RULES, OUTPUT_RULES,
-                    POSE_RULES, SPEED_RULES, SYSTEM_RULES, System, bus_error)
+                    POSE_RULES, SPEED_RULES, SYSTEM_RULES, System, bus_error, converter)
 from .types import Channel, Converters, Fault, Finding, Pose, Sample, State, Step
 
 
@@ -47,7 +47,8 @@ class Supervisor:
 
     def __init__(self, limits: Limits, h: float, channels: Sequence[Channel], carriers: Sequence[str],
                  hardware: Hardware, on_event: Callable | None = None, activate_timeout_s: float = 0.5,
-                 observers: Sequence = (), degraded=None, v_max: float = math.inf):
+                 observers: Sequence = (), degraded=None, v_max: float = math.inf, outages=None,
+                 v_fixed: float = math.nan):
         self._limits = limits           # frozen, and not replaceable: see the property
         self.v_max = v_max              # the hardware's ceiling on |v̂| (speed_range)
         self._speed = None              # this cycle's measured speed (rig_runtime.speed), if given
@@ -72,6 +73,18 @@ class Supervisor:
                 feeds.setdefault(n, []).append(o.d.carrier)
         self.lasers = Reconfiguration("DEGRADED", feeds if self._deg is not None else {}, device_key="laser")
         self._deg_stop: str = ""                             # why degraded mode asked for the clean stop
+        # drive outages (RECONFIGURED): with degraded.on_drive_loss "reallocate" and the outage
+        # table (rig_runtime.reconfig_analysis.OutageTable) of this config
+        self._outages = outages if (outages is not None and degraded is not None
+                                    and degraded.on_drive_loss == "reallocate") else None
+        wfeeds = ({w: (c,) for c in carriers if c in self._outages.controlled for w in self._outages.wheels_of(c)}
+                  if self._outages is not None else {})
+        self.drives = Reconfiguration("RECONFIGURED", wfeeds, device_key="device")
+        self._reconf_limits: dict[str, Limits] = {}          # carrier -> its limits while RECONFIGURED
+        self._deg_cfg = degraded
+        self._v_fixed = v_fixed                              # the speed when none is measured (plant.v)
+        self._why_not = ""                                   # the outage analysis' answer when it said no
+        self._lim_of: dict[str, Limits] = {}                 # carrier -> the limits it runs under now
         self.carriers = tuple(carriers)
         self.hw = hardware
         self.activate_timeout_s = activate_timeout_s
@@ -105,6 +118,16 @@ class Supervisor:
     def degraded_log(self) -> list[dict]:
         """The DEGRADED intervals, for the summary."""
         return self.lasers.log
+
+    @property
+    def wheels_lost(self):
+        """The wheels whose drive the run does without (RECONFIGURED; allocated 0 A)."""
+        return self.drives.isolated
+
+    @property
+    def reconfigured_log(self) -> list[dict]:
+        """The RECONFIGURED intervals, for the summary (device, carrier, t_start, t_end, end)."""
+        return self.drives.log
 
     @property
     def degraded_limits(self) -> Limits:
@@ -164,13 +187,21 @@ class Supervisor:
             self.hw.deactivate(t)
         if new in (State.FAULT, State.IDLE) and self.lasers.since:     # the run ends DEGRADED
             self.lasers.close(t, new.name + (f" ({self._deg_stop})" if self._deg_stop and new is State.IDLE else ""))
+        if new in (State.FAULT, State.IDLE) and self.drives.since:     # the run ends RECONFIGURED
+            self.drives.close(t, new.name)
+            self._reconf_limits.clear()
+        if new in (State.FAULT, State.IDLE):
+            self._update_limits()
         if new in (State.FAULT, State.IDLE):
             self._deg_stop = ""
 
     def trip(self, t: float, f: Finding) -> None:
-        """Latch the fault of a finding (the first one of a cycle is the cause recorded)."""
+        """Latch the fault of a finding (the first one of a cycle is the cause recorded; a
+        drive outage the analysis would not reconfigure says why)."""
         if self.state is State.FAULT:
             return
+        if self._why_not:
+            f = dataclasses.replace(f, message=f.message + self._why_not)
         fault = Fault.of(t, f)
         self.fault = fault
         self.faults.append(fault)
@@ -226,6 +257,7 @@ class Supervisor:
         y, ψ) of each controlled carrier; ``speed``: the measured roller speed (judged by
         the speed rules after the pose rules; None: not judged)."""
         self._latched = None
+        self._why_not = ""
         self._speed = speed
         self._started = False
         h = self.h
@@ -240,7 +272,7 @@ class Supervisor:
         self._transitions(t, conv, consecutive_misses)
         if self.active:
             f = self._check(t, System(t, h, consecutive_misses, recorder_ok, recorder_cause, conv,
-                                      self.state is State.RUNNING), pose_list)
+                                      self.state is State.RUNNING, self.drives.isolated), pose_list)
             if f is not None:
                 self.trip(t, f)
         return Step(self.state, self._started)
@@ -249,6 +281,8 @@ class Supervisor:
         """The check sequence; returns the finding that trips (None: none)."""
         lim = self.limits
         for rule in SYSTEM_RULES:       # root causes first: a starved loop makes the watchdogs trip too
+            if rule is converter and system.conv.drives and self._outages is not None:
+                self._absorb_drives(t, system.conv)      # what a drive said of itself: reconfigure?
             f = rule(system, lim)
             if f is not None:
                 return f
@@ -262,9 +296,10 @@ class Supervisor:
             since = self.lasers.since
             poses = [Pose(p.carrier, self._obs_of[p.carrier].y, p.psi, p.psi_rate)
                      if p.carrier in since else p for p in poses]
+        lim_of = self._lim_of
         for rule in POSE_RULES:
             for p in poses:
-                f = rule(p, self._deg_limits if p.carrier in self.lasers.since else lim)
+                f = rule(p, lim_of.get(p.carrier, lim))
                 if f is not None:
                     return f
         if self._speed is not None:
@@ -289,8 +324,9 @@ class Supervisor:
         degraded mode absorbs is isolated, and the remaining channels are judged afresh from
         the first rule — a second laser breaching the same rule is caught in this cycle."""
         lim = self.limits
-        iso = self.lasers.isolated
-        chs = [c for c in self.channels if c.name not in iso] if iso else self.channels
+        iso, lost = self.lasers.isolated, self.drives.isolated
+        chs = ([c for c in self.channels if c.name not in iso and c.name not in lost] if iso or lost
+               else self.channels)
         k = 0
         while k < len(CHANNEL_RULES):
             rule = CHANNEL_RULES[k]
@@ -298,9 +334,12 @@ class Supervisor:
             if f is None:
                 k += 1
                 continue
-            if rule not in ARM_RULES or not self._degrade(t, (f.device,), f, readmit=True):
+            # a lost channel (an arm rule's breach), not a lying one: a lateral laser degrades
+            # its carriers, a drive that went silent reconfigures its carrier
+            if rule not in ARM_RULES or not (self._degrade(t, (f.device,), f, readmit=True)
+                                             or self._reconfigure(t, f.device, f)):
                 return f
-            chs = [c for c in chs if c.name not in iso]          # judge the rest afresh
+            chs = [c for c in chs if c.name not in iso and c.name not in lost]     # judge the rest afresh
             k = 0
         return None
 
@@ -316,6 +355,7 @@ class Supervisor:
         carriers = self.lasers.isolate(t, lasers, f.check, readmit)
         if not carriers:
             return False
+        self._update_limits()
         name = "/".join(lasers)
         dl = self._deg_limits
         self._on_event(t, "degraded", None,
@@ -363,7 +403,61 @@ class Supervisor:
                            f"{deg.readmit_tol_m * 1e3:g} mm of the estimate for {deg.readmit_s:g} s")
             for car in ended:
                 self._on_event(t, "degraded", None, f"{car} carrier: DEGRADED ended")
+            self._update_limits()
         return None
+
+    # ------------------------------------------------------------------ drive outages
+    def _absorb_drives(self, t: float, conv: Converters) -> None:
+        """Each INVALID drive (what it said of itself: fault, EMCY, heartbeat) not lost yet:
+        reconfigure its carrier if the outage analysis allows (else the converter rule trips)."""
+        lost = self.drives.isolated
+        for w, cause in conv.drives:
+            if w not in lost:
+                if not self._reconfigure(t, w, Finding("converters", "converter", math.nan, math.nan, cause)):
+                    return
+
+    def _reconfigure(self, t: float, wheel: str, f: Finding) -> bool:
+        """A drive lost while RUNNING with ``degraded.on_drive_loss: reallocate``: if the
+        outage table says the loop with this wheel (and any lost before) gone is stable at the
+        measured speed, isolate it — 0 A from this cycle (the allocation), never readmitted in
+        this run — and run its carrier RECONFIGURED under the tighter limits. False: a fault
+        as usual (the finding's message then names the analysis' answer)."""
+        tb = self._outages
+        if tb is None or self.state is not State.RUNNING or wheel not in self.drives.feeds:
+            return False
+        lost = set(self.drives.isolated) | {wheel}
+        v = self._speed.v_hat if self._speed is not None else self._v_fixed
+        d = tb.decide(lost, v)
+        if not d.stable:
+            self._why_not = f"; not reconfigured: {d.why}"
+            return False
+        car = tb.carrier_of(wheel)
+        left, right = tb.wheels_of(car)
+        keep = [x for x in (left, right) if x not in lost]
+        auth = len(keep) * min((tb.i_max.get(x, math.inf) for x in keep), default=0.0)   # the wheels' authority
+        deg = self._deg_cfg.limits
+        lim = self.limits
+        self._reconf_limits[car] = dataclasses.replace(lim, u_max=min(lim.u_max, deg.u_max, auth),
+                                                        y_max=min(lim.y_max, deg.y_max))
+        self.drives.isolate(t, (wheel,), f.check, readmit=False)
+        self._update_limits()
+        rl = self._reconf_limits[car]
+        on = f"on {'/'.join(keep)} alone" if keep else "uncontrolled (both wheels lost)"
+        self._on_event(t, "reconfigured", None,
+                       f"RECONFIGURED: drive {wheel} lost ({f.message}); {car} carrier {on}, u_max {rl.u_max:g} A, "
+                       f"y_max {rl.y_max * 1e3:g} mm ({d.why})")
+        return True
+
+    def _update_limits(self) -> None:
+        """The limits each carrier runs under now: DEGRADED and RECONFIGURED each tighten them
+        (the tighter of both when both hold)."""
+        lim = self.limits
+        out = {}
+        for car in set(self.lasers.since) | set(self._reconf_limits):
+            a = self._deg_limits if car in self.lasers.since else lim
+            b = self._reconf_limits.get(car, lim)
+            out[car] = dataclasses.replace(lim, u_max=min(a.u_max, b.u_max), y_max=min(a.y_max, b.y_max))
+        self._lim_of = out
 
     def isolated_any(self, names: Sequence[str]) -> bool:
         """One of the named lateral lasers is isolated (not to be used by the observer)."""
@@ -412,8 +506,7 @@ class Supervisor:
                 if f is not None:
                     self.trip(t, f)
                     return self._out.zero(carrier)
-            return self._out.running(carrier, u, self._deg_limits.u_max if carrier in self.lasers.since
-                                     else lim.u_max)
+            return self._out.running(carrier, u, self._lim_of.get(carrier, lim).u_max)
         if st is State.STOPPING:
             return self._out.stopping(carrier)
         return self._out.zero(carrier)

@@ -65,12 +65,18 @@ class Sample(NamedTuple):
 class Converters(NamedTuple):
     """The converters as a cycle sees them: ``ok`` (no drive or bus INVALID, else ``cause``),
     ``enabled`` (every power stage OPERATION ENABLED), when the bus last reported an error
-    (send or receive failure, error frame; -inf: never) and what it was."""
+    (send or receive failure, error frame; -inf: never) and what it was; per wheel, what
+    each drive reported: ``drives`` the (wheel, cause) of every INVALID drive (its own
+    fault, EMCY, heartbeat), ``not_enabled`` the wheels whose power stage is not OPERATION
+    ENABLED, ``bus_ok`` the bus itself not INVALID."""
     ok: bool
     cause: str
     enabled: bool
     bus_error_t: float = -math.inf
     bus_cause: str = ""
+    drives: tuple[tuple[str, str], ...] = ()
+    not_enabled: tuple[str, ...] = ()
+    bus_ok: bool = True
 
 
 class Pose(NamedTuple):
