@@ -27,7 +27,7 @@ from ..scenario import Scenario
 # what a fault injection can do to each kind of device (the simulated devices implement
 # these: sim_backend.virtual_laser/virtual_drive/virtual_ft.FAULT_KINDS; a test keeps them equal)
 LASER_FAULTS = ("dropout", "corrupt", "stuck", "offset", "out_of_range", "drift")
-DRIVE_FAULTS = ("dropout", "no_heartbeat", "bus_error", "out_of_range", "stuck", "offset", "corrupt")
+DRIVE_FAULTS = ("dropout", "no_heartbeat", "bus_error", "out_of_range", "stuck", "offset", "corrupt", "motor_outage")
 FT_FAULTS = ("dropout", "corrupt", "stuck", "offset", "out_of_range")
 NO_DEVICE_FAULTS = ("stall",)       # the runtime itself
 
