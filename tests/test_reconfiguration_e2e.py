@@ -1,0 +1,66 @@
+"""Drive outages end to end (lockstep, the simulated rig): an announced motor outage of one
+wheel of the leading carrier, in both directions, runs on RECONFIGURED to the end
+(configs/vehicle.yaml, the 2 mm steps of vehicle-steps); the failed drive carries 0 A from
+that cycle, in the log and on the wire; the paper's set-up reconfigures onto the remaining
+rear wheel. The measured numbers are docs/safety.md's ("Drive outages")."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from rig_runtime import config
+from rig_runtime.scenario import FaultInjection, SpeedPoint, load_scenario
+
+from .e2e import run
+
+T_OUT = 6.0         # scenario time of the outage (after the front's step at 1 s, before the rear's at 11 s)
+
+
+def _outage_run(tmp_path, cfg, scenario, wheel, v=None, mode="announced"):
+    sc = load_scenario(scenario)
+    kw = {} if v is None else {"speed": (SpeedPoint(t=0, v=v),)}
+    sc = dataclasses.replace(sc, faults=(FaultInjection(kind="motor_outage", t=T_OUT, device=wheel, mode=mode),), **kw)
+    return run(tmp_path, sc, cfg=cfg)
+
+
+def _check_reconfigured(r, cfg, wheel, carrier):
+    s = r.summary
+    assert s["final_state"] == "IDLE" and s["faults"] == [] and r.code == 0, s["faults"]
+    (e,) = s["reconfigured"]
+    assert (e["device"], e["carrier"], e["end"]) == (wheel, carrier, "IDLE") and e["t_end"] is not None
+    t, t_run = r.col("t"), r.col("t_run")
+    k = int(np.argmin(np.abs(t - e["t_start"])))
+    # the drive reports the fault within a few cycles of the outage; RECONFIGURED in that cycle
+    assert 0 <= t_run[k] - T_OUT <= 0.05 + 1e-9, t_run[k]
+    # 0 A for the failed drive from that cycle, in the log and on the wire (the RPDOs after SYNC k+1)
+    assert np.all(r.col(f"i_{wheel}")[k:] == 0.0) and np.any(r.col(f"i_{wheel}")[:k] != 0.0)
+    assert all(i == 0.0 for n, w, i in r.wire if w == wheel and n >= k + 1)
+    assert all(abs(i) <= cfg.limits.u_max for _, _, i in r.wire)
+    return k
+
+
+@pytest.mark.parametrize("v, wheel, carrier", [(1.0, "fl", "front"), (-1.0, "rl", "rear")],
+                         ids=["forward-fl", "reverse-rl"])
+def test_an_announced_outage_of_the_leading_carrier_runs_on_reconfigured(tmp_path, v, wheel, carrier):
+    cfg = config.load(config.resolve_config_path("vehicle.yaml"))
+    assert cfg.degraded.on_drive_loss == "reallocate"
+    r = _outage_run(tmp_path, cfg, "vehicle-steps", wheel, v)
+    k = _check_reconfigured(r, cfg, wheel, carrier)
+    for c in ("f", "r"):                                 # |y| below y_max/2 after the outage, both carriers
+        y = np.abs(r.col(f"y_{c}")[k:])
+        print(f"v {v:+g}, {wheel} lost: max |y_{c}| after the outage {y.max() * 1e3:.3f} mm")
+        assert y.max() < cfg.limits.y_max / 2
+    steps = [st for st in r.summary["steps"] if st["t0"] > T_OUT]
+    assert len(steps) == 3
+    for st in steps:                                     # every step after the outage still tracked
+        print(f"  step {st['carrier']} at {st['t0']:g} s: steady-state error {st['steady_state_error_mm'] * 1e3:.1f} um")
+        assert abs(st["steady_state_error_mm"]) <= 0.02 * abs(st["to_mm"] - st["from_mm"]), st
+
+
+def test_the_paper_setup_reconfigures_onto_the_remaining_rear_wheel(tmp_path):
+    cfg = config.load()
+    cfg = dataclasses.replace(cfg, degraded=dataclasses.replace(cfg.degraded, on_drive_loss="reallocate"))
+    r = _outage_run(tmp_path, cfg, "single-step", "rl")
+    _check_reconfigured(r, cfg, "rl", "rear")
+    assert np.abs(r.col("y_r")).max() < cfg.limits.y_max / 2
