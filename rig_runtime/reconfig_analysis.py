@@ -18,6 +18,8 @@ import math
 from dataclasses import dataclass
 from typing import Collection, Mapping, Optional
 
+import numpy as np
+
 from . import coupled
 from .config import RigConfig
 
@@ -68,7 +70,7 @@ class OutageTable:
         if not same:
             return Decision(False, math.nan, math.nan, out, f"no analysed speed in the direction of v = {v:+.3f} m/s")
         k = min(same, key=lambda i: abs(self.speeds[i] - v))
-        r = self.radius[frozenset(out)][k]
+        r = self.radius[frozenset(out)][k]      # (every carrier uncontrolled was refused above)
         vs = self.speeds[k]
         what = (f"{'/'.join(out)} carrier uncontrolled" if out else "every carrier keeps a wheel")
         ok = r < 1.0
@@ -83,13 +85,26 @@ def table(cfg: RigConfig) -> OutageTable:
     vs, _ = coupled.speeds(cfg)
     radius = {}
     ctl = lay.controlled
-    for k in range(len(ctl) + 1):
+    for k in range(len(ctl)):           # every carrier uncontrolled: never a reconfiguration
         for gone in _subsets(ctl, k):
             sub = coupled.Layout(lay.carriers, tuple(c for c in ctl if c not in gone), lay.n_plant)
-            radius[frozenset(gone)] = tuple(coupled.at_speed(cfg, v, sub).spectral_radius for v in vs)
+            radius[frozenset(gone)] = tuple(_radius(cfg, v, sub) for v in vs)
     rated = cfg.hardware.drive_rated_current_A
     i_max = {d.wheel: min(rated, d.rated_current_A) for d in cfg.devices.can.drives}
     return OutageTable(ctl, lay.carriers, tuple(vs), radius, i_max)
+
+
+def _radius(cfg: RigConfig, v: float, lay: "coupled.Layout") -> float:
+    """The sampled loop's spectral radius at v, the largest over the damping cases the
+    stability gate judges (``coupled.damping_cases``; as ``coupled.at_speed`` without the
+    continuous eigenvalues and the reported-only cases)."""
+    worst = 0.0
+    for D in coupled.damping_cases(cfg, v, lay):
+        with np.errstate(all="ignore"):
+            z = np.linalg.eigvals(coupled.sampled_matrix(cfg, v, D, lay))
+        r = float(np.max(np.abs(z))) if len(z) else 0.0
+        worst = max(worst, r if math.isfinite(r) else math.inf)
+    return worst
 
 
 def _subsets(items: tuple, k: int):
