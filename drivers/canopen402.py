@@ -232,6 +232,7 @@ class DriveBus(Driver):
         self._last_now = 0.0
         self._hb_next = -math.inf
         self._want_enabled = False
+        self._isolated: set[str] = set()     # wheels whose drive is held off while the others run
         self._bus_err_t = -math.inf
         self._bus_err_desc = ""
         self._bus_errors = 0
@@ -495,6 +496,8 @@ class DriveBus(Driver):
             x = 0.0
         if not self._want_enabled:
             return CW_DISABLE_VOLTAGE, 0
+        if self._isolated and d.wheel in self._isolated:     # lost: quick stop, then disabled
+            return (CW_QUICK_STOP if d.state == OPERATION_ENABLED else CW_DISABLE_VOLTAGE), 0
         if d.stepping:
             if d.state != OPERATION_ENABLED:
                 return self._step(d), 0
@@ -551,6 +554,13 @@ class DriveBus(Driver):
             d.stepping = enable
             d.state = UNKNOWN       # re-learn it from a TPDO sent after this (none in pre-op)
         self._want_enabled = enable
+        self._isolated.clear()
+
+    def isolate(self, wheel: str, now: float) -> None:
+        """Hold one drive off while the others run (the supervisor's RECONFIGURED: its wheel
+        is lost): zero torque, quick stop, then disable voltage, from the next write. Until the
+        next activation."""
+        self._isolated.add(wheel)
 
     def _safe_stop(self, now: float) -> None:
         """Zero torque, quick stop, disable voltage, NMT pre-operational, each step to every

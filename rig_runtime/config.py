@@ -318,6 +318,11 @@ class Degraded:
     # outage analysis finds the reconfigured loop stable at the measured speed, the carrier runs
     # RECONFIGURED on its remaining wheel(s) under ``limits``; ``stop`` — the converter fault
     on_drive_loss: Literal["reallocate", "stop"] = "stop"
+    # a drive without torque response (silent outage): its reported torque actual further than
+    # torque_residual_A from every one of its latest commands, each at least that large, for
+    # torque_hold_s (docs/safety.md, "Drive outages": set from healthy runs)
+    torque_residual_A: float = check(positive, default=0.02)
+    torque_hold_s: float = check(positive, default=0.05)
     max_s: float = check(positive, default=15.0)
     limits: DegradedLimits = field(default_factory=DegradedLimits)
     readmit_s: float = check(positive, default=1.0)

@@ -134,6 +134,10 @@ class RigDevices:
         """Zero, quick stop, disable (non-blocking); FAULT and the end of a stop."""
         self.drives.deactivate(now)
 
+    def isolate(self, wheel: str, now: float) -> None:
+        """One drive quick-stopped and disabled while the others run (RECONFIGURED)."""
+        self.drives.isolate(wheel, now)
+
     def resume(self, now: float) -> None:
         """Communication on, power stages off, as after ``configure()`` (an operator's fault
         reset; the supervisor calls it)."""
@@ -183,7 +187,8 @@ class RigDevices:
             samples[r.role] = Sample(r.value_m, r.t, r.health)
             values[r.role] = r.value_m
         return Reading(now, samples, values, tuple(extra),
-                       Converters(ok, cause, rd.enabled, rd.bus_error_t, rd.bus.cause, tuple(lost), tuple(off), bus_ok))
+                       Converters(ok, cause, rd.enabled, rd.bus_error_t, rd.bus.cause, tuple(lost), tuple(off), bus_ok,
+                                  tuple((w, r.current_A) for w, r in rd.wheels.items())))
 
     def write(self, currents: Mapping[str, float], now: float) -> None:
         """Each wheel's current (A) by wheel name."""

@@ -73,7 +73,7 @@ FAULT_KINDS: dict[str, dict[str, Any]] = {
     "offset": {"omega_rad_s": 1.0},                 # velocity actual off by this much (alias: amount)
     "corrupt": {"dlc": 5, "fraction": 1.0},         # this fraction of TPDO1s truncated to dlc bytes
     # the wheel gets no torque: "announced" the drive faults (EMCY 0x5000); "silent" it stays
-    # OPERATION ENABLED, answers every SYNC and reports the torque it was asked for (a lost phase)
+    # OPERATION ENABLED and answers every SYNC, its torque actual the (no) current it measures (a lost phase)
     "motor_outage": {"mode": "announced"},
 }
 EMCY_MOTOR_OUTAGE = 0x5000      # device hardware
@@ -221,8 +221,6 @@ class VirtualDrive:
         return sw
 
     def torque_actual(self) -> int:
-        if self.faults and "motor_outage" in self.faults and self.state == OPERATION_ENABLED:
-            return self._effective_permille()       # silent outage: it reports what it was asked for
         return self._effective_permille() if self.current_A() != 0.0 else 0
 
     # ------------------------------------------------------------------ object dictionary hooks

@@ -459,6 +459,22 @@ def test_deactivate_leaves_drives_off_until_activate(rig):
     assert r.enabled and all(rig.vds.current_A(w) == pytest.approx(2.0) for w in WHEELS)
 
 
+def test_an_isolated_drive_is_quick_stopped_and_disabled_while_the_others_run(rig):
+    """The supervisor's RECONFIGURED (docs/safety.md, "Drive outages"): one drive held off,
+    the others keep their current; the next activation enables it again."""
+    rig.cycle({w: 2.0 for w in WHEELS}, n=3)
+    rig.drv.isolate("fl", rig.t)
+    r = rig.cycle({w: 2.0 for w in WHEELS}, n=10)
+    assert rig.vds.state("fl") == c4.SWITCH_ON_DISABLED and rig.vds.current_A("fl") == 0.0
+    assert all(rig.vds.current_A(w) == pytest.approx(2.0) for w in ("fr", "rl", "rr"))
+    assert not r.enabled and not r["fl"].enabled and r["fr"].enabled
+    rig.drv.deactivate(rig.t)
+    rig.vds.service(rig.t)
+    rig.drv.activate(rig.t)
+    r = rig.cycle({w: 2.0 for w in WHEELS}, n=15)
+    assert r.enabled and rig.vds.current_A("fl") == pytest.approx(2.0)
+
+
 def test_send_failures_are_counted_not_raised(rig, buses, monkeypatch):
     rig.cycle({}, n=3)
 

@@ -47,7 +47,8 @@ class Vehicle:
         self.cfg = cfg
         self.events = []
         chans = [Channel(w, "wheel", -100, 100, cfg.limits.stale_periods * H) for w in WHEELS]
-        self.s = Supervisor(cfg.limits, H, chans, ("front", "rear"), FakeHardware(),
+        self.hw = FakeHardware()
+        self.s = Supervisor(cfg.limits, H, chans, ("front", "rear"), self.hw,
                             on_event=lambda *a: self.events.append(a), degraded=cfg.degraded, outages=tb)
         self.v = v
         self.k = 0
@@ -95,6 +96,7 @@ def test_an_announced_outage_reconfigures_its_carrier_in_that_cycle(vcfg, vtable
     t = r.step(conv(lost=("fl",)))
     s = r.s
     assert s.state is State.RUNNING and set(s.wheels_lost) == {"fl"} and s.faults == []
+    assert r.hw.calls[-1] == ("isolate fl", t)          # that drive quick-stopped and disabled
     (text,) = r.texts("reconfigured")
     assert text.startswith("RECONFIGURED: drive fl lost (drive fl (node 1): heartbeat missing") and "fr alone" in text
     assert s.reconfigured_log == [{"carrier": "front", "device": "fl", "check": "converter", "t_start": t,
@@ -170,3 +172,58 @@ def test_not_reconfigured_unless_running(vcfg, vtable):
     assert s.state is State.ARMED
     s.cycle(H, {w: Sample(1.0, H, FRESH, 0) for w in WHEELS}, conv(lost=("fl",)), [], 0, True, "")
     assert s.state is State.FAULT and s.fault.check == "converter"
+
+
+def _torque_cycle(r, u, actual):
+    """One cycle where the lanes command ``u`` per carrier and each drive reports ``actual``
+    (wheel -> A; missing: the command it was given, as a healthy drive does)."""
+    c = conv()
+    cmds = {w: r.s._cmds.get(w, [0.0])[0] for w in WHEELS}
+    c = c._replace(torque=tuple((w, actual.get(w, cmds[w])) for w in WHEELS))
+    t = r.step(c)
+    for car in ("front", "rear"):
+        r.s.limit(car, u, t)
+    r.s.end_cycle(t)
+    return t
+
+
+def test_a_drive_without_torque_response_is_lost_after_the_hold_time(vcfg, vtable):
+    """Silent outage: the drive answers every SYNC and stays enabled, but reports no current
+    against its commands (either sign) for degraded.torque_hold_s: lost, RECONFIGURED."""
+    r = Vehicle(vcfg, vtable)
+    need = round(vcfg.degraded.torque_hold_s / H)
+    for k in range(200):                    # healthy: the commands answered, nothing happens
+        _torque_cycle(r, 1.0 if k % 40 < 20 else -1.0, {})
+    assert not r.s.wheels_lost and max(r.s.torque_residual_max.values()) <= 1e-12
+    for k in range(need + 3):               # below the residual threshold: no evidence either way
+        _torque_cycle(r, 0.5 * vcfg.degraded.torque_residual_A, {"fl": 0.0})
+    assert not r.s.wheels_lost
+    ts = [_torque_cycle(r, -1.0, {"fl": 0.0}) for _ in range(need + 5)]
+    (e,) = r.s.reconfigured_log
+    assert (e["device"], e["check"]) == ("fl", "torque") and set(r.s.wheels_lost) == {"fl"}
+    # the three latest commands must all be large before the count starts (-1 A ramps in at du_max)
+    assert ts.index(e["t_start"]) <= need + 3
+    assert "no torque response" in r.texts("reconfigured")[0]
+
+
+def test_the_torque_response_is_judged_only_when_reallocating(vcfg, vtable):
+    """With on_drive_loss: stop the rule is off (its threshold is measured on the simulated
+    drives only; docs/safety.md): a drive that does not answer its commands is what it was."""
+    stop = dataclasses.replace(vcfg, degraded=dataclasses.replace(vcfg.degraded, on_drive_loss="stop"))
+    r = Vehicle(stop, vtable)
+    for _ in range(50):
+        _torque_cycle(r, -1.0, {"fl": 0.0})
+    assert r.s.state is State.RUNNING and not r.s.wheels_lost
+
+
+def test_the_summary_printout_lists_each_reconfiguration(capsys):
+    from rig_runtime.app.commands import _print_summary
+    summary = {"final_state": "IDLE", "cycles": 10, "log": "x.h5", "max_abs_current_A": 1.0,
+               "max_abs_wire_current_A": 0.5, "faults": [], "run_started_t": 1.0, "clock": "lockstep",
+               "wall_time_s": 0.1, "sim_time_s": 0.05, "timing": {},
+               "reconfigured": [{"carrier": "front", "device": "fl", "check": "torque", "t_start": 7.05,
+                                 "t_end": 32.0, "end": "IDLE"}]}
+    _print_summary(summary, False)
+    out = capsys.readouterr().out
+    assert ("RECONFIGURED at t=+6.050 s: drive fl lost (torque), front carrier on its remaining wheels until "
+            "t=+31.000 s: IDLE") in out

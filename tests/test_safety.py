@@ -33,6 +33,9 @@ class FakeHardware:
     def resume(self, now: float) -> None:
         self.calls.append(("resume", now))
 
+    def isolate(self, wheel: str, now: float) -> None:
+        self.calls.append(("isolate " + wheel, now))
+
 
 def chans():
     return [Channel("b_f", "laser", 0.045, 0.095, 0.02), Channel("rl", "wheel", -100, 100, 0.02)]

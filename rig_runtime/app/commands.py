@@ -49,6 +49,9 @@ def _print_summary(summary: dict, as_json: bool) -> None:
     for d in summary.get("degraded", ()):
         print(f"  DEGRADED at {_run_time(summary, d['t_start'])}: {d['carrier']} carrier on the observer's "
               f"estimate ({d['laser']} {d['check']}) until {_run_time(summary, d['t_end'])}: {d['end']}")
+    for d in summary.get("reconfigured", ()):
+        print(f"  RECONFIGURED at {_run_time(summary, d['t_start'])}: drive {d['device']} lost ({d['check']}), "
+              f"{d['carrier']} carrier on its remaining wheels until {_run_time(summary, d['t_end'])}: {d['end']}")
     if summary.get("arm_failed"):
         print(f"  {summary['arm_failed']}")
     if summary.get("clock") == "lockstep":

@@ -44,6 +44,10 @@ class Limiter:
         for c in self._u_prev:
             self._u_prev[c] = 0.0
 
+    def last(self, carrier: str) -> float:
+        """The current sent for ``carrier`` in the latest cycle."""
+        return self._u_prev[carrier]
+
     @property
     def at_rest(self) -> bool:
         """Every output is zero (STOPPING may end)."""

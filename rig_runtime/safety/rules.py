@@ -175,6 +175,21 @@ CHANNEL_RULES: tuple[ChannelRule, ...] = (invalid, stale, not_finite, out_of_ran
 ARM_RULES = (invalid, stale, not_finite, out_of_range)
 
 
+# ---------------------------------------------------------------------- drive rules
+def torque_response(wheel: str, run: int, residual: float, commanded: float, actual: float, deg,
+                    h: float) -> Optional[Finding]:
+    """A drive that answers but whose wheel gets no torque (a silent outage, e.g. a lost
+    phase): its reported torque actual further than ``degraded.torque_residual_A`` from each
+    of its latest commands (the answer may lag by a SYNC or two), every one of them at least
+    that large, either sign, for ``degraded.torque_hold_s`` (``run`` cycles so far)."""
+    need = max(1, round(deg.torque_hold_s / h))
+    if run >= need:
+        return Finding(wheel, "torque", residual, deg.torque_residual_A,
+                       f"drive {wheel}: no torque response ({actual:+.3f} A reported against {commanded:+.3f} A "
+                       f"commanded, off by more than {deg.torque_residual_A:g} A for {run} cycles)")
+    return None
+
+
 # ---------------------------------------------------------------------- pose rules
 def pose_not_finite(p: Pose, lim: Limits) -> Optional[Finding]:
     if not (_finite(p.psi) and _finite(p.y)):

@@ -31,8 +31,9 @@ from ..config import Limits
 from ..hardware import Hardware
 from .limiter import Limiter
 from .reconfig import Reconfiguration
+from ..allocation import allocate
 from .rules import (ARM_RULES, CHANNEL_RULES, DEGRADED_STOP_RULES, ISOLATING_RULES, OBSERVER_RULES, OUTPUT_RULES,
-                    POSE_RULES, SPEED_RULES, SYSTEM_RULES, System, bus_error, converter)
+                    POSE_RULES, SPEED_RULES, SYSTEM_RULES, System, bus_error, converter, torque_response)
 from .types import Channel, Converters, Fault, Finding, Pose, Sample, State, Step
 
 
@@ -84,6 +85,11 @@ class Supervisor:
         self._deg_cfg = degraded
         self._v_fixed = v_fixed                              # the speed when none is measured (plant.v)
         self._why_not = ""                                   # the outage analysis' answer when it said no
+        # the torque response: each wheel's latest commands (newest first) and the cycles in a
+        # row its reported torque has been off all of them; the largest healthy residual seen
+        self._cmds: dict[str, list[float]] = {w: [0.0, 0.0, 0.0] for w in self.drives.feeds}
+        self._torque_run: dict[str, int] = dict.fromkeys(self.drives.feeds, 0)
+        self.torque_residual_max: dict[str, float] = dict.fromkeys(self.drives.feeds, 0.0)
         self._lim_of: dict[str, Limits] = {}                 # carrier -> the limits it runs under now
         self.carriers = tuple(carriers)
         self.hw = hardware
@@ -289,6 +295,10 @@ class Supervisor:
         f = self._channels(t)
         if f is not None:
             return f
+        if self._outages is not None and system.conv.torque and self.state is State.RUNNING:
+            f = self._torque(t, system.conv)
+            if f is not None:
+                return f
         if self.lasers.isolated:
             f = self._degraded_checks(t, poses)
             if f is not None:
@@ -440,6 +450,7 @@ class Supervisor:
         self._reconf_limits[car] = dataclasses.replace(lim, u_max=min(lim.u_max, deg.u_max, auth),
                                                         y_max=min(lim.y_max, deg.y_max))
         self.drives.isolate(t, (wheel,), f.check, readmit=False)
+        self.hw.isolate(wheel, t)               # that drive quick-stopped and disabled
         self._update_limits()
         rl = self._reconf_limits[car]
         on = f"on {'/'.join(keep)} alone" if keep else "uncontrolled (both wheels lost)"
@@ -447,6 +458,39 @@ class Supervisor:
                        f"RECONFIGURED: drive {wheel} lost ({f.message}); {car} carrier {on}, u_max {rl.u_max:g} A, "
                        f"y_max {rl.y_max * 1e3:g} mm ({d.why})")
         return True
+
+    def _torque(self, t: float, conv: Converters) -> Optional[Finding]:
+        """The torque response rule on each drive not lost; a finding reconfigures the wheel's
+        carrier where the analysis allows (else it is the fault)."""
+        deg, lost = self._deg_cfg, self.drives.isolated
+        thr = deg.torque_residual_A
+        for w, actual in conv.torque:
+            cmds = self._cmds.get(w)
+            if cmds is None or w in lost:
+                continue
+            r = min(abs(c - actual) for c in cmds)
+            small = min(abs(c) for c in cmds) < thr
+            run = self._torque_run[w] = 0 if small or not r > thr else self._torque_run[w] + 1
+            if not small and r > self.torque_residual_max[w]:
+                self.torque_residual_max[w] = r          # the largest judged residual (healthy runs: the margin)
+            f = torque_response(w, run, r, cmds[0], actual, deg, self.h)
+            if f is not None and not self._reconfigure(t, w, f):
+                return f
+        return None
+
+    def _commanded(self) -> None:
+        """Each wheel's command of this cycle (the allocation of the limited outputs), for the
+        torque response rule of the next cycles."""
+        tb, lost, u = self._outages, self.drives.isolated, self._out.last
+        for car in self.carriers:
+            if car not in tb.controlled:
+                continue
+            left, right = tb.wheels_of(car)
+            il, ir = allocate(u(car), left not in lost, right not in lost,
+                              min(tb.i_max.get(left, math.inf), tb.i_max.get(right, math.inf)))
+            for w, i in ((left, il), (right, ir)):
+                c = self._cmds[w]
+                c[2], c[1], c[0] = c[1], c[0], i
 
     def _update_limits(self) -> None:
         """The limits each carrier runs under now: DEGRADED and RECONFIGURED each tighten them
@@ -516,4 +560,6 @@ class Supervisor:
         Returns the fault latched in this cycle (None: none)."""
         if self.state is State.STOPPING and self._out.at_rest:
             self._to(State.IDLE, t, "stopped")
+        if self._outages is not None:
+            self._commanded()
         return self._latched

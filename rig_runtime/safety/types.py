@@ -68,7 +68,7 @@ class Converters(NamedTuple):
     (send or receive failure, error frame; -inf: never) and what it was; per wheel, what
     each drive reported: ``drives`` the (wheel, cause) of every INVALID drive (its own
     fault, EMCY, heartbeat), ``not_enabled`` the wheels whose power stage is not OPERATION
-    ENABLED, ``bus_ok`` the bus itself not INVALID."""
+    ENABLED, ``bus_ok`` the bus itself not INVALID, ``torque`` each drive's reported current."""
     ok: bool
     cause: str
     enabled: bool
@@ -77,6 +77,7 @@ class Converters(NamedTuple):
     drives: tuple[tuple[str, str], ...] = ()
     not_enabled: tuple[str, ...] = ()
     bus_ok: bool = True
+    torque: tuple[tuple[str, float], ...] = ()      # (wheel, torque actual in A of its latest TPDO)
 
 
 class Pose(NamedTuple):
