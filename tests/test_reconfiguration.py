@@ -227,3 +227,14 @@ def test_the_summary_printout_lists_each_reconfiguration(capsys):
     out = capsys.readouterr().out
     assert ("RECONFIGURED at t=+6.050 s: drive fl lost (torque), front carrier on its remaining wheels until "
             "t=+31.000 s: IDLE") in out
+
+
+def test_the_panel_shows_the_reconfiguration_while_running():
+    from rig_runtime.app.panel import render
+    from tests.test_panel import text_of
+    msg = "RECONFIGURED: drive fl lost (drive fl (node 1): EMCY 0x5000 device hardware); front carrier on fr alone"
+    events = [(6.05, "reconfigured", "", "", 0.0, 0.0, msg)]
+    out = text_of(render({"state": float(State.RUNNING)}, {}, events), width=200)
+    assert "RECONFIGURED: drive fl lost" in out
+    out = text_of(render({"state": float(State.IDLE)}, {}, events), width=200)
+    assert "RECONFIGURED" not in out

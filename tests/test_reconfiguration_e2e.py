@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from rig_runtime import config
+from rig_runtime.app import runlog
 from rig_runtime.scenario import FaultInjection, SpeedPoint, load_scenario
 
 from .e2e import run
@@ -48,6 +49,10 @@ def test_an_announced_outage_of_the_leading_carrier_runs_on_reconfigured(tmp_pat
     assert cfg.degraded.on_drive_loss == "reallocate"
     r = _outage_run(tmp_path, cfg, "vehicle-steps", wheel, v)
     k = _check_reconfigured(r, cfg, wheel, carrier)
+    d = runlog.info(runlog.load(r.log_path))                # rig log info names it from the log
+    (g,) = d["reconfigured"]
+    assert g["why"].startswith(f"RECONFIGURED: drive {wheel} lost") and abs(g["t_start"] - (T_OUT + 0.05)) < 0.06
+    assert any(line.startswith("RECONFIGURED (run time") for line in runlog.format_info(d))
     for c in ("f", "r"):                                 # |y| below y_max/2 after the outage, both carriers
         y = np.abs(r.col(f"y_{c}")[k:])
         print(f"v {v:+g}, {wheel} lost: max |y_{c}| after the outage {y.max() * 1e3:.3f} mm")

@@ -155,6 +155,18 @@ def _degraded_why(row, events) -> Text | None:
     return text
 
 
+def _reconfigured_why(row, status, events) -> Text | None:
+    """While the run goes on RECONFIGURED (a drive lost): the latest RECONFIGURED event."""
+    if _state_name(row, status) not in ("RUNNING", "STOPPING"):
+        return None
+    why = [str(e[6]) for e in events if len(e) >= 7 and e[1] == "reconfigured"]
+    if not why:
+        return None
+    text = Text("RECONFIGURED: ", "bold black on yellow")
+    text.append(why[-1].removeprefix("RECONFIGURED: "), "yellow")
+    return text
+
+
 def _devices(status) -> Table:
     t = Table(title="devices", title_justify="left", box=None, pad_edge=False)
     for name, just in (("device", "left"), ("kind", "left"), ("health", "left"), ("age ms", "right"),
@@ -264,6 +276,9 @@ def render(row: Mapping[str, float] | None, status: Mapping | None, events: Sequ
     if counters is not None:
         parts += [Text(""), counters]
     why = _degraded_why(row, events)
+    if why is not None:
+        parts += [Text(""), why]
+    why = _reconfigured_why(row, status, events)
     if why is not None:
         parts += [Text(""), why]
     parts += [Text(""), _faults(status, events), Text(""), _timing(row, status), _counts(status)]

@@ -198,6 +198,13 @@ def degraded_intervals(run: RunLog) -> list[dict]:
     return sorted(out, key=lambda d: d["t_start"])
 
 
+def reconfigurations(run: RunLog) -> list[dict]:
+    """Every drive outage the run went on without (the supervisor's RECONFIGURED events), in
+    run time: ``t_start`` and the event's message (which drive, why, which wheels carry on,
+    the outage analysis' number). A RECONFIGURED carrier stays so until the run ends."""
+    return [{"t_start": e.t_run, "why": e.message} for e in run.events if e.kind == "reconfigured"]
+
+
 def scenario_of(run: RunLog):
     """The scenario the log names, from its recorded source path (else by name) if that file
     still gives the reference the log recorded; (scenario or None, why not)."""
@@ -299,6 +306,7 @@ def info(run: RunLog) -> dict:
         "steps": st,
         "steps_note": why,
         "degraded": degraded_intervals(run),
+        "reconfigured": reconfigurations(run),
     }
     return out
 
@@ -345,6 +353,10 @@ def format_info(d: dict) -> list[str]:
             end = f"{g['t_end']:+.3f} s" if g["t_end"] is not None else "end of log"
             lines.append(f"  {g['carrier']} {g['t_start']:+.3f} s -> {end} ({g['duration_s']:.3f} s): {g['why']}")
             lines.append(f"    ended: {g['end']}")
+    if d.get("reconfigured"):
+        lines.append("RECONFIGURED (run time; a drive lost, its carrier on the remaining wheels to the end):")
+        for g in d["reconfigured"]:
+            lines.append(f"  {g['t_start']:+.3f} s: {g['why']}")
     if d.get("commission"):
         lines.append("commissioning:")
         for e in d["commission"]:
