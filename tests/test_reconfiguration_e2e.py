@@ -9,6 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from drivers import cia402 as co
 from rig_runtime import config
 from rig_runtime.app import runlog
 from rig_runtime.scenario import FaultInjection, SpeedPoint, load_scenario
@@ -18,11 +19,24 @@ from .e2e import run
 T_OUT = 6.0         # scenario time of the outage (after the front's step at 1 s, before the rear's at 11 s)
 
 
-def _outage_run(tmp_path, cfg, scenario, wheel, v=None, mode="announced"):
+def _outage_run(tmp_path, cfg, scenario, wheel, v=None, mode="announced", taps=None):
     sc = load_scenario(scenario)
     kw = {} if v is None else {"speed": (SpeedPoint(t=0, v=v),)}
     sc = dataclasses.replace(sc, faults=(FaultInjection(kind="motor_outage", t=T_OUT, device=wheel, mode=mode),), **kw)
-    return run(tmp_path, sc, cfg=cfg)
+    prepare = None if taps is None else (lambda sim, devices, clock: taps.append(sim.runtime_bus()))
+    return run(tmp_path, sc, cfg=cfg, prepare=prepare)
+
+
+def _controlwords(tap, node: int) -> list[tuple[int, int]]:
+    """(SYNC index, controlword) of every RPDO1 to ``node`` a CAN tap saw."""
+    out, syncs = [], 0
+    while (m := tap.recv(0)) is not None:
+        if m.arbitration_id == co.COB_SYNC:
+            syncs += 1
+        elif m.arbitration_id == co.COB_RPDO1 + node and len(m.data) == co.RPDO1.size:
+            out.append((syncs, co.decode_rpdo1(m.data)[0]))
+    tap.shutdown()
+    return out
 
 
 def _check_reconfigured(r, cfg, wheel, carrier, within_s=0.05):
@@ -78,8 +92,14 @@ def test_a_silent_outage_is_detected_within_0_3_s_and_reconfigured(tmp_path, whe
     """The drive stays OPERATION ENABLED and answers every SYNC, but its wheel gets no torque
     (its torque actual: 0 A): the torque response rule finds it, the run goes on RECONFIGURED."""
     cfg = config.load(config.resolve_config_path("vehicle.yaml"))
-    r = _outage_run(tmp_path, cfg, "vehicle-steps", wheel, v, mode="silent")
+    taps = []
+    r = _outage_run(tmp_path, cfg, "vehicle-steps", wheel, v, mode="silent", taps=taps)
     k = _check_reconfigured(r, cfg, wheel, "front" if wheel[0] == "f" else "rear", within_s=0.3)
+    # a CAN tap: the failed drive quick-stopped, then disabled, from the next cycle to the end
+    node = next(d.node_id for d in cfg.devices.can.drives if d.wheel == wheel)
+    cws = [cw for n, cw in _controlwords(taps[0], node) if n >= k + 2]
+    assert cws and cws[0] == co.CW_QUICK_STOP and set(cws) <= {co.CW_QUICK_STOP, co.CW_DISABLE_VOLTAGE}
+    assert co.CW_DISABLE_VOLTAGE in cws
     (e,) = r.summary["reconfigured"]
     assert e["check"] == "torque"
     print(f"silent {wheel} v {v:+g}: detected {r.col('t_run')[k] - T_OUT:.3f} s after the outage")

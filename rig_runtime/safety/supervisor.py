@@ -17,7 +17,12 @@ laser (an arm rule's breach) or one the lateral innovation rule finds disagreein
 isolated (``safety.reconfig``) and the carriers it feeds run DEGRADED on the observer's ŷ
 (docs/observer.md), and the remaining channels are judged afresh from the first rule; while
 DEGRADED, ``max_s`` is a fault and the degraded stop rules end the run in the normal clean
-stop. :meth:`Supervisor.limit` judges each lane's command (the output rules) and shapes it
+stop. Likewise, with ``degraded.on_drive_loss: reallocate`` while RUNNING, a lost drive (what
+it reported of itself, its SYNCs left unanswered, or no torque response) is isolated and its
+carrier runs RECONFIGURED on its remaining wheels — where the outage table
+(``rig_runtime.reconfig_analysis``) finds the loop stable at the measured speed; else the
+fault, naming the analysis' answer (docs/safety.md, "Drive outages").
+:meth:`Supervisor.limit` judges each lane's command (the output rules) and shapes it
 (``safety.limiter``). Arming asks the arm rules whether every channel is fit.
 """
 
