@@ -39,15 +39,15 @@ def _controlwords(tap, node: int) -> list[tuple[int, int]]:
     return out
 
 
-def _check_reconfigured(r, cfg, wheel, carrier, within_s=0.05):
+def _check_reconfigured(r, cfg, wheel, carrier, within_s=2 * 0.005):
     s = r.summary
     assert s["final_state"] == "IDLE" and s["faults"] == [] and r.code == 0, s["faults"]
     (e,) = s["reconfigured"]
     assert (e["device"], e["carrier"], e["end"]) == (wheel, carrier, "IDLE") and e["t_end"] is not None
     t, t_run = r.col("t"), r.col("t_run")
     k = int(np.argmin(np.abs(t - e["t_start"])))
-    # announced: the drive reports the fault within a few cycles, RECONFIGURED in that cycle;
-    # silent: the torque response rule after degraded.torque_hold_s
+    # announced: RECONFIGURED in the cycle whose poll brings the drive's EMCY, within 2 cycles
+    # of the outage; silent: the torque response rule after degraded.torque_hold_s
     assert 0 <= t_run[k] - T_OUT <= within_s + 1e-9, t_run[k]
     # 0 A for the failed drive from that cycle, in the log and on the wire (the RPDOs after SYNC k+1)
     assert np.all(r.col(f"i_{wheel}")[k:] == 0.0) and np.any(r.col(f"i_{wheel}")[:k] != 0.0)
