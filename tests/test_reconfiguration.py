@@ -238,3 +238,13 @@ def test_the_panel_shows_the_reconfiguration_while_running():
     assert "RECONFIGURED: drive fl lost" in out
     out = text_of(render({"state": float(State.IDLE)}, {}, events), width=200)
     assert "RECONFIGURED" not in out
+
+
+def test_a_wheel_speed_out_of_range_is_a_fault_not_a_lost_drive(vcfg, vtable):
+    r = Vehicle(vcfg, vtable)
+    t = r.k * H
+    sm = {w: Sample(10.0, t, FRESH, 0) for w in WHEELS}
+    sm["fl"] = Sample(1000.0, t, FRESH, 0)
+    r.s.cycle(t, sm, conv(), [("front", 0.0, 0.0), ("rear", 0.0, 0.0)], 0, True, "")
+    assert r.s.state is State.FAULT and (r.s.fault.device, r.s.fault.check) == ("fl", "range")
+    assert not r.s.wheels_lost

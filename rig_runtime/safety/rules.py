@@ -173,6 +173,9 @@ CHANNEL_RULES: tuple[ChannelRule, ...] = (invalid, stale, not_finite, out_of_ran
 # what arming needs of every channel: a fresh, finite, in-range sample (a lost channel,
 # not a lying one: only these may be isolated and readmitted)
 ARM_RULES = (invalid, stale, not_finite, out_of_range)
+# the channel rules whose breach on a drive's wheel channel is a lost drive (what it said of
+# itself, or its silence), which reconfiguration may absorb
+DRIVE_LOSS_RULES = (invalid, stale)
 
 
 # ---------------------------------------------------------------------- drive rules

@@ -37,7 +37,7 @@ from ..hardware import Hardware
 from .limiter import Limiter
 from .reconfig import Reconfiguration
 from ..allocation import allocate
-from .rules import (ARM_RULES, CHANNEL_RULES, DEGRADED_STOP_RULES, ISOLATING_RULES, OBSERVER_RULES, OUTPUT_RULES,
+from .rules import (ARM_RULES, CHANNEL_RULES, DRIVE_LOSS_RULES, DEGRADED_STOP_RULES, ISOLATING_RULES, OBSERVER_RULES, OUTPUT_RULES,
                     POSE_RULES, SPEED_RULES, SYSTEM_RULES, System, bus_error, converter, torque_response)
 from .types import Channel, Converters, Fault, Finding, Pose, Sample, State, Step
 
@@ -350,9 +350,10 @@ class Supervisor:
                 k += 1
                 continue
             # a lost channel (an arm rule's breach), not a lying one: a lateral laser degrades
-            # its carriers, a drive that went silent reconfigures its carrier
+            # its carriers; a drive that says it is broken (invalid) or went silent (stale)
+            # reconfigures its carrier — a wheel speed out of range is a fault, never absorbed
             if rule not in ARM_RULES or not (self._degrade(t, (f.device,), f, readmit=True)
-                                             or self._reconfigure(t, f.device, f)):
+                                             or (rule in DRIVE_LOSS_RULES and self._reconfigure(t, f.device, f))):
                 return f
             chs = [c for c in chs if c.name not in iso and c.name not in lost]     # judge the rest afresh
             k = 0
