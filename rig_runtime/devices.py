@@ -21,18 +21,30 @@ from .safety import Channel, Converters, Sample
 
 FT_COMPONENTS = ("fx", "fy", "fz", "mx", "my", "mz")
 FT_RANGE = (300.0, 30.0)    # FT 300 class: ±300 N, ±30 N m (rated range)
+_NO_WRENCH = (math.nan,) * len(FT_COMPONENTS)
 
 
 class Reading(NamedTuple):
-    """Everything one poll brought, immutable and addressed by name: a :class:`Sample` per
-    supervisor channel (lasers by role, wheels by wheel, F/T sensors by name), each
-    channel's latest value by the same name (what the geometry reads), the F/T wrench
-    components (``RigDevices.extra_columns`` order, the log's columns) and the converters."""
+    """Everything one poll brought, addressed by name: a :class:`Sample` per supervisor
+    channel (lasers by role, wheels by wheel, F/T sensors by name), each channel's latest
+    value by the same name (what the geometry reads), the F/T wrench components
+    (``RigDevices.extra_columns`` order, the log's columns) and the converters.
+
+    The mappings and the wrench are the device set's own, filled in place by every poll
+    (names are resolved once, at construction, not per cycle): they hold this cycle's values
+    until the next poll — copy what must outlive the cycle."""
     t: float
     samples: Mapping[str, Sample]
     values: Mapping[str, float]
-    wrench: tuple[float, ...]
+    wrench: Sequence[float]
     converters: Converters
+
+
+#: builds a named tuple from its complete field values in one C call — what the generated
+#: ``__new__`` of a NamedTuple does after its Python-level argument handling (a third of the
+#: cost of ``Sample(...)``, which the cycle pays ~14 times); every field is given, by name
+#: in the comment at each use (tests/test_devices_poll.py checks they equal the constructor's)
+_tuple = tuple.__new__
 
 
 def require_complete(cfg: RigConfig) -> None:
@@ -83,8 +95,14 @@ class RigDevices:
             self.ft = cls(dcfg.ft, endpoints=dict(ft_endpoints) if ft_endpoints else None, **kw)
         self.ft_names = [s.name for s in dcfg.ft.sensors]
         self.extra_columns = [f"{n}_{c}" for n in self.ft_names for c in FT_COMPONENTS]
-        self._no_wrench = (math.nan,) * 6
         self._configured: list = []
+        # what poll() fills in place (Reading): one entry per channel, the wrench columns
+        self._samples: dict[str, Sample] = {}
+        self._values: dict[str, float] = {}
+        self._wrench = [math.nan] * len(self.extra_columns)
+        # per F/T sensor: (name, first wrench column, the latest wrench, t, health and Sample):
+        # while the poller has nothing new (it runs slower than the loop) the Sample is reused
+        self._ft_slots = [[n, 6 * i, None, math.nan, None, None] for i, n in enumerate(self.ft_names)]
 
     def channels(self) -> list[Channel]:
         """The supervisor's channels, named as :meth:`poll` names its samples, with each
@@ -151,33 +169,43 @@ class RigDevices:
     # ------------------------------------------------------------------ cycle
     def poll(self, now: float) -> Reading:
         """Every device's latest samples by name: the drives and the F/T hand-off first, the
-        lasers last (freshest)."""
-        samples: dict[str, Sample] = {}
-        values: dict[str, float] = {}
+        lasers last (freshest). Fills the device set's own mappings in place (:class:`Reading`)."""
+        samples, values = self._samples, self._values
         rd = self.drives.poll(now)
         ok, cause = True, ""
         for w, r in rd.wheels.items():
-            samples[w] = Sample(r.omega, r.t, r.health, r.syncs_unanswered)
-            values[w] = r.omega
+            v = values[w] = r.omega
+            samples[w] = _tuple(Sample, (v, r.t, r.health, r.syncs_unanswered))     # value, t, health, unanswered
             if ok and r.health.state is Freshness.INVALID:
                 ok, cause = False, f"drive {r.wheel} (node {r.node_id}): {r.health.cause}"
-        if ok and rd.bus.state is Freshness.INVALID:
-            ok, cause = False, f"CAN bus: {rd.bus.cause}"
-        extra: list[float] = []
+        bus = rd.bus
+        if ok and bus.state is Freshness.INVALID:
+            ok, cause = False, f"CAN bus: {bus.cause}"
         if self.ft is not None:
             fr = self.ft.poll(now)
-            for n in self.ft_names:
+            wrench = self._wrench
+            for slot in self._ft_slots:
+                n, i, w_prev, t_prev, h_prev, sample = slot
                 r = fr[n]
-                w = r.wrench
-                samples[n] = Sample(math.nan if w is None else w.fy, r.t, r.health)
-                values[n] = samples[n].value
-                extra.extend(self._no_wrench if w is None else (w.fx, w.fy, w.fz, w.mx, w.my, w.mz))
+                w, t, h = r.wrench, r.t, r.health
+                if w is not w_prev or h is not h_prev or not t == t_prev:
+                    if w is None:
+                        fy = math.nan
+                        wrench[i:i + 6] = _NO_WRENCH
+                    else:
+                        fy = w.fy
+                        wrench[i:i + 6] = (w.fx, fy, w.fz, w.mx, w.my, w.mz)
+                    sample = _tuple(Sample, (fy, t, h, -1))         # value, t, health, unanswered (free-running)
+                    slot[2:] = w, t, h, sample
+                samples[n] = sample
+                values[n] = sample.value
         for d in self.lasers:
             r = d.poll(now)
-            samples[r.role] = Sample(r.value_m, r.t, r.health)
-            values[r.role] = r.value_m
-        return Reading(now, samples, values, tuple(extra),
-                       Converters(ok, cause, rd.enabled, rd.bus_error_t, rd.bus.cause))
+            role = r.role
+            v = values[role] = r.value_m
+            samples[role] = _tuple(Sample, (v, r.t, r.health, -1))      # value, t, health, unanswered (free-running)
+        conv = _tuple(Converters, (ok, cause, rd.enabled, rd.bus_error_t, bus.cause))  # ok, cause, enabled, bus_error_t, bus_cause
+        return _tuple(Reading, (now, samples, values, self._wrench, conv))    # t, samples, values, wrench, converters
 
     def write(self, currents: Mapping[str, float], now: float) -> None:
         """Each wheel's current (A) by wheel name."""
