@@ -188,17 +188,16 @@ class RigDevices:
                 n, i, w_prev, t_prev, h_prev, sample = slot
                 r = fr[n]
                 w, t, h = r.wrench, r.t, r.health
-                if w is not w_prev or h is not h_prev or not t == t_prev:
+                if w is not w_prev or h is not h_prev or not t == t_prev:      # else: in place already
                     if w is None:
                         fy = math.nan
                         wrench[i:i + 6] = _NO_WRENCH
                     else:
                         fy = w.fy
                         wrench[i:i + 6] = (w.fx, fy, w.fz, w.mx, w.my, w.mz)
-                    sample = _tuple(Sample, (fy, t, h, -1))         # value, t, health, unanswered (free-running)
+                    sample = samples[n] = _tuple(Sample, (fy, t, h, -1))   # value, t, health, unanswered (free-running)
+                    values[n] = fy
                     slot[2:] = w, t, h, sample
-                samples[n] = sample
-                values[n] = sample.value
         for d in self.lasers:
             r = d.poll(now)
             role = r.role
