@@ -49,3 +49,27 @@ def test_back_to_the_start_after_a_restart():
     random.seed(1)
     for t in sorted(random.uniform(-1, 4) for _ in range(200)):
         assert s(t) == scan(steps, t)
+
+
+def test_the_loop_calls_the_input_with_a_non_decreasing_run_time(tmp_path, monkeypatch):
+    """The precondition of the O(1) step: in a run (no fault reset) the loop's run time never
+    goes back between two calls of the open-loop input."""
+    from rig_runtime import config
+    from rig_runtime.app import runner
+    from rig_runtime.app.dryrun import run_lockstep
+    from rig_runtime.scenario import load_scenario
+
+    calls = []
+    make = runner.open_loop_input
+
+    def recording(ol):
+        u = make(ol)
+
+        def call(t):
+            calls.append(t)
+            return u(t)
+        return call
+    monkeypatch.setattr(runner, "open_loop_input", recording)
+    summary, code = run_lockstep(config.load(), load_scenario("open-loop-steps"), tmp_path / "ol.h5", duration_s=1.0)
+    assert code == 0 and len(calls) > 150
+    assert all(b >= a for a, b in zip(calls, calls[1:]))
