@@ -47,6 +47,17 @@ class Reading(NamedTuple):
 _tuple = tuple.__new__
 
 
+class _FTSlot:
+    """An F/T sensor's part of the poll: its name, its first wrench column and what the
+    latest poll filed (the wrench, its time and health; a NaN time: nothing yet)."""
+
+    __slots__ = ("name", "column", "wrench", "t", "health")
+
+    def __init__(self, name: str, column: int) -> None:
+        self.name, self.column = name, column
+        self.wrench, self.t, self.health = None, math.nan, None
+
+
 def require_complete(cfg: RigConfig) -> None:
     """The device set a run needs: a laser for every role, a drive for every wheel."""
     dcfg = cfg.devices
@@ -100,9 +111,9 @@ class RigDevices:
         self._samples: dict[str, Sample] = {}
         self._values: dict[str, float] = {}
         self._wrench = [math.nan] * len(self.extra_columns)
-        # per F/T sensor: (name, first wrench column, the latest wrench, t, health and Sample):
-        # while the poller has nothing new (it runs slower than the loop) the Sample is reused
-        self._ft_slots = [[n, 6 * i, None, math.nan, None, None] for i, n in enumerate(self.ft_names)]
+        # per F/T sensor what the latest poll filed: while its poller has nothing new (it runs
+        # slower than the loop) the sensor's entries stay as they are
+        self._ft_slots = [_FTSlot(n, len(FT_COMPONENTS) * i) for i, n in enumerate(self.ft_names)]
 
     def channels(self) -> list[Channel]:
         """The supervisor's channels, named as :meth:`poll` names its samples, with each
@@ -185,19 +196,20 @@ class RigDevices:
             fr = self.ft.poll(now)
             wrench = self._wrench
             for slot in self._ft_slots:
-                n, i, w_prev, t_prev, h_prev, sample = slot
-                r = fr[n]
+                name = slot.name
+                r = fr[name]
                 w, t, h = r.wrench, r.t, r.health
-                if w is not w_prev or h is not h_prev or not t == t_prev:      # else: in place already
+                if w is not slot.wrench or h is not slot.health or not t == slot.t:   # else: in place already
+                    i = slot.column
                     if w is None:
                         fy = math.nan
                         wrench[i:i + 6] = _NO_WRENCH
                     else:
                         fy = w.fy
-                        wrench[i:i + 6] = (w.fx, fy, w.fz, w.mx, w.my, w.mz)
-                    sample = samples[n] = _tuple(Sample, (fy, t, h, -1))   # value, t, health, unanswered (free-running)
-                    values[n] = fy
-                    slot[2:] = w, t, h, sample
+                        wrench[i:i + 6] = (w.fx, fy, w.fz, w.mx, w.my, w.mz)      # FT_COMPONENTS
+                    samples[name] = _tuple(Sample, (fy, t, h, -1))   # value, t, health, unanswered (free-running)
+                    values[name] = fy
+                    slot.wrench, slot.t, slot.health = w, t, h
         for d in self.lasers:
             r = d.poll(now)
             role = r.role
