@@ -38,8 +38,9 @@ SPEED_RATIO = 1.15
 #: the grid's lowest |v| as a fraction of schedule.v_min (inside the standstill band): below it
 #: the design of that lowest speed (of v̂'s sign) is used.
 SPEED_FLOOR = 0.5
-#: designs kept per process (a vehicle's speed table is ~40 per carrier, each a few kB)
-DESIGN_CACHE_SIZE = 1024
+#: designs kept per process, least recently used dropped: a vehicle's speed tables are 2 × 42,
+#: a design ~0.1 MB (its outage table: up to degraded.max_s / h floats), so at most ~25 MB
+DESIGN_CACHE_SIZE = 256
 
 
 def _lateral_weights(cfg: RigConfig, carrier: str) -> tuple[tuple[str, str], tuple[float, float]]:
