@@ -10,10 +10,8 @@ python-can bus (SYNC + RPDOs + heartbeat out; TPDO/heartbeat/EMCY in, drained wi
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +20,7 @@ from typing import Iterator, Mapping, NamedTuple, Sequence
 import can
 
 from rig_runtime.config import WHEELS, CanBus, Drive, resolve_config_path
+from rig_runtime.eds import object_dictionary    # the EDS parsed once per process
 from rig_runtime.errors import ConfigError, DeviceInitError
 from rig_runtime.hardware import Driver, Freshness, Health, health
 
@@ -38,26 +37,6 @@ from .cia402 import (  # the codec
 __all__ = ["WheelReading", "DriveReadings", "DriveBus"]
 
 log = logging.getLogger(__name__)
-
-# --------------------------------------------------------------------------- the EDS
-def object_dictionary(path: str | Path, node_id: int):
-    """The object dictionary of the EDS at ``path`` for drive ``node_id`` (its ``$NODEID``
-    entries resolved), parsed once per process and file version (the resolved path, its
-    modification time and size: an edited file is parsed again): every drive and every run
-    of a process share it instead of parsing the file per drive and run. Shared read-only:
-    the driver only looks objects up to encode and decode SDO values, and canopen's
-    ``RemoteNode`` keeps the dictionary as given (tests/test_canopen_eds.py checks that a
-    configure leaves it unchanged). OSError or a parse error: raised, nothing cached."""
-    p = Path(path).resolve()
-    st = os.stat(p)
-    return _parse_eds(str(p), st.st_mtime_ns, st.st_size, node_id)
-
-
-@functools.lru_cache(maxsize=64)
-def _parse_eds(path: str, mtime_ns: int, size: int, node_id: int):
-    import canopen  # heavy; only the blocking start-up needs it
-    return canopen.import_od(path, node_id)
-
 
 # --------------------------------------------------------------------------- readings
 class WheelReading(NamedTuple):

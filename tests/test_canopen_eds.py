@@ -1,5 +1,6 @@
 """The drives' EDS is parsed once per process and file version, and the shared object
-dictionary is left as it was by a driver's start-up (drivers.canopen402.object_dictionary)."""
+dictionary is left as it was by a start-up of the driver against the simulated drives, which
+share it too (rig_runtime.eds.object_dictionary)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,10 @@ import can
 import canopen
 
 from drivers import canopen402
-from drivers.canopen402 import DriveBus, object_dictionary
+from drivers.canopen402 import DriveBus
+from rig_runtime import eds
+from rig_runtime.eds import object_dictionary
+from sim_backend import virtual_drive
 from rig_runtime.config import WHEELS, CanBus, Drive, resolve_config_path
 from sim_backend.virtual_drive import VirtualDriveSet
 
@@ -26,9 +30,9 @@ def snapshot(od) -> bytes:
 
 def test_same_file_and_node_id_is_parsed_once():
     a = object_dictionary(EDS, 3)
-    hits = canopen402._parse_eds.cache_info().hits
+    hits = eds._parse.cache_info().hits
     assert object_dictionary(str(EDS), 3) is a
-    assert canopen402._parse_eds.cache_info().hits == hits + 1
+    assert eds._parse.cache_info().hits == hits + 1
 
 
 def test_the_cached_dictionary_is_the_parse_of_that_node_id():
@@ -57,49 +61,48 @@ def test_an_edited_file_is_parsed_again(tmp_path):
 
 def test_a_missing_file_raises_and_nothing_is_cached(tmp_path):
     p = tmp_path / "none.eds"
-    size = canopen402._parse_eds.cache_info().currsize
+    size = eds._parse.cache_info().currsize
     try:
         object_dictionary(p, 1)
     except OSError:
         pass
     else:
         raise AssertionError("no error for a missing EDS")
-    assert canopen402._parse_eds.cache_info().currsize == size
+    assert eds._parse.cache_info().currsize == size
 
 
-def test_a_start_up_leaves_the_shared_dictionaries_unchanged():
-    """Two configures of the drive bus (two runs of one process) use the same dictionaries,
-    and neither changes them."""
+def test_a_start_up_leaves_the_shared_dictionaries_unchanged(monkeypatch):
+    """Two configures of the drive bus against the simulated drives (two runs of one process):
+    the driver and the simulated drives use the same dictionaries, in both runs, and neither
+    changes them."""
     channel = f"test-{uuid.uuid4().hex}"
     drives = tuple(Drive(wheel=w, node_id=n, rated_current_A=8.0, velocity_factor=1e-4)
                    for w, n in zip(WHEELS, (1, 2, 3, 4)))
     cfg = CanBus(interface="virtual", channel=channel, drives=drives)
     before = {d.node_id: snapshot(object_dictionary(EDS, d.node_id)) for d in drives}
-    ods = []
+    used = {"driver": [], "simulated": []}
+    for module, key in ((canopen402, "driver"), (virtual_drive, "simulated")):
+        def spy(path, node_id, key=key):
+            od = object_dictionary(path, node_id)
+            used[key].append((node_id, od))
+            return od
+        monkeypatch.setattr(module, "object_dictionary", spy)
     for _ in range(2):
         a = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
         b = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
         try:
             vds = VirtualDriveSet(cfg, b)
             drv = DriveBus(cfg, a, period_s=0.005, eds_path=EDS, sdo_timeout_s=2.0)
-            seen = []
-            orig = canopen402.object_dictionary
-
-            def spy(path, node_id):
-                od = orig(path, node_id)
-                seen.append(od)
-                return od
-            canopen402.object_dictionary = spy
             try:
                 with vds.serving(0.0):
                     drv.configure()
             finally:
-                canopen402.object_dictionary = orig
                 drv.close()
-            ods.append(seen)
         finally:
             a.shutdown()
             b.shutdown()
-    assert len(ods[0]) == len(drives) and all(x is y for x, y in zip(*ods))      # the same objects both runs
+    assert len(used["driver"]) == len(used["simulated"]) == 2 * len(drives)
+    ods = {n: od for n, od in used["driver"][:len(drives)]}
+    assert all(od is ods[n] for n, od in used["driver"] + used["simulated"])      # one object per node id
     after = {d.node_id: snapshot(object_dictionary(EDS, d.node_id)) for d in drives}
     assert after == before
