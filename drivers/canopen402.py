@@ -20,6 +20,7 @@ from typing import Iterator, Mapping, NamedTuple, Sequence
 import can
 
 from rig_runtime.config import WHEELS, CanBus, Drive, resolve_config_path
+from rig_runtime.eds import object_dictionary    # the EDS parsed once per process
 from rig_runtime.errors import ConfigError, DeviceInitError
 from rig_runtime.hardware import Driver, Freshness, Health, health
 
@@ -321,7 +322,7 @@ class DriveBus(Driver):
     def _add_node(self, canopen, network, d: _Node):
         """A RemoteNode for drive ``d`` with the EDS object dictionary."""
         try:
-            od = canopen.import_od(str(self.eds_path), d.node_id)
+            od = object_dictionary(self.eds_path, d.node_id)
         except Exception as exc:  # noqa: BLE001
             raise DeviceInitError(self._device(d), f"cannot load EDS {self.eds_path}: {exc}") from exc
         node = canopen.RemoteNode(d.node_id, od)

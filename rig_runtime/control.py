@@ -274,21 +274,30 @@ def make_controller(cfg: ControllerConfig, u_max: float, psi_ref_max: float | No
 
 # --------------------------------------------------------------------------- open loop
 class StepSequence:
-    """Piecewise-constant input: ``[(t0, u0), (t1, u1), …]`` (Fig. 3 style)."""
+    """Piecewise-constant input: ``[(t0, u0), (t1, u1), …]`` (Fig. 3 style); 0 before the
+    first step (several steps at one time: the last one given with the largest u, as sorted).
+
+    Each call moves an index from the step in force at the previous call's t: O(1) amortised
+    while t does not decrease from call to call — the loop's run time (a restart after an
+    operator's fault reset goes back once) — and still right for any t (it walks back)."""
+
+    __slots__ = ("times", "values", "_i")
 
     def __init__(self, steps: Sequence[tuple[float, float]]):
         pts = sorted((float(t), float(u)) for t, u in steps)
         self.times = [t for t, _ in pts]
         self.values = [u for _, u in pts]
+        self._i = -1            # the step in force at the previous call (-1: none yet)
 
     def __call__(self, t: float) -> float:
-        u = 0.0
-        for ti, ui in zip(self.times, self.values):
-            if t >= ti:
-                u = ui
-            else:
-                break
-        return u
+        times, i = self.times, self._i
+        last = len(times) - 1
+        while i < last and times[i + 1] <= t:
+            i += 1
+        while i >= 0 and times[i] > t:
+            i -= 1
+        self._i = i
+        return self.values[i] if i >= 0 else 0.0
 
 
 class Sinusoid:

@@ -21,18 +21,34 @@ from .safety import Channel, Converters, Sample
 
 FT_COMPONENTS = ("fx", "fy", "fz", "mx", "my", "mz")
 FT_RANGE = (300.0, 30.0)    # FT 300 class: ±300 N, ±30 N m (rated range)
+_NO_WRENCH = (math.nan,) * len(FT_COMPONENTS)
 
 
 class Reading(NamedTuple):
-    """Everything one poll brought, immutable and addressed by name: a :class:`Sample` per
-    supervisor channel (lasers by role, wheels by wheel, F/T sensors by name), each
-    channel's latest value by the same name (what the geometry reads), the F/T wrench
-    components (``RigDevices.extra_columns`` order, the log's columns) and the converters."""
+    """Everything one poll brought, addressed by name: a :class:`Sample` per supervisor
+    channel (lasers by role, wheels by wheel, F/T sensors by name), each channel's latest
+    value by the same name (what the geometry reads), the F/T wrench components
+    (``RigDevices.extra_columns`` order, the log's columns) and the converters.
+
+    The mappings and the wrench are the device set's own, filled in place by every poll
+    (names are resolved once, at construction, not per cycle): they hold this cycle's values
+    until the next poll — copy what must outlive the cycle."""
     t: float
     samples: Mapping[str, Sample]
     values: Mapping[str, float]
-    wrench: tuple[float, ...]
+    wrench: Sequence[float]
     converters: Converters
+
+
+class _FTSlot:
+    """An F/T sensor's part of the poll: its name, its first wrench column and what the
+    latest poll filed (the wrench, its time and health; a NaN time: nothing yet)."""
+
+    __slots__ = ("name", "column", "wrench", "t", "health")
+
+    def __init__(self, name: str, column: int) -> None:
+        self.name, self.column = name, column
+        self.wrench, self.t, self.health = None, math.nan, None
 
 
 def require_complete(cfg: RigConfig) -> None:
@@ -83,8 +99,14 @@ class RigDevices:
             self.ft = cls(dcfg.ft, endpoints=dict(ft_endpoints) if ft_endpoints else None, **kw)
         self.ft_names = [s.name for s in dcfg.ft.sensors]
         self.extra_columns = [f"{n}_{c}" for n in self.ft_names for c in FT_COMPONENTS]
-        self._no_wrench = (math.nan,) * 6
         self._configured: list = []
+        # what poll() fills in place (Reading): one entry per channel, the wrench columns
+        self._samples: dict[str, Sample] = {}
+        self._values: dict[str, float] = {}
+        self._wrench = [math.nan] * len(self.extra_columns)
+        # per F/T sensor what the latest poll filed: while its poller has nothing new (it runs
+        # slower than the loop) the sensor's entries stay as they are
+        self._ft_slots = [_FTSlot(n, len(FT_COMPONENTS) * i) for i, n in enumerate(self.ft_names)]
 
     def channels(self) -> list[Channel]:
         """The supervisor's channels, named as :meth:`poll` names its samples, with each
@@ -155,40 +177,51 @@ class RigDevices:
     # ------------------------------------------------------------------ cycle
     def poll(self, now: float) -> Reading:
         """Every device's latest samples by name: the drives and the F/T hand-off first, the
-        lasers last (freshest)."""
-        samples: dict[str, Sample] = {}
-        values: dict[str, float] = {}
+        lasers last (freshest). Fills the device set's own mappings in place (:class:`Reading`)."""
+        samples, values = self._samples, self._values
         rd = self.drives.poll(now)
         ok, cause = True, ""
         lost, off = [], []          # per wheel: each INVALID drive's cause, each power stage not enabled
         for w, r in rd.wheels.items():
-            samples[w] = Sample(r.omega, r.t, r.health, r.syncs_unanswered)
-            values[w] = r.omega
+            v = values[w] = r.omega
+            samples[w] = Sample(value=v, t=r.t, health=r.health, unanswered=r.syncs_unanswered)
             if r.health.state is Freshness.INVALID:
                 lost.append((w, f"drive {r.wheel} (node {r.node_id}): {r.health.cause}"))
                 if ok:
                     ok, cause = False, lost[-1][1]
             if not r.enabled or r.health.state is Freshness.INVALID:     # as the driver's `enabled`
                 off.append(w)
-        bus_ok = rd.bus.state is not Freshness.INVALID
+        bus = rd.bus
+        bus_ok = bus.state is not Freshness.INVALID
         if ok and not bus_ok:
-            ok, cause = False, f"CAN bus: {rd.bus.cause}"
-        extra: list[float] = []
+            ok, cause = False, f"CAN bus: {bus.cause}"
         if self.ft is not None:
             fr = self.ft.poll(now)
-            for n in self.ft_names:
-                r = fr[n]
-                w = r.wrench
-                samples[n] = Sample(math.nan if w is None else w.fy, r.t, r.health)
-                values[n] = samples[n].value
-                extra.extend(self._no_wrench if w is None else (w.fx, w.fy, w.fz, w.mx, w.my, w.mz))
+            wrench = self._wrench
+            for slot in self._ft_slots:
+                name = slot.name
+                r = fr[name]
+                w, t, h = r.wrench, r.t, r.health
+                if w is not slot.wrench or h is not slot.health or not t == slot.t:   # else: in place already
+                    i = slot.column
+                    if w is None:
+                        fy = math.nan
+                        wrench[i:i + 6] = _NO_WRENCH
+                    else:
+                        fy = w.fy
+                        wrench[i:i + 6] = (w.fx, fy, w.fz, w.mx, w.my, w.mz)      # FT_COMPONENTS
+                    samples[name] = Sample(value=fy, t=t, health=h)
+                    values[name] = fy
+                    slot.wrench, slot.t, slot.health = w, t, h
         for d in self.lasers:
             r = d.poll(now)
-            samples[r.role] = Sample(r.value_m, r.t, r.health)
-            values[r.role] = r.value_m
-        return Reading(now, samples, values, tuple(extra),
-                       Converters(ok, cause, rd.enabled, rd.bus_error_t, rd.bus.cause, tuple(lost), tuple(off), bus_ok,
-                                  tuple((w, r.current_A) for w, r in rd.wheels.items())))
+            role = r.role
+            v = values[role] = r.value_m
+            samples[role] = Sample(value=v, t=r.t, health=r.health)
+        conv = Converters(ok=ok, cause=cause, enabled=rd.enabled, bus_error_t=rd.bus_error_t, bus_cause=bus.cause,
+                          drives=tuple(lost), not_enabled=tuple(off), bus_ok=bus_ok,
+                          torque=tuple((w, r.current_A) for w, r in rd.wheels.items()))
+        return Reading(t=now, samples=samples, values=values, wrench=self._wrench, converters=conv)
 
     def write(self, currents: Mapping[str, float], now: float) -> None:
         """Each wheel's current (A) by wheel name."""

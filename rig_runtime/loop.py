@@ -22,8 +22,8 @@ import gc
 import math
 import time
 from dataclasses import dataclass, field
-from operator import attrgetter
-from typing import Callable, Iterable, Mapping, Optional, Sequence
+from operator import attrgetter, itemgetter
+from typing import Callable, Mapping, Optional, Sequence
 
 from .clock import Clock, next_release
 from .config import WHEELS, RigConfig
@@ -101,9 +101,6 @@ class Cycle:
         self.currents = dict.fromkeys(WHEELS, 0.0)      # A per wheel, by name
 
 
-Getter = Callable[[Cycle], Iterable[float]]
-
-
 class ControlLoop:
     """Runs the cycle against a device set with a clock, a supervisor and a recorder; its
     collaborators are given here, at construction."""
@@ -141,26 +138,15 @@ class ControlLoop:
         self.cycle = Cycle()
         self._values: Mapping[str, float] = {}      # this cycle's channel values by name
         self.columns = log_columns(cfg, self.channels, devices.extra_columns, [l.carrier for l in self.observed])
-        self._getters = self._row_getters()
-
-    def _row_getters(self) -> list[Getter]:
-        """One getter per group of :func:`log_columns`, in the same order."""
-        get: list[Getter] = [attrgetter(*CYCLE_FIELDS)]
-        for c in self.channels:
-            if c.kind in LOGGED_KINDS:
-                get.append(lambda cy, c=c: (c.value, cy.t - c.t))
-        get.append(attrgetter("wrench"))
-        get.append(attrgetter("m"))
-        get.append(lambda cy, sp=self.speed: sp.log_values())
-        st = attrgetter(*CONTROLLER_FIELDS)
-        for lane in self.lanes:
-            if lane.controlled:
-                get.append(lambda cy, l=lane, st=st: (*st(l.controller.st), *l.log_values()))
-        get.append(lambda cy: [cy.currents[w] for w in WHEELS])
-        for lane in self.lanes:
-            if lane.observer is not None:
-                get.append(lambda cy, o=lane.observer: o.log_values())
-        return get
+        # what the cycle reads, resolved once here: the geometry, the controlled lanes, and the
+        # row's parts in log_columns order (getters by name, the objects whose values it copies)
+        self._geometry = cfg.geometry
+        self._controlled = [l for l in self.lanes if l.controlled]
+        self._cycle_fields = attrgetter(*CYCLE_FIELDS)
+        self._logged = [c for c in self.channels if c.kind in LOGGED_KINDS]
+        self._controller_fields = attrgetter(*CONTROLLER_FIELDS)
+        self._wheel_currents = itemgetter(*WHEELS)
+        self._observers = [l.observer for l in self.lanes if l.observer is not None]
 
     @property
     def currents(self) -> dict[str, float]:
@@ -232,11 +218,24 @@ class ControlLoop:
         return False
 
     def row(self) -> list[float]:
-        """This cycle's log row, in ``columns`` order."""
-        row: list[float] = []
+        """This cycle's log row, in ``columns`` order (a new list: the recorder may keep it)."""
         cy = self.cycle
-        for get in self._getters:
-            row.extend(get(cy))
+        t = cy.t
+        row = [*self._cycle_fields(cy)]
+        add = row.append
+        for c in self._logged:                  # each logged channel's value and age
+            add(c.value)
+            add(t - c.t)
+        row += cy.wrench
+        row += cy.m
+        row += self.speed.log_values()
+        fields = self._controller_fields
+        for lane in self._controlled:           # CONTROLLER_FIELDS + LANE_FIELDS per controlled carrier
+            row += fields(lane.controller.st)
+            row += lane.log_values()
+        row += self._wheel_currents(cy.currents)
+        for o in self._observers:
+            row += o.log_values()
         return row
 
     # ------------------------------------------------------------------ the cycle
@@ -317,7 +316,7 @@ class ControlLoop:
 
     def _measure(self, reading) -> None:
         """Sec. 2 geometry from the reading by name; each lane takes its carrier's part."""
-        m = self.cycle.m = measure(reading.values, self.cfg.geometry)
+        m = self.cycle.m = measure(reading.values, self._geometry)
         self.cycle.wrench = reading.wrench
         self._values = reading.values
         for lane in self.lanes:
@@ -333,7 +332,7 @@ class ControlLoop:
         # periods lost so far: the misses before this cycle and this release's lateness
         # (a stalled loop is the root cause of what it finds on waking, e.g. a drive watchdog)
         misses = self.stats.overrun_periods + int(self.cycle.lateness / self.h)
-        poses = [(l.carrier, l.y, l.psi) for l in self.lanes if l.controlled]
+        poses = [(l.carrier, l.y, l.psi) for l in self._controlled]
         return sup.cycle(t, reading.samples, reading.converters, poses, misses,
                          rec.healthy if rec is not None else True, rec.error if rec is not None else "",
                          self.speed)

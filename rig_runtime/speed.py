@@ -17,6 +17,7 @@ this runs every cycle.
 from __future__ import annotations
 
 import math
+from operator import itemgetter
 from typing import Mapping, Sequence
 
 from .config import Plant, RigConfig
@@ -43,7 +44,8 @@ class SpeedEstimate:
 
     def __init__(self, carriers: Sequence[str], r0: Mapping[str, float], h: float, f_hz: float):
         self.carriers = tuple(carriers)
-        self._wheels = [CARRIER_WHEELS[c] for c in self.carriers]
+        # each carrier's (left, right) wheel speeds by name, resolved into one getter each here
+        self._wheels = [itemgetter(*CARRIER_WHEELS[c]) for c in self.carriers]
         self._r0 = [0.5 * r0[c] for c in self.carriers]     # r0/2: (ω_l + ω_r) · r0/2
         self._alpha = 1.0 - math.exp(-2.0 * math.pi * f_hz * h)
         self._n = len(self.carriers)
@@ -62,9 +64,10 @@ class SpeedEstimate:
         a = self._alpha
         v, seeded = self.v, self._seeded
         total = 0.0
+        wheels, r0 = self._wheels, self._r0
         for i in range(self._n):
-            left, right = self._wheels[i]
-            raw = (values[left] + values[right]) * self._r0[i]
+            left, right = wheels[i](values)
+            raw = (left + right) * r0[i]
             if raw - raw == 0.0:            # finite
                 if seeded[i]:
                     v[i] += a * (raw - v[i])

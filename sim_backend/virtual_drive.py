@@ -60,6 +60,7 @@ from drivers.cia402 import (
     node_cob_id, velocity_to_raw,
 )
 from rig_runtime.config import WHEELS, CanBus, Drive, resolve_config_path
+from rig_runtime.eds import object_dictionary
 
 __all__ = ["FAULT_KINDS", "VirtualDrive", "VirtualDriveSet"]
 
@@ -129,7 +130,7 @@ class VirtualDrive:
         self.cfg = cfg
         self.wheel = cfg.wheel
         self.node_id = cfg.node_id
-        self.node = canopen.LocalNode(cfg.node_id, canopen.import_od(str(od_path), cfg.node_id))
+        self.node = canopen.LocalNode(cfg.node_id, object_dictionary(od_path, cfg.node_id))   # parsed once per process
         old = self.node.nmt
         self.node.nmt = _SimNmtSlave(cfg.node_id, self.node, self._set_heartbeat_period)
         self.node._write_callbacks.remove(old.on_write)

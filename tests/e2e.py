@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -50,8 +51,15 @@ def shipped_config_for(scenario_name: str) -> Path | None:
     return None
 
 
+@functools.lru_cache(maxsize=1)
+def shipped_config():
+    """The shipped configuration, loaded once per process (a frozen value: every run may share
+    it; a load is ~50 ms of YAML and checks)."""
+    return config.load()
+
+
 def run(tmp_path: Path, scenario, cfg=None, **kw) -> Run:
-    cfg = cfg or config.load()
+    cfg = cfg or shipped_config()
     sc = load_scenario(scenario) if isinstance(scenario, str) else scenario
     taps = []
     rated = {d.node_id: (d.wheel, d.rated_current_A) for d in cfg.devices.can.drives}

@@ -353,38 +353,28 @@ def test_stuck_and_offset_faults_change_what_arrives(server, patient_driver):
 
 @pytest.mark.parametrize("poller", POLLERS)
 def test_poll_never_waits_while_the_device_hangs(server, poller):
-    # a 5 s timeout: the measurement (2500 polls, normally ~50 ms) ends long before the
-    # hanging requests time out, also on a loaded machine
+    """poll() hands over what was published and returns: it never waits for a reply. Both
+    sensors' requests hang (dropout) with a 5 s timeout; a poll that waited for a reply would
+    return only when the request timed out, counted in ``health.timeouts``. 2500 polls return
+    (normally within ~50 ms) each with the last published sample, and afterwards no request
+    has timed out yet: none of them waited. What a poll costs is a measurement
+    (benchmarks/ft_inline_cost.py, docs/performance.md), not this test's assertion."""
     cfg = bus("left", "right", timeout_s=5.0, poller=poller)
     with FTSensorSet(cfg, server.endpoints) as d:
+        n0 = {n: server.served(n) for n in ("left", "right")}
         server.inject("left", "dropout")
         server.inject("right", "dropout")
-        d.poll(time.monotonic())                   # inline: the requests go out here
-        time.sleep(0.05)                           # both requests now hang (5 s timeout)
-        before = d.poll(time.monotonic())["left"].health.timeouts
-        rounds = [poll_costs(d, 500) for _ in range(5)]
-        assert d.poll(time.monotonic())["left"].health.timeouts == before   # still hanging
-        # waiting on the hanging request would cost up to 5 s on a call, and no call may come
-        # near that (a lone call of 0.5 s was seen on a loaded machine: a stall); a call of a
-        # few ms is preemption (up to ~20 of the 2500 calls measured beside two CPU hogs), so
-        # 98 % of the calls must take under 1 ms, and every round's median under 0.1 ms (a
-        # few µs measured)
-        assert all(r[len(r) // 2] < 1e-4 for r in rounds), [f"{r[len(r) // 2] * 1e6:.0f} µs" for r in rounds]
-        assert all(r[-1] < 2.0 for r in rounds), [f"{r[-1] * 1e3:.2f} ms" for r in rounds]
-        slow = sum(c >= 1e-3 for r in rounds for c in r)
-        assert slow <= 50, f"{slow} of 2500 calls took 1 ms or more"
-        wait_for(lambda: d.poll(time.monotonic())["left"].health.timeouts > before, timeout=15.0)
+        # a request of each sensor read after the injection: swallowed, it hangs (inline: the
+        # requests go out in poll())
+        wait_for(lambda: d.poll(time.monotonic()) and all(server.served(n) > n0[n] for n in n0))
+        before = {n: d.poll(time.monotonic())[n].health.timeouts for n in ("left", "right")}
+        polls = [d.poll(time.monotonic()) for _ in range(2500)]
+        after = d.poll(time.monotonic())
+        assert {n: after[n].health.timeouts for n in ("left", "right")} == before   # still hanging
+        published = {"left": W_LEFT, "right": Wrench(fz=100.0)}     # the only values ever served
+        assert all(p[n].wrench == w for p in polls for n, w in published.items())
+        wait_for(lambda: d.poll(time.monotonic())["left"].health.timeouts > before["left"], timeout=15.0)
         server.close()          # EOF ends the next hanging request: close() need not wait 5 s for it
-
-
-def poll_costs(d: FTSensorSet, n: int) -> list[float]:
-    """Sorted wall-clock durations of ``n`` poll() calls."""
-    costs = []
-    for _ in range(n):
-        t0 = time.perf_counter()
-        d.poll(time.monotonic())
-        costs.append(time.perf_counter() - t0)
-    return sorted(costs)
 
 
 @pytest.mark.parametrize("poller", POLLERS)

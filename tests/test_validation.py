@@ -405,13 +405,27 @@ def test_no_room_for_the_recording_ring_is_one_line(tmp_path):
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)       # a write past the limit fails (EFBIG)
         resource.setrlimit(resource.RLIMIT_FSIZE, (64 * 1024, 64 * 1024))
 
-    before = set(Path("/dev/shm").glob("rig-ring-*")) if Path("/dev/shm").is_dir() else set()
-    r = subprocess.run(RIG + ["dry-run", "--log", str(tmp_path / "x.h5")], capture_output=True, text=True,
-                       cwd=tmp_path, timeout=60, preexec_fn=small_files)
+    # this run's own ring files, whatever other runs on the machine create and remove meanwhile:
+    # `rig dry-run` with every temporary file it makes written down (the ring is one)
+    made = tmp_path / "made.txt"
+    note = ("import sys, tempfile\n"
+            "orig = tempfile.mkstemp\n"
+            "def mkstemp(*a, **k):\n"
+            "    fd, path = orig(*a, **k)\n"
+            f"    with open({str(made)!r}, 'a') as f:\n"
+            "        f.write(path + '\\n')\n"
+            "    return fd, path\n"
+            "tempfile.mkstemp = mkstemp\n"
+            "from rig_runtime.app.entry import main\n"
+            "sys.argv = ['rig'] + sys.argv[1:]\n"
+            "sys.exit(main())\n")
+    r = subprocess.run([sys.executable, "-c", note, "dry-run", "--log", str(tmp_path / "x.h5")], capture_output=True,
+                       text=True, cwd=tmp_path, timeout=60, preexec_fn=small_files)
     one_line_error(r, "recorder", "no shared memory for the recording ring")
     assert not (tmp_path / "x.h5").exists()
-    after = set(Path("/dev/shm").glob("rig-ring-*")) if Path("/dev/shm").is_dir() else set()
-    assert after <= before
+    rings = [p for p in made.read_text().split() if Path(p).name.startswith("rig-ring-")]
+    assert rings                                    # the run tried to make its ring …
+    assert not [p for p in rings if Path(p).exists()]       # … and left none behind
 
 
 def test_hold_on_fault_needs_a_ctl_socket(tmp_path):

@@ -4,7 +4,6 @@ the controller off; the speed rules on injected encoder offsets; the paper's set
 bit for bit. One run per scenario, shared by its assertions.
 The simulator follows a scenario's roller speed profile (``speed:``) itself."""
 
-import hashlib
 import json
 import subprocess
 import sys
@@ -19,7 +18,7 @@ from rig_runtime.app.metrics import steps_from_log
 from rig_runtime.app.dryrun import run_lockstep
 from rig_runtime.scenario import load_scenario
 
-from tests import e2e
+from tests import e2e, paper_trace
 
 VEHICLE = config.CONFIG_DIR / "vehicle.yaml"
 
@@ -178,9 +177,8 @@ faults:
 
 
 # ------------------------------------------------------------------ the paper's set-up unchanged
-# Recorded at 318336a (before the vehicle): single-step with configs/sim.yaml, seed 0.
-PAPER_TRACE_SHA256 = "1d87c4eeb73cff9338dc0b3fac6062a9a4e45bebb1acfb3b44cb2a01cd93408f"
-PAPER_TRACE_COLUMNS = ("t_run", "y_r", "psi_ar", "rear_x_I", "rear_psi_ref", "rear_u_cmd", "rear_u_lim", "i_rl", "y_ref")
+# single-step with configs/sim.yaml, seed 0, as 318336a (before the vehicle) ran it: its step
+# metrics, and its trace stored every 10th cycle (tests/paper_trace.py, tests/data/paper_trace.json)
 PAPER_STEP = {"t0": 1.0, "from_mm": 0.0, "to_mm": 2.0, "rise_time_s": 1.26, "overshoot_pct": 6.925575067055778,
               "settling_time_s": 10.125000000000002, "steady_state_error_mm": 0.005281030230267903}
 
@@ -188,11 +186,24 @@ PAPER_STEP = {"t0": 1.0, "from_mm": 0.0, "to_mm": 2.0, "rise_time_s": 1.26, "ove
 def test_the_paper_set_up_is_bit_identical(tmp_path, cfg):
     assert cfg.controller.schedule is None
     s, code = run_lockstep(cfg, load_scenario("single-step"), tmp_path / "paper.h5", seed=0)
-    assert code == 0 and s["cycles"] == 3021
+    assert code == 0 and s["cycles"] == paper_trace.CYCLES
     assert s["steps"] == [{"carrier": "rear", **PAPER_STEP}]
     c = read_log(tmp_path / "paper.h5")["columns"]
-    h = hashlib.sha256()
-    for k in PAPER_TRACE_COLUMNS:
-        h.update(np.ascontiguousarray(c[k], dtype="<f8").tobytes())
-    assert h.hexdigest() == PAPER_TRACE_SHA256
+    changed = paper_trace.differences(c)
+    assert not changed, "the paper's set-up changed:\n" + "\n".join(changed)
     assert np.all(c["rear_g"] == 1.0) and np.all(c["rear_held"] == 0.0)
+
+
+def test_a_changed_paper_trace_is_named_with_where_and_by_how_much():
+    stored = paper_trace.load()
+    idx = paper_trace.rows(paper_trace.CYCLES)
+    c = {}
+    for k in paper_trace.COLUMNS:
+        c[k] = np.zeros(paper_trace.CYCLES)
+        c[k][idx] = stored[k]
+    assert paper_trace.differences(c) == []
+    c["y_r"][idx[50]] += 1e-9
+    (line,) = paper_trace.differences(c)
+    assert line.startswith(f"y_r: first at cycle {idx[50]} ") and "largest |difference| 1e-09" in line
+    assert paper_trace.differences({k: v[:-1] for k, v in c.items()}) == [f"{paper_trace.CYCLES - 1} cycles, "
+                                                                          f"stored {paper_trace.CYCLES}"]

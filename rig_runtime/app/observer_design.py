@@ -18,13 +18,15 @@ module imports neither this module nor numpy/scipy.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg import expm, solve_discrete_are
 
 from ..config import Observer as ObserverConfig
-from ..config import RigConfig
+from ..config import Geometry, Plant, RigConfig
 from ..lanes import CARRIER_WHEELS
 from ..observer import ObserverDesign, SpeedTable, dw_row, dw_row_at  # noqa: F401 (dw_row: tests)
 
@@ -36,13 +38,21 @@ SPEED_RATIO = 1.15
 #: the grid's lowest |v| as a fraction of schedule.v_min (inside the standstill band): below it
 #: the design of that lowest speed (of v̂'s sign) is used.
 SPEED_FLOOR = 0.5
+#: designs kept per process, least recently used dropped: a vehicle's speed tables are 2 × 42,
+#: a design ~0.1 MB (its outage table: up to degraded.max_s / h floats), so at most ~25 MB
+DESIGN_CACHE_SIZE = 256
 
 
 def _lateral_weights(cfg: RigConfig, carrier: str) -> tuple[tuple[str, str], tuple[float, float]]:
     """The carrier's lateral lasers (the stronger first) and ∂y/∂reading of the geometry
+    (:func:`_weights`)."""
+    return _weights(cfg.geometry, carrier)
+
+
+def _weights(g: Geometry, carrier: str) -> tuple[tuple[str, str], tuple[float, float]]:
+    """The carrier's lateral lasers (the stronger first) and ∂y/∂reading of the geometry
     (y_r = y_m − l0 sin ψ_m, y_f = y_m + l0 sin ψ_m, y_m = (b_f + b_r)/2 − b0,
     ψ_m = atan((b_f − b_r)/l_L))."""
-    g = cfg.geometry
     k = g.l0 / g.l_L
     own, other = ("b_r", "b_f") if carrier == "rear" else ("b_f", "b_r")
     return (own, other), (0.5 + k, 0.5 - k)
@@ -56,7 +66,11 @@ def continuous_model(cfg: RigConfig, carrier: str, D: float, v: float | None = N
     and ψ_off,c. The lateral force enters as the plant's creep velocity |v| F_y/(2 c22),
     c22 ≈ c̄11 (the plant model's ESTIMATE, docs/plant-model.md §3)."""
     p = cfg.plant.carrier(carrier)
-    v = p.v if v is None else v
+    return _model(p, carrier, D, p.v if v is None else v)
+
+
+def _model(p: Plant, carrier: str, D: float, v: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`continuous_model` from the carrier's plant values ``p``."""
     a, cyv, w0 = p.c_y * v / (2 * p.l0), p.c_y * v, p.omega0
     fy = abs(v) / (2.0 * p.c11)
     w2 = w0 * w0
@@ -149,17 +163,46 @@ def _outage_closed_form(Phi: np.ndarray, W: np.ndarray, P0: np.ndarray, n_max: i
 
 def design(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None, v: float | None = None) -> ObserverDesign:
     """The carrier's filter as plain numbers at speed ``v`` (None: plant.v; see the module
-    docstring)."""
+    docstring). Memoised on its inputs (:func:`design_inputs`): a process that runs many
+    dry runs designs each filter once."""
+    return _design(*design_inputs(cfg, carrier, ocfg, v))
+
+
+class DesignInputs(NamedTuple):
+    """Every value a design depends on (frozen config values: the memo's key). The design
+    itself (:func:`_design`) sees only these, never the config, so the key cannot miss one."""
+    carrier: str
+    plant: Plant                # the carrier's own plant values (cfg.plant.carrier(carrier))
+    geometry: Geometry
+    observer: ObserverConfig
+    h: float
+    outage_max_s: float         # degraded.max_s: how far the outage table goes
+    window: int                 # limits.innovation_window
+    ft_sensors: tuple[str, ...]
+    v: float
+
+
+def design_inputs(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None,
+                  v: float | None = None) -> DesignInputs:
+    """The inputs of :func:`design` taken from the config."""
     o = ocfg if ocfg is not None else (cfg.observer or ObserverConfig())
-    p, g = cfg.plant.carrier(carrier), cfg.geometry
-    v = p.v if v is None else float(v)
-    h = cfg.controller.h
+    p = cfg.plant.carrier(carrier)
+    return DesignInputs(carrier, p, cfg.geometry, o, cfg.controller.h, cfg.degraded.max_s,
+                        cfg.limits.innovation_window, _ft_sensors(cfg, CARRIER_WHEELS[carrier]),
+                        p.v if v is None else float(v))
+
+
+@functools.lru_cache(maxsize=DESIGN_CACHE_SIZE)
+def _design(carrier: str, p: Plant, g: Geometry, o: ObserverConfig, h: float, outage_max_s: float,
+            window: int, ft_sensors: tuple[str, ...], v: float) -> ObserverDesign:
+    """:func:`design` from its inputs (:class:`DesignInputs`); the result is frozen (shared
+    by every caller with these inputs)."""
     D = o.D if o.D is not None else p.D_min
-    A, Bc = continuous_model(cfg, carrier, D, v)
+    A, Bc = _model(p, carrier, D, v)
     Qc = np.diag([o.q_y ** 2, 0.0, o.q_psi_acc ** 2])
     Ad, Bd, Qd = discretise(A, Bc, Qc, h)
     gy, gr, gu = dw_row_at(p, v)
-    lasers, weights = _lateral_weights(cfg, carrier)
+    lasers, weights = _weights(g, carrier)
     n = o.noise
     r_lat = sum(w * w for w in weights) * n.lateral_laser_m ** 2
     r_psi = 2.0 * n.yaw_laser_m ** 2 / g.d0 ** 2
@@ -169,7 +212,7 @@ def design(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None, v: 
     R_nl = np.diag([r_psi, r_dw])
     K_nl, S_nl = steady_gain(Ad, C[1:], Qd, R_nl)
     # an outage lasts at most degraded.max_s (then the run ends): tabulate no further
-    n_max = int(math.ceil(cfg.degraded.max_s / h)) + 1
+    n_max = int(math.ceil(outage_max_s / h)) + 1
     sig = outage_sigma_y(Ad, Qd, P_full, K_full, C, K_nl, C[1:], R_nl, n_max)
     left, right = CARRIER_WHEELS[carrier]
     flat = lambda M: tuple(float(v) for v in np.asarray(M).ravel())     # noqa: E731
@@ -177,9 +220,9 @@ def design(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None, v: 
         carrier=carrier, A=flat(Ad), B=flat(Bd[:, 0]), E=flat(Bd[:, 1]), F=flat(Bd[:, 2]), c=flat(Bd[:, 3]),
         dw_row=(gy, gr, gu), K_full=flat(K_full), K_nolat=flat(K_nl),
         S_full=flat(np.diag(S_full)), S_nolat=flat(np.diag(S_nl)),
-        window=cfg.limits.innovation_window, lateral_lasers=lasers, lateral_weights=weights,
+        window=window, lateral_lasers=lasers, lateral_weights=weights,
         yaw_lasers=(f"s_{left}", f"s_{right}"), encoders=(left, right),
-        ft_sensors=_ft_sensors(cfg, (left, right)), sigma_y_outage=sig, v=v)
+        ft_sensors=ft_sensors, sigma_y_outage=sig, v=v)
 
 
 def speed_table(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None) -> ObserverDesign:
@@ -194,8 +237,9 @@ def speed_table(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None
     k_lo = math.floor(math.log(SPEED_FLOOR * sch.v_min / ref) / lr)
     k_hi = math.ceil(math.log(max(abs(sch.v_range[0]), abs(sch.v_range[1])) / ref) / lr)
     speeds = [ref * SPEED_RATIO ** k for k in range(k_lo, k_hi + 1)]
-    fw = tuple(design(cfg, carrier, ocfg, v) for v in speeds)
-    bw = tuple(design(cfg, carrier, ocfg, -v) for v in speeds)
+    inputs = design_inputs(cfg, carrier, ocfg)
+    fw = tuple(_design(*inputs._replace(v=v)) for v in speeds)
+    bw = tuple(_design(*inputs._replace(v=-v)) for v in speeds)
     base = (fw if v_d > 0 else bw)[-k_lo]
     table = SpeedTable(v_ref=ref, ratio=SPEED_RATIO, k_lo=k_lo, k_hi=k_hi, forward=fw, backward=bw)
     return dataclasses.replace(base, table=table)

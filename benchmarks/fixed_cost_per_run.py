@@ -1,0 +1,67 @@
+"""What a lockstep dry run costs besides its cycles, run after run in one process (a warm
+worker: a campaign's, a test session's): the wall time of ``--runs`` dry runs of
+``--duration`` s, and inside each the time spent designing the observers
+(``observer_design.designs``) and parsing the drives' EDS (``canopen.import_od``).
+
+Runs the code on ``sys.path``: run it from a tree (``cd TREE && python
+benchmarks/fixed_cost_per_run.py``) to measure that tree.
+
+    python benchmarks/fixed_cost_per_run.py [--config configs/vehicle.yaml] [--runs 4] [--duration 0.1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import canopen  # noqa: E402
+
+from rig_runtime import config  # noqa: E402
+from rig_runtime.app import dryrun, runner  # noqa: E402
+from rig_runtime.scenario import load_scenario  # noqa: E402
+
+spent = {"design": 0.0, "eds": 0.0, "eds_calls": 0}
+
+
+def _timed(f, key, count=None):
+    def call(*a, **k):
+        t = time.perf_counter()
+        try:
+            return f(*a, **k)
+        finally:
+            spent[key] += time.perf_counter() - t
+            if count:
+                spent[count] += 1
+    return call
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", default=str(config.CONFIG_DIR / "vehicle.yaml"))
+    ap.add_argument("--scenario", default="single-step")
+    ap.add_argument("--duration", type=float, default=0.1)
+    ap.add_argument("--runs", type=int, default=4)
+    a = ap.parse_args()
+    canopen.import_od = _timed(canopen.import_od, "eds", "eds_calls")
+    runner.observer_designs = _timed(runner.observer_designs, "design")
+    cfg = config.load(a.config)
+    print(f"{Path(a.config).name}, {a.scenario}, {a.duration:g} s per run, one process")
+    print(f"  {'run':>4s} {'wall s':>8s} {'observer design s':>18s} {'EDS parse s':>12s} {'EDS parses':>11s}")
+    for i in range(a.runs):
+        for k in spent:
+            spent[k] = 0
+        t = time.perf_counter()
+        with tempfile.TemporaryDirectory() as d:
+            dryrun.run_lockstep(cfg, load_scenario(a.scenario), Path(d) / "x.h5", duration_s=a.duration)
+        wall = time.perf_counter() - t
+        print(f"  {i + 1:4d} {wall:8.3f} {spent['design']:18.3f} {spent['eds']:12.4f} {spent['eds_calls']:11d}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
