@@ -3,7 +3,16 @@
 currents the virtual drives apply at its release; between plant steps the same thread
 wakes every ``laser_tick_s`` (1 ms) so the lasers' frames leave in small chunks, as a
 streaming sensor's do. A late thread catches up (every step is integrated, none skipped)
-and is counted. The CAN side is a :mod:`~sim_backend.can_responder` (in a child process by
+and is counted.
+
+A pause — the process stopped (SIGSTOP/SIGCONT, a debugger, a suspended terminal) or not
+scheduled for longer than ``pause_s`` — is noted (one line on stderr, and in the status: the
+count, the longest, the last with the lateness it caused) and serving goes on: the plant
+catches up at most ``max_catchup_s`` of the lost time step by step; the rest it skips (the
+plant stood still while the simulator did; simulated time then lags the wall clock by the
+skipped total, also in the status). The runtime on the other side sees its sensors go stale
+and faults, as it would with a real rig whose sensors stop; the next ``rig run`` connects
+as usual. The CAN side is a :mod:`~sim_backend.can_responder` (in a child process by
 default); wheel speeds go to it, applied currents and session events come back.
 
 Scenario time runs from the responder's session start (every drive reached OPERATION
@@ -38,6 +47,8 @@ __all__ = ["RealtimeSim", "FT_RATE_HZ"]
 
 FT_RATE_HZ = 100.0             # F/T registers refreshed at the FT 300's own output rate
 TIMING_BINS = {"bin_s": 1e-5, "max_s": 0.2, "window_s": 30.0}   # 10 µs bins, the last 30-60 s
+PAUSE_S = 0.1                  # a plant thread this late was paused (stopped or not scheduled)
+MAX_CATCHUP_S = 1.0            # of a pause's lost time, at most this much is integrated step by step
 
 
 class _NullBus(can.BusABC):
@@ -70,7 +81,8 @@ class RealtimeSim:
                  laser_tick_s: float = 0.001, status_file: str | Path | None = None,
                  status_period_s: float = 0.05, ft_rate_hz: float = FT_RATE_HZ, drive_tick_s: float = 0.001,
                  can_responder: str = "process", responder_rt_priority: Optional[int] = None,
-                 log: Callable[[str], None] | None = None) -> None:
+                 log: Callable[[str], None] | None = None, pause_s: float = PAUSE_S,
+                 max_catchup_s: float = MAX_CATCHUP_S) -> None:
         if can_responder not in ("thread", "process"):
             raise ValueError(f"can_responder is 'thread' or 'process', not {can_responder!r}")
         self.cfg = cfg
@@ -79,6 +91,8 @@ class RealtimeSim:
         self.drive_tick_s = drive_tick_s      # the drives' timers (watchdog, heartbeat) granularity
         self.status_file = Path(status_file) if status_file else None
         self.status_period_s = status_period_s
+        self.pause_s = max(pause_s, 2.0 * self.h)
+        self.max_catchup_s = max_catchup_s
         self.ft_period = 1.0 / ft_rate_hz
         self._log = log or (lambda s: print(f"rig sim: {s}", file=sys.stderr, flush=True))
         self._null_bus: Optional[_NullBus] = None
@@ -130,6 +144,10 @@ class RealtimeSim:
         self.max_work = 0.0
         self._lateness = Histogram(**TIMING_BINS)
         self._work = Histogram(**TIMING_BINS)
+        self.pauses = 0                     # see the module docstring
+        self.pause_longest_s = 0.0
+        self.pause_skipped_s = 0.0          # simulated time behind the wall clock by this much
+        self.last_pause: Optional[dict[str, Any]] = None
         self.thread_error = ""
         self._closed = False
 
@@ -235,6 +253,9 @@ class RealtimeSim:
             now = mono()
             ts = now - t0                                   # simulated time = wall time since start
             late = ts - k * tick
+            if late > self.pause_s:
+                t0 = self._paused(late, now)                # skips what is not caught up
+                ts = now - t0
             if late > self.sess_tick_late_max:
                 self.sess_tick_late_max = late
             if ts - k * tick > tick:                        # overslept: next tick from now
@@ -255,6 +276,22 @@ class RealtimeSim:
                 self.can.push_model(self.drives)            # speeds, faults -> the responder process
             for vl in lasers:
                 vl.emit_until(ts, wait=False)
+
+    def _paused(self, late: float, now: float) -> float:
+        """The plant thread was away ``late`` s (a pause, see the module docstring): note it,
+        skip what is beyond ``max_catchup_s``; the (new) wall time of simulated time 0."""
+        skip = max(0.0, late - self.max_catchup_s)
+        if skip > 0.0:
+            self.t_wall0 += skip
+            self.pause_skipped_s += skip
+        self.pauses += 1
+        self.pause_longest_s = max(self.pause_longest_s, late)
+        self.last_pause = {"t_resumed": now, "duration_s": late, "skipped_s": skip,
+                           "caught_up_s": late - skip, "t_sim": self.sim.t}
+        self._log(f"paused {late:.3f} s (stopped or not scheduled) at simulated t={self.sim.t:.3f} s; "
+                  + (f"caught up {late - skip:.3f} s, skipped {skip:.3f} s" if skip else f"caught up {late:.3f} s")
+                  + "; serving again")
+        return self.t_wall0
 
     def _step_plant(self, lateness: float, now: float) -> None:
         cur = self.can.currents                 # what the drives apply now (after their last service)
@@ -293,7 +330,9 @@ class RealtimeSim:
         return {"h_s": self.h, "laser_tick_s": self.laser_tick_s, "steps": self.steps,
                 "late_steps": self.late_steps, "max_lateness_us": self.max_lateness * 1e6,
                 "max_work_us": self.max_work * 1e6,
-                "recent_lateness_us": dist(self._lateness), "recent_work_us": dist(self._work)}
+                "recent_lateness_us": dist(self._lateness), "recent_work_us": dist(self._work),
+                "pauses": {"count": self.pauses, "longest_s": self.pause_longest_s,
+                           "skipped_s": self.pause_skipped_s, "last": self.last_pause}}
 
     def session_stats(self, snap: Optional[dict] = None) -> dict[str, Any]:
         """How promptly the simulator served the current (or last) session, ms: SYNC -> its

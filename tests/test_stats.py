@@ -77,3 +77,36 @@ def test_window_counts_the_current_and_the_previous_window_only():
     w.add(0.001, 2.6)                         # and now it is gone
     assert w.summary()["n"] == 2 and w.summary()["max"] == pytest.approx(0.001)
     assert w.percentile(100) == pytest.approx(0.001, abs=1e-5)
+
+
+def test_a_reader_never_breaks_the_writer_nor_sees_half_a_sample():
+    """rig sim's plant thread adds while its status thread reads (issue 29: a reader's
+    buffer view made the writer's ``over.append`` raise BufferError, and a count without
+    its sample made the reader index past the end)."""
+    import threading
+    h = Histogram(bin_s=1e-5, max_s=0.001, window_s=0.05)    # most samples beyond max_s: kept exactly
+    errors: list[BaseException] = []
+    done = threading.Event()
+    n_add = 60_000
+
+    def write():
+        try:
+            for k in range(n_add):
+                h.add(0.0005 + 0.001 * (k % 7), k * 1e-5)
+        except BaseException as e:      # noqa: BLE001 - the assertion below names it
+            errors.append(e)
+        finally:
+            done.set()
+
+    th = threading.Thread(target=write)
+    th.start()
+    reads = 0
+    try:
+        while not done.is_set() or reads == 0:
+            s = h.summary(1e3)
+            assert s["n"] == 0 or s["p50"] <= s["p99"] <= s["p999"] <= s["max"]
+            reads += 1
+    finally:
+        th.join()
+    assert errors == [] and reads > 0
+    assert h.summary()["max"] == pytest.approx(0.0065)
