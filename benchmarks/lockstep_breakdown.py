@@ -4,24 +4,35 @@ device set's per-cycle calls with timers and runs the single-step scenario.
 Per part: the mean per cycle (what the real-time factor pays) and the median per call
 (robust against other processes preempting this one). In the simulator, "virtual
 drives" handles the runtime's frames (the replies wait in an outbox), "frames sent" sends
-the replies; both the replies, the wheel speeds and the F/T work run while the kernel
-delivers the laser bytes; what is left of that wait is "wait until the laser bytes are
-delivered", the last part of ``advance``. "advance" is the whole simulator step (the
-parts plus what is not timed separately). The runtime's stages of the cycle (loop.py) are
-timed too: the geometry, the measured speed, the supervisor, control (the lanes' schedule
-and law), the output limit and the log row.
+the replies; "laser frames written to the wires" samples, encodes and writes every laser's
+frames (into in-process serial lines with ``sim.wires: memory``, the default, or pty
+pairs with ``kernel``); over ptys the replies, the wheel speeds and the F/T work run while
+the kernel delivers the laser bytes, and what is left of that wait is "wait until the
+laser bytes are delivered" (nothing to wait for on a memory line), the last part of
+``advance``. "advance" is the whole simulator step (the parts plus what is not timed
+separately). The runtime's stages of the cycle (loop.py) are timed too: the geometry, the
+measured speed, the supervisor, the observer, control (the lanes' schedule and law), the
+output limit and the log row.
 
-With several ``--config`` the runs are made one after the other in one process and shown
-side by side (e.g. the paper's single-carrier set-up against the vehicle):
+The two sums at the end are the acceptance of docs/performance.md ("In-memory wires"):
+"wires" = the simulated devices, the drivers and the transport (``advance`` without the
+plant step, plus ``devices.poll`` and ``devices.write``); "plant + runtime stages" = the
+plant step plus the loop's stages.
+
+With several ``--config`` (or ``--wires``) the runs are made one after the other in one
+process and shown side by side (e.g. the paper's single-carrier set-up against the vehicle,
+or memory wires against kernel wires):
 
     python benchmarks/lockstep_breakdown.py [--duration S] [--scenario NAME]
     python benchmarks/lockstep_breakdown.py --config configs/sim.yaml --config configs/vehicle.yaml
+    python benchmarks/lockstep_breakdown.py --wires memory --wires kernel
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import statistics
 import sys
 import tempfile
@@ -69,7 +80,7 @@ def prepare(sim, dev, clock) -> None:
     wrap(sim.drives, "service", "sim:   virtual drives")
     wrap(sim.drives, "release", "sim:   virtual drives: frames sent")
     wrap(sim, "set_laser_distances", "sim:   laser distances (geometry)")
-    wrap(sim._laser_group, "emit", "sim:   laser frames written to ptys")
+    wrap(sim._laser_group, "emit", "sim:   laser frames written to the wires")
     wrap(sim, "set_wheel_speeds", "sim:   wheel speeds")
     if sim.ft is not None:
         wrap(sim.ft, "set_wrench", "sim:   F/T registers")
@@ -84,10 +95,13 @@ def prepare(sim, dev, clock) -> None:
     wrap(dev, "write", "runtime: devices.write")
 
 
-def measure(path, scenario: str, duration: float) -> tuple[dict, dict[str, list[float]]]:
-    """One run of ``scenario`` with config ``path`` (None: the default); its summary and timers."""
+def measure(path, scenario: str, duration: float, wires=None) -> tuple[dict, dict[str, list[float]]]:
+    """One run of ``scenario`` with config ``path`` (None: the default) and ``sim.wires``
+    (None: the config's); its summary and timers."""
     samples.clear()
     cfg = config.load(path) if path else config.load()
+    if wires is not None:
+        cfg = dataclasses.replace(cfg, sim={**(cfg.sim or {}), "wires": wires})
     originals = [(cls, name, getattr(cls, name)) for cls, name, _ in STAGES]
     for cls, name, key in STAGES:
         setattr(cls, name, timed(getattr(cls, name), key))
@@ -108,8 +122,11 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--scenario", default="single-step")
     ap.add_argument("--config", action="append", help="a config (repeat: side by side; default: the shipped one)")
+    ap.add_argument("--wires", action="append", choices=("memory", "kernel"),
+                    help="sim.wires (repeat: side by side; default: the config's)")
     args = ap.parse_args()
-    runs = [(p or "default", *measure(p, args.scenario, args.duration)) for p in (args.config or [None])]
+    runs = [(f"{p or 'default'}" + (f" ({w})" if w else ""), *measure(p, args.scenario, args.duration, w))
+            for p in (args.config or [None]) for w in (args.wires or [None])]
     if len(runs) == 1:
         _, s, smp = runs[0]
         n = s["cycles"]
@@ -119,6 +136,9 @@ def main() -> int:
         for k, v in smp.items():
             if v:
                 print(f"  {k:46s} {sum(v) / n * 1e6:14.1f} {statistics.median(v) * 1e6:12.1f} {len(v) / n:12.2f}")
+        wires, plant_rt = sums(s, smp)
+        print(f"  {'= wires (devices + drivers + transport)':46s} {wires:14.1f}")
+        print(f"  {'= plant step + runtime stages':46s} {plant_rt:14.1f}")
         return 0
     print(f"us: mean per cycle / median per call ({args.scenario}, {args.duration:g} s); config: " +
           ", ".join(f"[{i}] {name}" for i, (name, _, _) in enumerate(runs)))
@@ -132,7 +152,21 @@ def main() -> int:
             v = smp.get(k, [])
             cells.append(f"{sum(v) / s['cycles'] * 1e6:9.1f} {statistics.median(v) * 1e6 if v else 0.0:7.1f}")
         print(f"  {k:46s} " + " ".join(cells))
+    for i, label in enumerate(("= wires (devices + drivers + transport)", "= plant step + runtime stages")):
+        print(f"  {label:46s} " + " ".join(f"{sums(s, smp)[i]:9.1f} {'':>7s}" for _, s, smp in runs))
     return 0
+
+
+def sums(s: dict, smp: dict[str, list[float]]) -> tuple[float, float]:
+    """(wires, plant step + runtime stages), mean us per cycle (see the module docstring)."""
+    n = s["cycles"]
+
+    def tot(k: str) -> float:
+        return sum(smp.get(k, ())) / n * 1e6
+    plant = tot("sim:   plant step")
+    wires = (tot("sim: advance (all below)") - plant + tot("runtime: devices.poll (all below)")
+             + tot("runtime: devices.write"))
+    return wires, plant + sum(tot(key) for _, _, key in STAGES)
 
 
 if __name__ == "__main__":
