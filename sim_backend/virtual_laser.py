@@ -471,15 +471,15 @@ def _await_delivery(pending: list[tuple[VirtualLaser, int]], timeout_s: float = 
                 time.sleep(20e-6)
 
 
-_WIRE = b""
+_WIRE: list[bytes] = []
 
 
-def _wire_bytes() -> bytes:
-    """Wire bytes of every distance value 0..65520 in a row (value x at 3x), built once with
-    the codec."""
-    global _WIRE
+def _wire_bytes() -> list[bytes]:
+    """The 3 wire bytes of every distance value 0..65520 (index x), built once with the
+    codec."""
     if not _WIRE:
-        _WIRE = encode_values(np.arange(MAX_DISTANCE_X + 1))
+        enc = encode_values(np.arange(MAX_DISTANCE_X + 1))
+        _WIRE.extend(enc[3 * x:3 * x + 3] for x in range(MAX_DISTANCE_X + 1))
     return _WIRE
 
 
@@ -562,7 +562,7 @@ class LaserGroup:
             if (d0 - nmax) * 1000.0 - off >= lo and (d0 + nmax) * 1000.0 - off <= hi:
                 xs = [round((((d0 + ne) * 1000.0 - off) * 100.0 / mr + 1.0) * xpp) for ne in noise]
                 x = xs[-1]
-                data = b"".join([enc[3 * v:3 * v + 3] for v in xs])
+                data = b"".join([enc[v] for v in xs])
             else:
                 parts = []
                 for ne in noise:
@@ -575,7 +575,7 @@ class LaserGroup:
                         parts.append(_PEAK_AFTER_BYTES)
                     else:               # in the span this lies within 0..65520
                         x = round((rel * 100.0 / mr + 1.0) * xpp)
-                        parts.append(enc[3 * x:3 * x + 3])
+                        parts.append(enc[x])
                 data = b"".join(parts)
             vl._sampled = vl._released = k
             vl._last_x = x
