@@ -17,7 +17,10 @@ output limit and the log row.
 The two sums at the end are the acceptance of docs/performance.md ("In-memory wires"):
 "wires" = the simulated devices, the drivers and the transport (``advance`` without the
 plant step, plus ``devices.poll`` and ``devices.write``); "plant + runtime stages" = the
-plant step plus the loop's stages.
+plant step plus the loop's stages. Each sum is given from the means and, robust against
+other processes preempting this one on a shared machine, from the medians (median per
+call × calls per cycle); "whole cycle, median" is the median time from one release of the
+lockstep clock to the next.
 
 With several ``--config`` (or ``--wires``) the runs are made one after the other in one
 process and shown side by side (e.g. the paper's single-carrier set-up against the vehicle,
@@ -74,6 +77,13 @@ def wrap(obj, name: str, key: str) -> None:
 
 
 def prepare(sim, dev, clock) -> None:
+    marks = samples["cycle marks"]
+    wait_until, pc = clock.wait_until, time.perf_counter
+
+    def marked(t):
+        marks.append(pc())
+        return wait_until(t)
+    clock.wait_until = marked
     if hasattr(clock, "_advance"):          # the clock holds the bound method already
         clock._advance = timed(clock._advance, "sim: advance (all below)")
     wrap(sim.plant, "step", "sim:   plant step")
@@ -114,6 +124,8 @@ def measure(path, scenario: str, duration: float, wires=None) -> tuple[dict, dic
     finally:
         for cls, name, f in originals:
             setattr(cls, name, f)
+    marks = samples.pop("cycle marks", [])
+    s["cycle_p50_us"] = statistics.median(b - a for a, b in zip(marks, marks[1:])) * 1e6 if len(marks) > 2 else 0.0
     return s, {k: list(v) for k, v in samples.items()}
 
 
@@ -131,20 +143,20 @@ def main() -> int:
         _, s, smp = runs[0]
         n = s["cycles"]
         print(f"{n} cycles, {s['wall_all'] / n * 1e6:.0f} us per cycle in all (incl. set-up), "
-              f"{s['wall_time_s'] / n * 1e6:.0f} us in the loop")
+              f"{s['wall_time_s'] / n * 1e6:.0f} us in the loop, whole cycle median {s['cycle_p50_us']:.1f} us")
         print(f"  {'':46s} {'mean us/cycle':>14s} {'p50 us/call':>12s} {'calls/cycle':>12s}")
         for k, v in smp.items():
             if v:
                 print(f"  {k:46s} {sum(v) / n * 1e6:14.1f} {statistics.median(v) * 1e6:12.1f} {len(v) / n:12.2f}")
-        wires, plant_rt = sums(s, smp)
-        print(f"  {'= wires (devices + drivers + transport)':46s} {wires:14.1f}")
-        print(f"  {'= plant step + runtime stages':46s} {plant_rt:14.1f}")
+        (wires, plant_rt), (wires50, plant_rt50) = sums(s, smp), sums(s, smp, p50=True)
+        print(f"  {'= wires (devices + drivers + transport)':46s} {wires:14.1f} {wires50:12.1f}")
+        print(f"  {'= plant step + runtime stages':46s} {plant_rt:14.1f} {plant_rt50:12.1f}")
         return 0
     print(f"us: mean per cycle / median per call ({args.scenario}, {args.duration:g} s); config: " +
           ", ".join(f"[{i}] {name}" for i, (name, _, _) in enumerate(runs)))
     print(f"  {'':46s} " + " ".join(f"{f'[{i}] mean':>9s} {'p50':>7s}" for i in range(len(runs))))
     print(f"  {'in the loop (whole cycle)':46s} " +
-          " ".join(f"{s['wall_time_s'] / s['cycles'] * 1e6:9.1f} {'':>7s}" for _, s, _ in runs))
+          " ".join(f"{s['wall_time_s'] / s['cycles'] * 1e6:9.1f} {s['cycle_p50_us']:7.1f}" for _, s, _ in runs))
     keys = list(dict.fromkeys(k for _, _, smp in runs for k in smp))
     for k in keys:
         cells = []
@@ -153,16 +165,21 @@ def main() -> int:
             cells.append(f"{sum(v) / s['cycles'] * 1e6:9.1f} {statistics.median(v) * 1e6 if v else 0.0:7.1f}")
         print(f"  {k:46s} " + " ".join(cells))
     for i, label in enumerate(("= wires (devices + drivers + transport)", "= plant step + runtime stages")):
-        print(f"  {label:46s} " + " ".join(f"{sums(s, smp)[i]:9.1f} {'':>7s}" for _, s, smp in runs))
+        print(f"  {label:46s} " + " ".join(f"{sums(s, smp)[i]:9.1f} {sums(s, smp, p50=True)[i]:7.1f}"
+                                           for _, s, smp in runs))
     return 0
 
 
-def sums(s: dict, smp: dict[str, list[float]]) -> tuple[float, float]:
-    """(wires, plant step + runtime stages), mean us per cycle (see the module docstring)."""
+def sums(s: dict, smp: dict[str, list[float]], p50: bool = False) -> tuple[float, float]:
+    """(wires, plant step + runtime stages), us per cycle (see the module docstring): from
+    the means, or (``p50``) from median per call × calls per cycle."""
     n = s["cycles"]
 
     def tot(k: str) -> float:
-        return sum(smp.get(k, ())) / n * 1e6
+        v = smp.get(k, ())
+        if not v:
+            return 0.0
+        return statistics.median(v) * len(v) / n * 1e6 if p50 else sum(v) / n * 1e6
     plant = tot("sim:   plant step")
     wires = (tot("sim: advance (all below)") - plant + tot("runtime: devices.poll (all below)")
              + tot("runtime: devices.write"))
