@@ -17,7 +17,10 @@ output limit and the log row.
 The two sums at the end are the acceptance of docs/performance.md ("In-memory wires"):
 "wires" = the simulated devices, the drivers and the transport (``advance`` without the
 plant step, plus ``devices.poll`` and ``devices.write``); "plant + runtime stages" = the
-plant step plus the loop's stages. Each sum is given from the means and, robust against
+plant step plus the loop's stages. The plant step is ``SimulatedRig.step``: the plant's own
+step plus what the simulation does around it each step (scenario forces and faults
+switched, the roller speed of the scenario's profile, the free-spinning lifted wheels);
+the plant's own step alone is shown inside it. Each sum is given from the means and, robust against
 other processes preempting this one on a shared machine, from the medians (median per
 call × calls per cycle); "whole cycle, median" is the median time from one release of the
 lockstep clock to the next.
@@ -86,7 +89,8 @@ def prepare(sim, dev, clock) -> None:
     clock.wait_until = marked
     if hasattr(clock, "_advance"):          # the clock holds the bound method already
         clock._advance = timed(clock._advance, "sim: advance (all below)")
-    wrap(sim.plant, "step", "sim:   plant step")
+    wrap(sim, "step", "sim:   plant step (SimulatedRig.step)")
+    wrap(sim.plant, "step", "sim:     the plant alone (Plant.step)")
     wrap(sim.drives, "service", "sim:   virtual drives")
     wrap(sim.drives, "release", "sim:   virtual drives: frames sent")
     wrap(sim, "set_laser_distances", "sim:   laser distances (geometry)")
@@ -180,7 +184,7 @@ def sums(s: dict, smp: dict[str, list[float]], p50: bool = False) -> tuple[float
         if not v:
             return 0.0
         return statistics.median(v) * len(v) / n * 1e6 if p50 else sum(v) / n * 1e6
-    plant = tot("sim:   plant step")
+    plant = tot("sim:   plant step (SimulatedRig.step)")
     wires = (tot("sim: advance (all below)") - plant + tot("runtime: devices.poll (all below)")
              + tot("runtime: devices.write"))
     return wires, plant + sum(tot(key) for _, _, key in STAGES)
