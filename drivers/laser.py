@@ -65,7 +65,7 @@ class LaserDriver(Driver):
     ``port`` overrides ``cfg.port`` (the simulated backend passes a pty path or a
     ``mem://`` URL). Any name pyserial opens is a port (:mod:`drivers.ports`): a tty is
     read with one TIOCINQ query and one ``read(2)``, a port without a file descriptor
-    (a URL) with ``in_waiting`` and ``read`` — the same bytes either way. Health:
+    (a URL) with pyserial's ``read_all`` — the same bytes either way. Health:
     INVALID when the latest value is an error code (cause names it) or the read failed
     (a hang-up included); FRESH otherwise, whatever the age of the latest value — the
     supervisor judges the age from ``t`` (one rule, one setting). ``poll`` never raises.
@@ -133,11 +133,11 @@ class LaserDriver(Driver):
         except HangUp as exc:
             raise DeviceIOError(self.name, "device disconnected (hang-up on the port)") from exc
 
-    def _waiting(self, ser) -> int:
-        """Bytes a port without a file descriptor holds (pyserial's ``in_waiting``); a
-        hang-up raises as for a tty."""
+    def _read_all(self, ser) -> bytes:
+        """What a port without a file descriptor holds (pyserial's ``read_all``: never
+        waits); a hang-up raises as for a tty."""
         try:
-            return ser.in_waiting
+            return ser.read_all()
         except HangUp as exc:
             raise DeviceIOError(self.name, "device disconnected (hang-up on the port)") from exc
 
@@ -154,8 +154,7 @@ class LaserDriver(Driver):
                 n = self._pending(fd)
                 data = _os_read(fd, n) if n > 0 else b""
             else:                               # a port without a file descriptor (a URL)
-                n = self._waiting(ser)
-                data = ser.read(n) if n > 0 else b""
+                data = self._read_all(ser)
         except BlockingIOError:
             data = b""
         except Exception as exc:  # noqa: BLE001 - poll must not raise inside the loop

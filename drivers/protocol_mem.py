@@ -3,10 +3,11 @@
 
 pyserial finds this module through ``serial.protocol_handler_packages`` (the package
 ``drivers`` is added there by :mod:`drivers.ports`). The port has no file descriptor
-(``fd`` is None): a driver reads it through ``in_waiting`` and ``read``, as any pyserial
-port without one (``socket://``, ``rfc2217://``). Line settings are accepted and ignored
-(the wire carries bytes, not symbols). A hung-up line answers ``in_waiting`` with
-:class:`drivers.tty.HangUp` once its bytes are read, as a tty's TIOCINQ does with EIO.
+(``fd`` is None): a driver reads it through ``in_waiting`` and ``read`` or ``read_all``,
+as any pyserial port without one (``socket://``, ``rfc2217://``). Line settings are
+accepted and ignored (the wire carries bytes, not symbols). A hung-up line answers
+``in_waiting`` and ``read_all`` with :class:`drivers.tty.HangUp` once its bytes are read,
+as a tty's TIOCINQ does with EIO.
 """
 
 from __future__ import annotations
@@ -64,6 +65,18 @@ class Serial(SerialBase):
         if end is None:
             raise PortNotOpenError()
         return end.read(size)
+
+    def read_all(self) -> bytes:
+        """Every unread byte, in one call (never waits)."""
+        end = self._end
+        if end is None:
+            raise PortNotOpenError()
+        rx = end.rx
+        if rx.buf:
+            return rx.read()
+        if rx.closed:
+            raise HangUp(errno.EIO, "hang-up on the port")
+        return b""
 
     def write(self, data) -> int:
         end = self._end
