@@ -4,24 +4,41 @@ device set's per-cycle calls with timers and runs the single-step scenario.
 Per part: the mean per cycle (what the real-time factor pays) and the median per call
 (robust against other processes preempting this one). In the simulator, "virtual
 drives" handles the runtime's frames (the replies wait in an outbox), "frames sent" sends
-the replies; both the replies, the wheel speeds and the F/T work run while the kernel
-delivers the laser bytes; what is left of that wait is "wait until the laser bytes are
-delivered", the last part of ``advance``. "advance" is the whole simulator step (the
-parts plus what is not timed separately). The runtime's stages of the cycle (loop.py) are
-timed too: the geometry, the measured speed, the supervisor, control (the lanes' schedule
-and law), the output limit and the log row.
+the replies; "laser frames written to the wires" samples, encodes and writes every laser's
+frames (into in-process serial lines with ``sim.wires: memory``, the default, or pty
+pairs with ``kernel``); over ptys the replies, the wheel speeds and the F/T work run while
+the kernel delivers the laser bytes, and what is left of that wait is "wait until the
+laser bytes are delivered" (nothing to wait for on a memory line), the last part of
+``advance``. "advance" is the whole simulator step (the parts plus what is not timed
+separately). The runtime's stages of the cycle (loop.py) are timed too: the geometry, the
+measured speed, the supervisor, the observer, control (the lanes' schedule and law), the
+output limit and the log row.
 
-With several ``--config`` the runs are made one after the other in one process and shown
-side by side (e.g. the paper's single-carrier set-up against the vehicle):
+The two sums at the end are the acceptance of docs/performance.md ("In-memory wires"):
+"wires" = the simulated devices, the drivers and the transport (``advance`` without the
+plant step, plus ``devices.poll`` and ``devices.write``); "plant + runtime stages" = the
+plant step plus the loop's stages. The plant step is ``SimulatedRig.step``: the plant's own
+step plus what the simulation does around it each step (scenario forces and faults
+switched, the roller speed of the scenario's profile, the free-spinning lifted wheels);
+the plant's own step alone is shown inside it. Each sum is given from the means and, robust against
+other processes preempting this one on a shared machine, from the medians (median per
+call × calls per cycle); "whole cycle, median" is the median time from one release of the
+lockstep clock to the next.
+
+With several ``--config`` (or ``--wires``) the runs are made one after the other in one
+process and shown side by side (e.g. the paper's single-carrier set-up against the vehicle,
+or memory wires against kernel wires):
 
     python benchmarks/lockstep_breakdown.py [--duration S] [--scenario NAME]
     python benchmarks/lockstep_breakdown.py --config configs/sim.yaml --config configs/vehicle.yaml
+    python benchmarks/lockstep_breakdown.py --wires memory --wires kernel
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import statistics
 import sys
 import tempfile
@@ -63,13 +80,21 @@ def wrap(obj, name: str, key: str) -> None:
 
 
 def prepare(sim, dev, clock) -> None:
+    marks = samples["cycle marks"]
+    wait_until, pc = clock.wait_until, time.perf_counter
+
+    def marked(t):
+        marks.append(pc())
+        return wait_until(t)
+    clock.wait_until = marked
     if hasattr(clock, "_advance"):          # the clock holds the bound method already
         clock._advance = timed(clock._advance, "sim: advance (all below)")
-    wrap(sim.plant, "step", "sim:   plant step")
+    wrap(sim, "step", "sim:   plant step (SimulatedRig.step)")
+    wrap(sim.plant, "step", "sim:     the plant alone (Plant.step)")
     wrap(sim.drives, "service", "sim:   virtual drives")
     wrap(sim.drives, "release", "sim:   virtual drives: frames sent")
     wrap(sim, "set_laser_distances", "sim:   laser distances (geometry)")
-    wrap(sim._laser_group, "emit", "sim:   laser frames written to ptys")
+    wrap(sim._laser_group, "emit", "sim:   laser frames written to the wires")
     wrap(sim, "set_wheel_speeds", "sim:   wheel speeds")
     if sim.ft is not None:
         wrap(sim.ft, "set_wrench", "sim:   F/T registers")
@@ -84,10 +109,13 @@ def prepare(sim, dev, clock) -> None:
     wrap(dev, "write", "runtime: devices.write")
 
 
-def measure(path, scenario: str, duration: float) -> tuple[dict, dict[str, list[float]]]:
-    """One run of ``scenario`` with config ``path`` (None: the default); its summary and timers."""
+def measure(path, scenario: str, duration: float, wires=None) -> tuple[dict, dict[str, list[float]]]:
+    """One run of ``scenario`` with config ``path`` (None: the default) and ``sim.wires``
+    (None: the config's); its summary and timers."""
     samples.clear()
     cfg = config.load(path) if path else config.load()
+    if wires is not None:
+        cfg = dataclasses.replace(cfg, sim={**(cfg.sim or {}), "wires": wires})
     originals = [(cls, name, getattr(cls, name)) for cls, name, _ in STAGES]
     for cls, name, key in STAGES:
         setattr(cls, name, timed(getattr(cls, name), key))
@@ -100,6 +128,8 @@ def measure(path, scenario: str, duration: float) -> tuple[dict, dict[str, list[
     finally:
         for cls, name, f in originals:
             setattr(cls, name, f)
+    marks = samples.pop("cycle marks", [])
+    s["cycle_p50_us"] = statistics.median(b - a for a, b in zip(marks, marks[1:])) * 1e6 if len(marks) > 2 else 0.0
     return s, {k: list(v) for k, v in samples.items()}
 
 
@@ -108,23 +138,29 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--scenario", default="single-step")
     ap.add_argument("--config", action="append", help="a config (repeat: side by side; default: the shipped one)")
+    ap.add_argument("--wires", action="append", choices=("memory", "kernel"),
+                    help="sim.wires (repeat: side by side; default: the config's)")
     args = ap.parse_args()
-    runs = [(p or "default", *measure(p, args.scenario, args.duration)) for p in (args.config or [None])]
+    runs = [(f"{p or 'default'}" + (f" ({w})" if w else ""), *measure(p, args.scenario, args.duration, w))
+            for p in (args.config or [None]) for w in (args.wires or [None])]
     if len(runs) == 1:
         _, s, smp = runs[0]
         n = s["cycles"]
         print(f"{n} cycles, {s['wall_all'] / n * 1e6:.0f} us per cycle in all (incl. set-up), "
-              f"{s['wall_time_s'] / n * 1e6:.0f} us in the loop")
+              f"{s['wall_time_s'] / n * 1e6:.0f} us in the loop, whole cycle median {s['cycle_p50_us']:.1f} us")
         print(f"  {'':46s} {'mean us/cycle':>14s} {'p50 us/call':>12s} {'calls/cycle':>12s}")
         for k, v in smp.items():
             if v:
                 print(f"  {k:46s} {sum(v) / n * 1e6:14.1f} {statistics.median(v) * 1e6:12.1f} {len(v) / n:12.2f}")
+        (wires, plant_rt), (wires50, plant_rt50) = sums(s, smp), sums(s, smp, p50=True)
+        print(f"  {'= wires (devices + drivers + transport)':46s} {wires:14.1f} {wires50:12.1f}")
+        print(f"  {'= plant step + runtime stages':46s} {plant_rt:14.1f} {plant_rt50:12.1f}")
         return 0
     print(f"us: mean per cycle / median per call ({args.scenario}, {args.duration:g} s); config: " +
           ", ".join(f"[{i}] {name}" for i, (name, _, _) in enumerate(runs)))
     print(f"  {'':46s} " + " ".join(f"{f'[{i}] mean':>9s} {'p50':>7s}" for i in range(len(runs))))
     print(f"  {'in the loop (whole cycle)':46s} " +
-          " ".join(f"{s['wall_time_s'] / s['cycles'] * 1e6:9.1f} {'':>7s}" for _, s, _ in runs))
+          " ".join(f"{s['wall_time_s'] / s['cycles'] * 1e6:9.1f} {s['cycle_p50_us']:7.1f}" for _, s, _ in runs))
     keys = list(dict.fromkeys(k for _, _, smp in runs for k in smp))
     for k in keys:
         cells = []
@@ -132,7 +168,26 @@ def main() -> int:
             v = smp.get(k, [])
             cells.append(f"{sum(v) / s['cycles'] * 1e6:9.1f} {statistics.median(v) * 1e6 if v else 0.0:7.1f}")
         print(f"  {k:46s} " + " ".join(cells))
+    for i, label in enumerate(("= wires (devices + drivers + transport)", "= plant step + runtime stages")):
+        print(f"  {label:46s} " + " ".join(f"{sums(s, smp)[i]:9.1f} {sums(s, smp, p50=True)[i]:7.1f}"
+                                           for _, s, smp in runs))
     return 0
+
+
+def sums(s: dict, smp: dict[str, list[float]], p50: bool = False) -> tuple[float, float]:
+    """(wires, plant step + runtime stages), us per cycle (see the module docstring): from
+    the means, or (``p50``) from median per call × calls per cycle."""
+    n = s["cycles"]
+
+    def tot(k: str) -> float:
+        v = smp.get(k, ())
+        if not v:
+            return 0.0
+        return statistics.median(v) * len(v) / n * 1e6 if p50 else sum(v) / n * 1e6
+    plant = tot("sim:   plant step (SimulatedRig.step)")
+    wires = (tot("sim: advance (all below)") - plant + tot("runtime: devices.poll (all below)")
+             + tot("runtime: devices.write"))
+    return wires, plant + sum(tot(key) for _, _, key in STAGES)
 
 
 if __name__ == "__main__":

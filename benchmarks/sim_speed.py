@@ -1,7 +1,8 @@
 """Speed of the simulated rig, with the stiff scipy reference as the baseline of the same run.
 
 - ``full_path_rtf``: real-time factor of a lockstep dry run over the full protocol path
-  (ptys, CAN, Modbus TCP, the runtime's own drivers, loop, supervisor and recorder);
+  (laser lines, CAN, Modbus TCP frames — on in-process wires with the default `sim.wires: memory` —
+  the runtime's own drivers, loop, supervisor and recorder);
 - ``plant_rtf``: the plant alone on the open-loop steps scenario (Fig. 3 style, the stiff
   D = 100 / D_min switching and the hysteresis);
 - ``reference_rtf``: ``scipy.integrate.solve_ivp(Radau, rtol=1e-10, atol=1e-12)`` on the

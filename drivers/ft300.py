@@ -54,15 +54,17 @@ class FTReading(NamedTuple):
 
 class _View:
     """A sensor's latest publication, its sample's saturation (:attr:`Wrench.saturation`,
-    worked out once per publication) and the health built from them, kept until they change."""
+    worked out once per publication) and the health built from them and the poller's
+    failure (``dead``), kept until one of them changes."""
 
-    __slots__ = ("name", "pub", "saturation", "health")
+    __slots__ = ("name", "pub", "saturation", "health", "dead")
 
     def __init__(self, name: str) -> None:
         self.name = name
         self.pub: Optional[Published] = None
         self.saturation = ""
         self.health: Optional[Health] = None
+        self.dead = ""
 
 
 class FTSensorSet(Driver):
@@ -113,12 +115,15 @@ class FTSensorSet(Driver):
         out = {}
         dead = self._poller.failure()       # once per poll (a system call in process mode)
         for v, p in zip(self._views, self._poller.latest(now)):
-            if p is not v.pub:
-                v.saturation = p.wrench.saturation if p.wrench is not None else ""
-                v.pub = p
+            h = v.health
+            if p is not v.pub or dead != v.dead or h is None:   # else: the same health again
+                if p is not v.pub:
+                    v.saturation = p.wrench.saturation if p.wrench is not None else ""
+                    v.pub = p
+                v.dead = dead
+                state, cause = self._classify(p, v.saturation, dead)
+                h = v.health = health(h, state, cause, p.bad_frames, p.timeouts, p.errors)
             age = now - p.t if p.wrench is not None else math.inf
-            state, cause = self._classify(p, v.saturation, dead)
-            h = v.health = health(v.health, state, cause, p.bad_frames, p.timeouts, p.errors)
             out[v.name] = FTReading(p.wrench, p.t, age, h)
         return out
 

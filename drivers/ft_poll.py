@@ -3,7 +3,9 @@ and what is published per sensor — shared by every poller (:mod:`drivers.ft_po
 thread, inline; :mod:`drivers.ft_process`: a separate process).
 
 * links — one per distinct connection: :class:`TcpLink` (Modbus TCP with
-  :mod:`drivers.ft_modbus` on a non-blocking socket, one request in flight) or
+  :mod:`drivers.ft_modbus` on a non-blocking socket, one request in flight; an endpoint
+  ``("mem://NAME", port)`` is an in-process stream of :mod:`rig_runtime.wires` instead,
+  which carries the same frames and answers the same calls) or
   :class:`RtuLink` (pymodbus's synchronous serial client, imported only for RTU sensors);
 * :class:`PollCore` — connects, sends, reads, and classifies each transaction's outcome
   (sample, saturated sample, Modbus exception, timeout, bad frame, lost connection, failed
@@ -32,6 +34,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Optional
 
+from rig_runtime import wires
 from rig_runtime.clock import as_background_thread
 from rig_runtime.config import FTBus, FTSensor
 
@@ -123,7 +126,9 @@ class Link:
 
 class TcpLink(Link):
     """Modbus TCP with :mod:`drivers.ft_modbus`: a non-blocking socket, one request in
-    flight, the reply assembled from whatever ``recv`` returns."""
+    flight, the reply assembled from whatever ``recv`` returns. A ``mem://`` host is an
+    in-process stream (:class:`rig_runtime.wires.WireEnd`: ``send``/``recv``/``close`` as a
+    non-blocking socket answers them; a connect completes within the call)."""
 
     def __init__(self, *a: Any) -> None:
         super().__init__(*a)
@@ -141,6 +146,9 @@ class TcpLink(Link):
 
     def connect(self, timeout_s: float) -> None:
         self.close()
+        if wires.is_url(self.host):
+            self.sock = wires.connect(self.host)        # type: ignore[assignment]
+            return
         sock = socket.create_connection(self.addr or (self.host, self.port), timeout=timeout_s)
         self._adopt(sock)
         self.addr = sock.getpeername()
@@ -150,6 +158,9 @@ class TcpLink(Link):
         connected already (a peer on this host: the handshake completes within the call),
         False while in progress (:meth:`connect_done`); OSError if it failed already."""
         self.close()
+        if wires.is_url(self.host):
+            self.sock = wires.connect(self.host)        # type: ignore[assignment]
+            return True
         addr = self.addr or (self.host, self.port)
         sock = socket.socket(socket.AF_INET6 if ":" in addr[0] else socket.AF_INET, socket.SOCK_STREAM)
         sock.setblocking(False)
@@ -383,6 +394,16 @@ class PollCore:
     def _collect(self, inflight: list[TcpLink]) -> None:
         """Wait for the replies of requests just sent (at most ``timeout_s``), classify each."""
         deadline = time.monotonic() + self.cfg.timeout_s
+        streams = [link for link in inflight if isinstance(link.sock, wires.WireEnd)]
+        for link in streams:                # in-process: wait on the wire itself
+            while not self.on_readable(link):
+                remaining = deadline - time.monotonic()
+                if remaining <= 0.0:
+                    self.give_up(link)
+                    break
+                link.sock.wait_readable(remaining)      # type: ignore[union-attr]
+        if streams:
+            inflight = [link for link in inflight if link not in streams]
         pending = {link.sock.fileno(): link for link in inflight}   # type: ignore[union-attr]
         poller = select.poll()
         for fd in pending:

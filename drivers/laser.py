@@ -17,6 +17,7 @@ from rig_runtime.config import LaserDevice
 from rig_runtime.errors import DeviceInitError, DeviceIOError
 from rig_runtime.hardware import Driver, Freshness, Health, health
 
+from .ports import open_port
 from .tty import HangUp, bytes_waiting
 from .optoncdt import MAX_DISTANCE_X, X_PER_PERCENT, Decoded, FrameDecoder, error_reason
 
@@ -61,7 +62,10 @@ class LaserReading(NamedTuple):
 class LaserDriver(Driver):
     """One optoNCDT 1420 on a serial port (pyserial, non-blocking).
 
-    ``port`` overrides ``cfg.port`` (the simulated backend passes a pty path). Health:
+    ``port`` overrides ``cfg.port`` (the simulated backend passes a pty path or a
+    ``mem://`` URL). Any name pyserial opens is a port (:mod:`drivers.ports`): a tty is
+    read with one TIOCINQ query and one ``read(2)``, a port without a file descriptor
+    (a URL) with pyserial's ``read_all`` — the same bytes either way. Health:
     INVALID when the latest value is an error code (cause names it) or the read failed
     (a hang-up included); FRESH otherwise, whatever the age of the latest value — the
     supervisor judges the age from ``t`` (one rule, one setting). ``poll`` never raises.
@@ -105,9 +109,9 @@ class LaserDriver(Driver):
         """Open the port 8N1 with ``timeout=0`` and drop bytes buffered before now."""
         self._reset_state()
         try:
-            ser = serial.Serial(port=self.port, baudrate=self.cfg.baudrate,
-                                bytesize=serial.EIGHTBITS, parity=serial.PARITY_NONE,
-                                stopbits=serial.STOPBITS_ONE, timeout=0, write_timeout=0)
+            ser = open_port(self.port, baudrate=self.cfg.baudrate,
+                            bytesize=serial.EIGHTBITS, parity=serial.PARITY_NONE,
+                            stopbits=serial.STOPBITS_ONE, timeout=0, write_timeout=0)
             ser.reset_input_buffer()
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DeviceInitError(self.name, f"cannot open serial port {self.port!r}: {exc}") from exc
@@ -129,6 +133,14 @@ class LaserDriver(Driver):
         except HangUp as exc:
             raise DeviceIOError(self.name, "device disconnected (hang-up on the port)") from exc
 
+    def _read_all(self, ser) -> bytes:
+        """What a port without a file descriptor holds (pyserial's ``read_all``: never
+        waits); a hang-up raises as for a tty."""
+        try:
+            return ser.read_all()
+        except HangUp as exc:
+            raise DeviceIOError(self.name, "device disconnected (hang-up on the port)") from exc
+
     # ------------------------------------------------------------------ cycle
     def poll(self, now: float) -> LaserReading:
         """Drain the port, decode, and report the latest value with its health."""
@@ -136,9 +148,13 @@ class LaserDriver(Driver):
         if ser is None:
             return self._reading(Freshness.INVALID, "port not configured", math.nan, 0)
         try:
-            # read only what the line discipline holds: never a wait for the kernel's worker
-            n = self._pending(ser.fd)
-            data = _os_read(ser.fd, n) if n > 0 else b""
+            fd = getattr(ser, "fd", None)
+            if fd is not None:
+                # read only what the line discipline holds: never a wait for the kernel's worker
+                n = self._pending(fd)
+                data = _os_read(fd, n) if n > 0 else b""
+            else:                               # a port without a file descriptor (a URL)
+                data = self._read_all(ser)
         except BlockingIOError:
             data = b""
         except Exception as exc:  # noqa: BLE001 - poll must not raise inside the loop

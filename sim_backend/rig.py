@@ -1,7 +1,11 @@
 """The simulated rig: the plant with a virtual device on the other end of every wire.
 
-Lasers stream frames into pty pairs, the converters are CiA 402 drives on a python-can
-bus, the force–torque sensors sit behind real Modbus TCP servers on 127.0.0.1. The
+Lasers stream frames into serial lines, the converters are CiA 402 drives on a python-can
+bus, the force–torque sensors sit behind Modbus TCP servers. The wires are in-process
+(``sim.wires: memory``, the default: :mod:`rig_runtime.wires` byte pipes, ``mem://`` URLs
+the drivers open like any port or endpoint) or the kernel's (``kernel``: pty pairs and
+TCP on 127.0.0.1, what ``rig sim`` serves to other processes); the same bytes either way.
+The CAN bus is in-process in both (``sim.can_bus``). The
 runtime reaches the simulated rig only through those transports (``laser_ports``,
 ``runtime_bus()``, ``ft_endpoints``) and through its clock,
 ``LockstepClock(advance=sim.advance)``: ``advance(t)`` completes every delivery up to
@@ -52,10 +56,18 @@ _NO_FORCES = (0.0, 0.0, 0.0, 0.0)
 
 
 class SimulatedRig:
+    """``wires``: "memory" or "kernel" (None: ``sim.wires``; always "kernel" with a
+    ``drive_bus``, i.e. for ``rig sim``, whose clients are other processes)."""
+
     def __init__(self, cfg: RigConfig, scenario: Optional[Scenario] = None, seed: Optional[int] = None,
-                 drive_bus: Optional[can.BusABC] = None):
+                 drive_bus: Optional[can.BusABC] = None, wires: Optional[str] = None):
         self.cfg = cfg
         self.sc = sim_config(cfg)
+        if wires is None:
+            wires = "kernel" if drive_bus is not None else self.sc.wires
+        if wires not in ("memory", "kernel"):
+            raise ValueError(f"wires must be 'memory' or 'kernel', got {wires!r}")
+        self.wires = wires
         self.miswire = self.sc.miswire or miswire.NONE
         self.seed = self.sc.seed if seed is None else seed
         self.scenario = scenario
@@ -149,7 +161,8 @@ class SimulatedRig:
         self.lasers: dict[str, VirtualLaser] = {}
         for i, lc in enumerate(cfg.devices.lasers):
             vl = VirtualLaser(lc, noise_std_m=sc.laser_noise_m, latency_s=sc.laser_latency_s,
-                              seed=self.seed * 101 + i, output_rate_hz=sc.laser_rate_hz)
+                              seed=self.seed * 101 + i, output_rate_hz=sc.laser_rate_hz,
+                              wire="memory" if self.wires == "memory" else "pty")
             self._closers.append(vl.close)
             self.lasers[lc.role] = vl
         self._laser_group = LaserGroup(list(self.lasers.values()))
@@ -170,7 +183,9 @@ class SimulatedRig:
         self._wheel_drives = None if None in wd else wd     # None: current_A(wheel) raises for the missing one
         self._closers.append(self.drives.close)
         names = [s.name for s in cfg.devices.ft.sensors]
-        self.ft = VirtualFTServer(names).start() if names else None
+        # a poll process cannot reach an in-process wire: its sensors stay on TCP
+        in_process = self.wires == "memory" and cfg.devices.ft.poller != "process"
+        self.ft = VirtualFTServer(names, stream="memory" if in_process else "tcp").start() if names else None
         if self.ft is not None:
             self._closers.append(self.ft.close)
         self.ft_period = 1.0 / (sc.ft_rate_hz or cfg.devices.ft.poll_hz)
@@ -187,12 +202,14 @@ class SimulatedRig:
 
     @property
     def laser_ports(self) -> dict[str, str]:
-        """Laser role -> the pty the runtime reads (``devices.lasers[].port``)."""
+        """Laser role -> the port the runtime reads (``devices.lasers[].port``): a pty path
+        or a ``mem://`` URL."""
         return {r: v.port_name for r, v in self.lasers.items()}
 
     @property
     def ft_endpoints(self) -> dict[str, tuple[str, int]]:
-        """F/T sensor name -> (host, port) of its Modbus TCP server on 127.0.0.1."""
+        """F/T sensor name -> (host, port) of its Modbus TCP server on 127.0.0.1, or
+        (``mem://NAME``, 0) of its in-process endpoint."""
         return dict(self.ft.endpoints) if self.ft is not None else {}
 
     def runtime_bus(self) -> can.BusABC:
@@ -381,9 +398,9 @@ class SimulatedRig:
         The drives take the SYNC/RPDOs the runtime sent last cycle (their replies wait in
         an outbox); the plant is integrated to the release time in steps of h with the
         currents they apply (their timers run between steps); every laser's frames up to
-        then are written into its pty; the replies go onto the bus; wheel speeds and, when
+        then are written into its wire; the replies go onto the bus; wheel speeds and, when
         due, F/T registers are set and the F/T requests pending are answered; the call
-        returns once the kernel delivered every laser byte."""
+        returns once every laser byte is readable (a pty: the kernel delivered it)."""
         h, drives = self.h, self.drives
         if self._serving_start_up:
             self._serving_start_up = False

@@ -24,6 +24,10 @@ class SimConfig:
     seed: int = 0
     wheel_dynamics: Literal["static", "dynamic"] = "static"   # relation (4), or the dynamic form (3)
     can_bus: Literal["lockstep", "virtual"] = "lockstep"      # python-can bus of the in-process sim
+    # the lockstep simulator's laser and F/T wires: in-process byte pipes (rig_runtime/wires.py),
+    # or the kernel's (pty pairs, Modbus TCP on 127.0.0.1) — the same bytes either way; `rig sim`
+    # serves other processes and always uses the kernel's (docs/dry-run.md, "Wires")
+    wires: Literal["memory", "kernel"] = "memory"
     # the rear carrier lifted off the rollers (scenario ``lifted_carrier: rear``, Sec. 4.3.2):
     # its contact-free damping and offset (Table 3, first row)
     lifted_D: float = check(positive, default=0.28)

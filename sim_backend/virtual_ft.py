@@ -5,7 +5,12 @@ driver's own framing (:mod:`drivers.ft_modbus`), either by one small selector th
 :meth:`VirtualFTServer.start`: ``rig sim``, tests) or — lockstep — by
 :meth:`VirtualFTServer.answer_pending`, which the simulator calls in its ``advance(t)``:
 it answers every request that has arrived, in the caller's thread, without waiting for
-more (the first call retires the thread). Modbus RTU (a pseudo-terminal pair per sensor):
+more (the first call retires the thread). With ``stream="memory"`` the same Modbus TCP
+frames travel over in-process wires instead of loopback sockets (:mod:`rig_runtime.wires`,
+endpoints ``("mem://NAME", 0)``): until the first ``answer_pending`` a request is answered
+as it arrives (in the sender's thread, where the selector thread would answer it), from
+then on only in ``answer_pending`` — the same replies at the same points of a lockstep
+cycle as over TCP, without a socket, a selector or a thread. Modbus RTU (a pseudo-terminal pair per sensor):
 pymodbus's serial server on an asyncio loop thread, started only if an RTU sensor exists.
 Holding registers 180..185 are filled from the latest :class:`Wrench` with the register
 codec the driver decodes with (:mod:`drivers.ft_codec`), so there is one register map for
@@ -47,6 +52,8 @@ from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusSerialServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from rig_runtime import wires
+
 from drivers.ft_codec import DEFAULT_UNIT_ID, REG_COUNT, REG_START, Wrench, registers_from_wrench
 from drivers.ft_modbus import (
     FC_READ_HOLDING,
@@ -71,9 +78,12 @@ class VirtualFTServer:
 
     def __init__(self, names: Sequence[str], unit_id: int = DEFAULT_UNIT_ID, host: str = "127.0.0.1",
                  ports: Optional[Mapping[str, int]] = None, rtu: Sequence[str] = (),
-                 baudrate: int = 19200) -> None:
+                 baudrate: int = 19200, stream: str = "tcp") -> None:
         if len(set(names)) != len(names):
             raise ValueError(f"sensor names must be distinct: {list(names)}")
+        if stream not in ("tcp", "memory"):
+            raise ValueError(f"stream must be 'tcp' or 'memory', got {stream!r}")
+        self.stream = stream
         if not set(rtu) <= set(names):
             raise ValueError(f"rtu names {sorted(set(rtu) - set(names))} are not sensors")
         self.names = tuple(names)
@@ -91,7 +101,7 @@ class VirtualFTServer:
         self._regs: dict[str, Optional[list[int]]] = dict.fromkeys(self.names)   # encoded once per change
         self._servers: list[ModbusSerialServer] = []
         self._bridges: list[_PtyBridge] = []
-        self._tcp: Optional[_TcpServer] = None
+        self._tcp: Optional[_TcpServer | _MemServer] = None
         self._loop: Optional[asyncio.AbstractEventLoop] = None
         self._thread: Optional[threading.Thread] = None
 
@@ -103,7 +113,7 @@ class VirtualFTServer:
         try:
             tcp = [n for n in self.names if n not in self._rtu]
             if tcp:
-                self._tcp = _TcpServer(self, tcp)
+                self._tcp = (_MemServer if self.stream == "memory" else _TcpServer)(self, tcp)
                 self.endpoints.update(self._tcp.endpoints)
                 self._tcp.start()
             if self._rtu:
@@ -358,6 +368,100 @@ class _Conn:
         self.rx = bytearray()
         self.tx = bytearray()
         self.want_write = False
+
+
+class _MemConn:
+    """One client connection of the in-process server: the server's end of the wire and
+    request bytes not yet framed."""
+
+    __slots__ = ("end", "name", "rx")
+
+    def __init__(self, end: wires.WireEnd, name: str) -> None:
+        self.end = end
+        self.name = name
+        self.rx = bytearray()
+
+
+class _MemServer:
+    """Every Modbus TCP sensor of a :class:`VirtualFTServer` on in-process wires (one
+    listening name per sensor): requests framed and answered as :class:`_TcpServer` does,
+    at arrival until :meth:`answer_pending` is first called, then only there."""
+
+    def __init__(self, owner: VirtualFTServer, names: Sequence[str]) -> None:
+        self._owner = owner
+        self._listeners: list[wires.Listener] = []
+        self._conns: list[_MemConn] = []
+        self._inline = False
+        self._open = True
+        self.endpoints: dict[str, tuple[str, int]] = {}
+        for name in names:
+            ls = wires.listen(wires.unique_name(f"ft-{name}"))
+            ls.on_connect = self._acceptor(name)
+            self._listeners.append(ls)
+            self.endpoints[name] = (ls.url, 0)
+
+    @property
+    def running(self) -> bool:
+        return self._open and not self._inline
+
+    def start(self) -> None:
+        pass
+
+    def _acceptor(self, name: str):
+        def accept(end: wires.WireEnd) -> None:
+            conn = _MemConn(end, name)
+            self._conns.append(conn)
+            if not self._inline:
+                end.rx.on_data = lambda: self._serve(conn)
+        return accept
+
+    def answer_pending(self) -> int:
+        if not self._inline:
+            self._inline = True
+            for conn in self._conns:
+                conn.end.rx.on_data = None
+        n = 0
+        for conn in self._conns:
+            if conn.end.rx.buf or conn.end.hung_up:
+                n += self._serve(conn)
+        return n
+
+    def _serve(self, conn: _MemConn) -> int:
+        """Frame and answer what arrived on ``conn``; the number of requests read."""
+        end = conn.end
+        rx = conn.rx
+        rx += end.read()
+        if end.hung_up and not rx:
+            self._drop(conn)
+            return 0
+        n_req = 0
+        while True:
+            try:
+                n = frame_length(rx)
+                if n is None or len(rx) < n:
+                    break
+                reply = self._owner._answer(conn.name, rx[:n])
+            except ValueError:                          # not Modbus TCP: hang up, like a device would
+                self._drop(conn)
+                return n_req
+            del rx[:n]
+            n_req += 1
+            if reply and not end.hung_up:
+                end.write(reply)
+        return n_req
+
+    def _drop(self, conn: _MemConn) -> None:
+        conn.end.close()
+        if conn in self._conns:
+            self._conns.remove(conn)
+
+    def close(self) -> None:
+        """Hang up every connection and stop listening (clients see EOF)."""
+        self._open = False
+        for ls in self._listeners:
+            ls.close()
+        for conn in list(self._conns):
+            self._drop(conn)
 
 
 class _TcpServer:

@@ -1,9 +1,11 @@
-"""The other end of a laser's RS-422 wire: an optoNCDT 1420 simulated on a pty pair.
+"""The other end of a laser's RS-422 wire: an optoNCDT 1420 simulated on a pty pair, or on
+an in-process serial line (``wire="memory"``: :mod:`rig_runtime.wires`, ``mem://`` URL).
 
 The plant gives the physical distance (``offset_mm`` included, metres); the device samples
 it at ``output_rate_hz``, adds noise, turns it into 16-bit wire values with the codec of
 ``drivers.laser`` (the one source of truth for the frame layout) and writes the frames to
-the pty master. The driver opens ``port_name`` (the slave) with pyserial like a real port.
+the pty master (or the line's device end). The driver opens ``port_name`` (the slave's
+path, or the line's URL) with pyserial like a real port; both wires carry the same bytes.
 
 Time: frame k (k = 1, 2, …) is sampled at k/rate and written at k/rate + latency, so after
 ``emit_until(t)`` exactly ``floor((t − latency)·rate)`` frames have been produced —
@@ -49,6 +51,7 @@ from drivers.optoncdt import (
     X_PER_PERCENT, MAX_DISTANCE_X, MAX_X, encode_list, encode_value, encode_values, x_from_distance_mm,
     xs_from_distance_mm,
 )
+from rig_runtime import wires
 from rig_runtime.config import LaserDevice
 
 __all__ = ["FAULT_KINDS", "LaserGroup", "VirtualLaser", "emit_all"]
@@ -76,13 +79,18 @@ class VirtualLaser:
     Sensor model: ``noise_std_m`` Gaussian noise per sample, optional extra
     ``quantization_m`` (the 16-bit wire value quantizes to MR·102/65520/100 anyway),
     ``latency_s`` from sampling to the wire, ``seed`` (int, SeedSequence or numpy
-    Generator) for reproducible noise and faults.
+    Generator) for reproducible noise and faults. ``wire``: "pty" (a kernel pty pair) or
+    "memory" (an in-process serial line: bytes are readable as soon as they are written,
+    nothing to wait for; a full line drops what does not fit, as a full pty does).
     """
 
     def __init__(self, cfg: LaserDevice, *, noise_std_m: float = 0.0, quantization_m: float = 0.0,
-                 latency_s: float = 0.0, seed: Any = None, output_rate_hz: float | None = None):
+                 latency_s: float = 0.0, seed: Any = None, output_rate_hz: float | None = None,
+                 wire: str = "pty"):
         if noise_std_m < 0 or quantization_m < 0 or latency_s < 0:
             raise ValueError("noise_std_m, quantization_m and latency_s must be >= 0")
+        if wire not in ("pty", "memory"):
+            raise ValueError(f"wire must be 'pty' or 'memory', got {wire!r}")
         self.cfg = cfg
         self.rate_hz = float(output_rate_hz if output_rate_hz is not None else cfg.output_rate_hz)
         self.noise_std_m = noise_std_m
@@ -110,10 +118,18 @@ class VirtualLaser:
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._stop_evt = threading.Event()
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)
-        os.set_blocking(self._master, False)
-        self.port_name = os.ttyname(self._slave)
+        self._line: wires.Wire | None = None
+        self._pipe: wires.BytePipe | None = None     # the memory line's device -> host pipe
+        if wire == "memory":
+            self._master = self._slave = -1
+            self._line = wires.serial_line(wires.unique_name(f"laser-{cfg.role}"))
+            self._pipe = self._line.a.tx
+            self.port_name = wires.SCHEME + self._line.name
+        else:
+            self._master, self._slave = os.openpty()
+            tty.setraw(self._slave)
+            os.set_blocking(self._master, False)
+            self.port_name = os.ttyname(self._slave)
 
     # ------------------------------------------------------------------ plant side
     @property
@@ -326,17 +342,25 @@ class VirtualLaser:
                 return b
 
     def _write(self, data: bytes) -> int:
-        """Non-blocking write to the master; what does not fit is dropped and counted."""
-        try:
-            n = os.write(self._master, data)
-        except (BlockingIOError, OSError):
-            n = 0
+        """Non-blocking write to the master (or the line); what does not fit is dropped and
+        counted."""
+        pipe = self._pipe
+        if pipe is not None:
+            n = pipe.write(data)
+        else:
+            try:
+                n = os.write(self._master, data)
+            except (BlockingIOError, OSError):
+                n = 0
         self.bytes_written += n
         self.bytes_dropped += len(data) - n
         return n
 
     def _slave_queued(self) -> int:
-        """Bytes readable at the slave end now (FIONREAD into a reused buffer)."""
+        """Bytes readable at the slave end now (FIONREAD into a reused buffer; a memory
+        line: its unread bytes)."""
+        if self._pipe is not None:
+            return len(self._pipe.buf)
         b = self._qbuf
         try:
             _ioctl(self._slave, _FIONREAD, b, True)
@@ -350,9 +374,11 @@ class VirtualLaser:
 
     # ------------------------------------------------------------------ lifetime
     def close(self) -> None:
-        """Stop the thread and close both pty ends. Idempotent."""
+        """Stop the thread and close both pty ends (or hang the line up). Idempotent."""
         self.stop()
         with self._lock:
+            if self._line is not None:
+                wires.close_line(self._line)
             for name in ("_master", "_slave"):
                 fd = getattr(self, name)
                 if fd >= 0:
@@ -403,7 +429,7 @@ def _emit_noting(vl: VirtualLaser, t: float, pending: list) -> int:
     with vl._lock:
         q0 = vl._slave_queued()
         n = vl._emit(t)
-    if n:
+    if n and vl._pipe is None:          # a memory line delivers within the write
         pending.append((vl, min(q0 + n, _LDISC_CAP)))
     return n
 
@@ -445,15 +471,15 @@ def _await_delivery(pending: list[tuple[VirtualLaser, int]], timeout_s: float = 
                 time.sleep(20e-6)
 
 
-_WIRE = b""
+_WIRE: list[bytes] = []
 
 
-def _wire_bytes() -> bytes:
-    """Wire bytes of every distance value 0..65520 in a row (value x at 3x), built once with
-    the codec."""
-    global _WIRE
+def _wire_bytes() -> list[bytes]:
+    """The 3 wire bytes of every distance value 0..65520 (index x), built once with the
+    codec."""
     if not _WIRE:
-        _WIRE = encode_values(np.arange(MAX_DISTANCE_X + 1))
+        enc = encode_values(np.arange(MAX_DISTANCE_X + 1))
+        _WIRE.extend(enc[3 * x:3 * x + 3] for x in range(MAX_DISTANCE_X + 1))
     return _WIRE
 
 
@@ -461,7 +487,7 @@ class LaserGroup:
     """Lockstep emission of several virtual lasers: ``emit(t)`` samples, encodes and writes
     every laser's frames due by ``t``; ``wait()`` returns once the kernel delivered them to
     the slave ends. pty delivery runs on a kernel worker, so the caller does other work in
-    between.
+    between; a memory line has its bytes readable within the write (nothing to wait for).
 
     A laser without faults, latency, quantization or real-time thread takes a lean path:
     its frames are computed in plain Python from a cached copy of its noise block scaled
@@ -485,8 +511,9 @@ class LaserGroup:
         self._poller = select.poll()
         self._by_fd: dict[int, VirtualLaser] = {}
         for vl in self.lasers:
-            self._poller.register(vl._slave, select.POLLIN)
-            self._by_fd[vl._slave] = vl
+            if vl._pipe is None:
+                self._poller.register(vl._slave, select.POLLIN)
+                self._by_fd[vl._slave] = vl
         self._pending: list[tuple[VirtualLaser, int]] = []
         if any(self._lean):
             _wire_bytes()
@@ -535,7 +562,7 @@ class LaserGroup:
             if (d0 - nmax) * 1000.0 - off >= lo and (d0 + nmax) * 1000.0 - off <= hi:
                 xs = [round((((d0 + ne) * 1000.0 - off) * 100.0 / mr + 1.0) * xpp) for ne in noise]
                 x = xs[-1]
-                data = b"".join([enc[3 * v:3 * v + 3] for v in xs])
+                data = b"".join([enc[v] for v in xs])
             else:
                 parts = []
                 for ne in noise:
@@ -548,7 +575,7 @@ class LaserGroup:
                         parts.append(_PEAK_AFTER_BYTES)
                     else:               # in the span this lies within 0..65520
                         x = round((rel * 100.0 / mr + 1.0) * xpp)
-                        parts.append(enc[3 * x:3 * x + 3])
+                        parts.append(enc[x])
                 data = b"".join(parts)
             vl._sampled = vl._released = k
             vl._last_x = x
@@ -556,18 +583,22 @@ class LaserGroup:
             lean.append((vl, data, n, x))
         if lean:
             # unread bytes at the slaves (the runtime normally drained them): one poll for all
-            q0s = {fd: self._by_fd[fd]._slave_queued() for fd, _ in self._poller.poll(0)}
+            q0s = {fd: self._by_fd[fd]._slave_queued() for fd, _ in self._poller.poll(0)} if self._by_fd else {}
             write = os.write
             for vl, data, n, x in lean:
-                try:
-                    w = write(vl._master, data)
-                except OSError:
-                    w = 0
+                pipe = vl._pipe
+                if pipe is not None:            # a memory line: readable once written
+                    w = pipe.write(data)
+                else:
+                    try:
+                        w = write(vl._master, data)
+                    except OSError:
+                        w = 0
                 total += w
                 vl.bytes_written += w
                 if w != len(data):
                     vl.bytes_dropped += len(data) - w
-                if w:
+                if w and pipe is None:
                     pend.append((vl, min(q0s.get(vl._slave, 0) + w, _LDISC_CAP)))
         return total
 
