@@ -17,6 +17,7 @@ from scipy.linalg import expm
 
 from . import coupled
 from .config import RigConfig
+from .control import DiscreteLaw, PIPDLaw, PLaw, law_of
 from .coupled import Instability
 from .errors import ConfigError
 
@@ -104,38 +105,29 @@ def closed_loop_matrix(cfg: RigConfig) -> np.ndarray:
 
 
 def _held_plant(cfg: RigConfig, D: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Plant (10) with its input held over one sample time h (zero-order hold)."""
+    """Plant (10) with its input held over one sample time h (zero-order hold): A_d, B_d (a column)."""
     A, B = model_10(cfg, D=D)
     n = 3
     Md = expm(np.block([[A, B[:, None]], [np.zeros((1, n + 1))]]) * cfg.controller.h)
-    return Md[:n, :n], Md[:n, n]
+    return Md[:n, :n], Md[:n, n:]
+
+
+PAPER_LAYOUT = coupled.Layout(("rear",), ("rear",), 3)     # plant (10): [y, ψ, ψ̇] of the rear carrier
+
+
+def _sampled(cfg: RigConfig, law: DiscreteLaw, D: float | None) -> np.ndarray:
+    """Eigenvalues (ln(z)/h, 1/s) of ``law`` (its description, as the runtime steps it) on
+    plant (10) held over h, y_ref = 0."""
+    Ad, Bd = _held_plant(cfg, D)
+    return _continuous(np.linalg.eigvals(coupled.close(Ad, Bd, PAPER_LAYOUT, {"rear": law})), cfg.controller.h)
 
 
 def sampled_closed_loop(cfg: RigConfig, D: float | None = None) -> np.ndarray:
-    """Eigenvalues of the loop as implemented: plant (10) (with (10)'s own lateral pole,
-    damping ``D``, default D_min) held over h, the Tustin PI-PD of ``control.py``;
-    returned as ln(z)/h (1/s)."""
+    """Eigenvalues of the PI-PD loop as implemented: plant (10) (with (10)'s own lateral pole,
+    damping ``D``, default D_min) held over h, the Tustin PI-PD of ``control.py`` (its
+    :class:`~rig_runtime.control.DiscreteLaw`); returned as ln(z)/h (1/s)."""
     c = cfg.controller
-    g, h = c.pipd, c.h
-    Ad, Bd = _held_plant(cfg, D)
-    # controller states: x_I, e_y_prev, e_psi_prev, de (Tustin); u_k depends on x_k
-    a_f = (2 * g.T_f_psi - h) / (2 * g.T_f_psi + h)
-    b_f = 2 / (2 * g.T_f_psi + h)
-    # z = [y, ψ, ψ̇, x_I, e_y_prev, e_psi_prev, de_prev]
-    N = 7
-    def rows():
-        e_y = np.zeros(N); e_y[0] = -1.0
-        x_I = np.zeros(N); x_I[3] = 1.0; x_I += 0.5 * h * (e_y + np.eye(N)[4])
-        psi_ref = g.K_P_y * e_y + g.K_I_y * x_I
-        e_psi = psi_ref - np.eye(N)[1]
-        de = a_f * np.eye(N)[6] + b_f * (e_psi - np.eye(N)[5])
-        u = g.K_P_psi * e_psi + g.K_D_psi * de
-        return e_y, x_I, e_psi, de, u
-    e_y, x_I, e_psi, de, u = rows()
-    Phi = np.zeros((N, N))
-    Phi[:3] = np.hstack([Ad, np.zeros((3, 4))]) + np.outer(Bd, u)
-    Phi[3], Phi[4], Phi[5], Phi[6] = x_I, e_y, e_psi, de
-    return _continuous(np.linalg.eigvals(Phi), h)
+    return _sampled(cfg, PIPDLaw.of(c.pipd, c.h).discrete(), D)
 
 
 def _continuous(z: np.ndarray, h: float) -> np.ndarray:
@@ -147,14 +139,13 @@ def _continuous(z: np.ndarray, h: float) -> np.ndarray:
 def sampled_p_loop(cfg: RigConfig, D: float | None = None) -> np.ndarray:
     """Eigenvalues (ln(z)/h, 1/s) of the P law of Sec. 5.1 as implemented: u_k = K_P (y_ref − y_k)
     on plant (10) held over h."""
-    Ad, Bd = _held_plant(cfg, D)
-    C = np.array([1.0, 0.0, 0.0])
-    return _continuous(np.linalg.eigvals(Ad - cfg.controller.K_P * np.outer(Bd, C)), cfg.controller.h)
+    c = cfg.controller
+    return _sampled(cfg, PLaw(c.K_P, c.h).discrete(), D)
 
 
 def sampled_loop(cfg: RigConfig, D: float | None = None) -> np.ndarray:
     """The sampled closed loop of the configured law (``controller.law``), as implemented."""
-    return sampled_p_loop(cfg, D) if cfg.controller.law == "p" else sampled_closed_loop(cfg, D)
+    return _sampled(cfg, law_of(cfg.controller).discrete(), D)
 
 
 class UnstableLoopError(ConfigError):

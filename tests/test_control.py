@@ -144,3 +144,65 @@ def test_open_loop_generators():
     assert sin(1 / 4.8e-3 / 2) == pytest.approx(0.0, abs=1e-12)
     assert ZeroInput()(12.3) == 0.0
     assert math.isclose(Sinusoid(1.0, 2.4, bias=0.1, t0=10)(5), 0.1)
+
+
+# --------------------------------------------------------------------------- the description
+def _step_description(L, x, w):
+    """One step of a DiscreteLaw by its matrices: (x⁺, out)."""
+    xn = [sum(a * xi for a, xi in zip(L.A[r], x)) + sum(b * wi for b, wi in zip(L.B[r], w))
+          for r in range(len(L.states))]
+    out = [sum(c * xi for c, xi in zip(L.C[r], x)) + sum(d * wi for d, wi in zip(L.D[r], w))
+           for r in range(len(L.outputs))]
+    return xn, out
+
+
+@pytest.mark.parametrize("g", [1.0, 0.5, -2.0])
+def test_the_description_is_the_law_the_runtime_steps(cfg, g):
+    """The PI-PD's DiscreteLaw, stepped by its matrices, gives the runtime controller's output and
+    its logged states (x_I, e_y, e_ψ, ê_ψ) at every step of a random input sequence (no limits
+    reached), at the schedule's factor g."""
+    from rig_runtime.control import PIPDLaw
+    ctrl = PIPDController(cfg.controller, u_max=1e9)
+    ctrl.set_gain_factor(g)
+    ctrl.start(0.0, 0.0, 0.0)
+    L = PIPDLaw.of(cfg.controller.pipd, cfg.controller.h).discrete(g)
+    assert L.inputs == ("y_ref", "y", "psi") and L.states == ("x_I", "e_y", "e_psi", "de_psi")
+    assert L.outputs == ("u",) and L.g == g and L.h == cfg.controller.h
+    rng = np.random.default_rng(1)
+    x = [ctrl.st.x_I, ctrl.st.e_y, ctrl.st.e_psi, ctrl.st.de_psi]
+    for _ in range(200):
+        w = rng.normal(0, 1e-3, 3).tolist()
+        u = ctrl.step(*w)
+        x, (u_d,) = _step_description(L, x, w)
+        st = ctrl.st
+        assert u == pytest.approx(u_d, rel=1e-9, abs=1e-12)
+        assert [st.x_I, st.e_y, st.e_psi, st.de_psi] == pytest.approx(x, rel=1e-9, abs=1e-15)
+
+
+def test_the_p_description_is_the_p_law(cfg):
+    from rig_runtime.control import PLaw
+    L = PLaw(500.0, 0.005).discrete(2.0)
+    assert L.states == () and L.D == ((1000.0, -1000.0, 0.0),)
+    c = PController(cfg.controller.__class__(h=0.005, law="p", pipd=cfg.controller.pipd, K_P=500.0), 1e9)
+    c.set_gain_factor(2.0)
+    assert c.step(1e-3, 4e-4, 0.3) == pytest.approx(_step_description(L, [], [1e-3, 4e-4, 0.3])[1][0], rel=1e-15)
+
+
+def test_the_continuous_description_is_the_paper_law(cfg):
+    """PI-PD as designed (11)–(14): its transfer function y → u equals the Tustin law's at low
+    frequency (the two describe one law)."""
+    from rig_runtime.control import PIPDLaw
+    law = PIPDLaw.of(cfg.controller.pipd, cfg.controller.h)
+    Lc, Ld = law.continuous(1.0), law.discrete(1.0)
+    h = cfg.controller.h
+    for f in (0.05, 0.5, 2.0):
+        s = 2j * math.pi * f
+        z = np.exp(s * h)
+        def tf(L, lam):
+            A, B, C, D = (np.array(m, dtype=float).reshape(len(r), -1) if len(r) else np.zeros((0, 3))
+                          for m, r in ((L.A, L.states), (L.B, L.states), (L.C, L.outputs), (L.D, L.outputs)))
+            n = len(L.states)
+            return (C @ np.linalg.solve(lam * np.eye(n) - A, B) + D)[0]
+        gc, gd = tf(Lc, s), tf(Ld, z)
+        assert gd[1] == pytest.approx(gc[1], rel=0.02)     # the y channel
+        assert gd[2] == pytest.approx(gc[2], rel=0.02)     # the ψ channel
