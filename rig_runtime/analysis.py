@@ -16,7 +16,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from . import coupled
-from .config import RigConfig
+from .config import PIPDGains, RigConfig
 from .control import DiscreteLaw, PIPDLaw, PLaw, law_of
 from .coupled import Instability
 from .errors import ConfigError
@@ -51,6 +51,13 @@ def model_10(cfg: RigConfig, D: float | None = None, a: float | None = None) -> 
     return A, B
 
 
+def pipd_gains(cfg: RigConfig) -> PIPDGains:
+    """The PI-PD gains the continuous formulas (15)–(19) and Sec. 5.2.3's checks are of: the
+    configured law's (``controller.decoupled`` for law decoupled, else ``controller.pipd``)."""
+    c = cfg.controller
+    return c.decoupled if c.law == "decoupled" else c.pipd
+
+
 def _outer_a(cfg: RigConfig) -> float:
     p = cfg.plant
     return p.c_y * p.v / p.l0 if cfg.tuning.outer_lateral_form == "eq17" else p.a_lat
@@ -59,13 +66,13 @@ def _outer_a(cfg: RigConfig) -> float:
 def inner_matrix(cfg: RigConfig) -> np.ndarray:
     """A_ψ,cl of (15)."""
     A, B = model_10(cfg)
-    g = cfg.controller.pipd
+    g = pipd_gains(cfg)
     return A[1:, 1:] - np.outer(B[1:], [g.K_P_psi, g.K_D_psi])
 
 
 def inner_filtered_matrix(cfg: RigConfig) -> np.ndarray:
     """Ā_ψ,cl of (16a): inner loop with the differentiator (12)."""
-    p, g = cfg.plant, cfg.controller.pipd
+    p, g = cfg.plant, pipd_gains(cfg)
     w2, T, KD = p.omega0 ** 2, g.T_f_psi, g.K_D_psi
     Kw = p.K * w2
     return np.array([[0.0, 1.0, 0.0],
@@ -76,7 +83,7 @@ def inner_filtered_matrix(cfg: RigConfig) -> np.ndarray:
 def outer_matrix(cfg: RigConfig) -> np.ndarray:
     """A_y,x1 of (17) in states [x_I, e_y] (with ψ = ψ_ref; sign of the K_I entry as it
     follows from (13), (14))."""
-    p, g = cfg.plant, cfg.controller.pipd
+    p, g = cfg.plant, pipd_gains(cfg)
     cv = p.c_y * p.v
     return np.array([[0.0, 1.0], [-g.K_I_y * cv, -_outer_a(cfg) - cv * g.K_P_y]])
 
@@ -84,7 +91,7 @@ def outer_matrix(cfg: RigConfig) -> np.ndarray:
 def closed_loop_matrix(cfg: RigConfig) -> np.ndarray:
     """Ā_cl of (19), states [y, ψ, ψ̇, x_I, x_diff] (a similarity transform of the paper's
     error coordinates: same eigenvalues). ψ̇_ref is taken exactly, ψ̇ through (12)."""
-    g = cfg.controller.pipd
+    g = pipd_gains(cfg)
     A, B = model_10(cfg, a=_outer_a(cfg))
     T = g.T_f_psi
     M = np.zeros((5, 5))
@@ -127,7 +134,7 @@ def sampled_closed_loop(cfg: RigConfig, D: float | None = None) -> np.ndarray:
     damping ``D``, default D_min) held over h, the Tustin PI-PD of ``control.py`` (its
     :class:`~rig_runtime.control.DiscreteLaw`); returned as ln(z)/h (1/s)."""
     c = cfg.controller
-    return _sampled(cfg, PIPDLaw.of(c.pipd, c.h).discrete(), D)
+    return _sampled(cfg, PIPDLaw.of(pipd_gains(cfg), c.h).discrete(), D)
 
 
 def _continuous(z: np.ndarray, h: float) -> np.ndarray:
@@ -183,7 +190,7 @@ def stability_gate(cfg: RigConfig) -> None:
 
 def _gains_key(cfg: RigConfig, bad: "Instability") -> str:
     c = cfg.controller
-    keys = ["controller.pipd"] + [f"controller.{k}" for k in ("front", "rear") if getattr(c, k) is not None]
+    keys = ["controller.decoupled" if c.law == "decoupled" else "controller.pipd"] + [f"controller.{k}" for k in ("front", "rear") if getattr(c, k) is not None]
     if c.schedule is not None:
         keys.append("controller.schedule")
     return " / ".join(keys)
@@ -251,10 +258,10 @@ def root_locus(cfg: RigConfig, kps: np.ndarray, D: float | None = None) -> np.nd
 
 def design_checks(cfg: RigConfig, outer: np.ndarray) -> dict:
     """The criteria of Sec. 5.2.3 (worst-case input and reference yaw angle, slowest pole)."""
-    t, g = cfg.tuning, cfg.controller.pipd
+    t, g = cfg.tuning, pipd_gains(cfg)
     terms = [abs(g.K_P_psi) * t.psi_design, abs(g.K_D_psi) * t.psi_rate_design]   # worst case: signs aligned
     u_worst = sum(terms)
-    psi_ref_worst = g.K_P_y * t.y_design
+    psi_ref_worst = g.K_P_y * t.y_design      # (law decoupled: its feed term is bounded by psi_ref_max, docs/vehicle.md §5)
     slowest = float(np.max(outer.real))
     return {
         # Sec. 5.2.3 asks for <= 2 A; its gains give 2 A per term (4 A together), so the

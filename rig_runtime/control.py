@@ -24,7 +24,7 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Sequence
 
-from .config import PIPD_GAINS, PIPDGains
+from .config import DECOUPLED_GAINS, PIPD_GAINS, DecoupledGains, PIPDGains
 from .config import Controller as ControllerConfig
 
 Matrix = tuple[tuple[float, ...], ...]
@@ -176,6 +176,56 @@ class PIPDLaw:
 
 
 @dataclass(frozen=True)
+class DecoupledLaw(PIPDLaw):
+    """The decoupled PI-PD of the vehicle (``law: decoupled``; docs/vehicle.md §5): the PI-PD of
+    :class:`PIPDLaw` per carrier, its yaw reference lowered by a feed term w read across the
+    carriers,
+
+        ψ_ref = g K_P,y e_y + K_I,y x_I⁺ − w,   w = g K_P,y (1 − b_y) y_ref + K_x,y (y_f − y_r)
+
+    * setpoint weighting b_y: a reference step moves ψ_ref by g K_P,y b_y Δy_ref, not
+      g K_P,y Δy_ref (the integrator still removes the error: the step does not kick the current);
+    * decoupling K_x,y: (2a)/(2b) drive each carrier by a_c (y_f − y_r) with a_c = c̄_y,c v/(2 l0,c);
+      a yaw angle −(y_f − y_r)/(2 l0,c) cancels it at every speed and direction (a_c / c̄_y,c v does
+      not depend on v), leaving each carrier a pure integrator under its own PI-PD.
+
+    With b_y = 1 and K_x,y = 0 it is the PI-PD. It reads both carriers' y (inputs ``y.front``,
+    ``y.rear``): in the runtime through the lanes' one cross-lane stage (:class:`rig_runtime.lanes.LateralPair`)."""
+
+    b_y: float = 1.0
+    K_x_y: float = 0.0
+
+    SCHEDULED = ("K_P_y", "K_I_y")
+    INPUTS = LAW_INPUTS + ("y.front", "y.rear")
+
+    @classmethod
+    def of(cls, gains: DecoupledGains, h: float) -> "DecoupledLaw":
+        return cls(gains.K_P_y, gains.K_I_y, gains.K_P_psi, gains.K_D_psi, gains.T_f_psi, h,
+                   b_y=gains.b_y, K_x_y=gains.K_x_y)
+
+    def feed(self, g, y_ref, y_front, y_rear):
+        """w: what ψ_ref is lowered by (setpoint weight and decoupling)."""
+        return self.K_P_y * g * (1.0 - self.b_y) * y_ref + self.K_x_y * (y_front - y_rear)
+
+    def discrete(self, g: float = 1.0) -> DiscreteLaw:
+        x_I, e_y0, e_psi0, de0, y_ref, y, psi, yf, yr = _basis(9)
+        e_y = y_ref - y
+        _, x_I1, psi_ref = self.outer(g, e_y, e_y0, x_I)
+        e_psi, de, u = self.inner(psi_ref - self.feed(g, y_ref, yf, yr), psi, e_psi0, de0)
+        return _describe("decoupled", self.h, g, self.INPUTS, self.STATES, ("u",),
+                         (x_I1, e_y, e_psi, de), (u,), self.SCHEDULED)
+
+    def continuous(self, g: float = 1.0) -> DiscreteLaw:
+        x_I, x_f, y_ref, y, psi, yf, yr = _basis(7)
+        e_y = y_ref - y
+        e_psi = self.psi_ref(g, e_y, x_I) - self.feed(g, y_ref, yf, yr) - psi
+        de = (e_psi - x_f) / self.T_f_psi
+        u = self.K_P_psi * e_psi + self.K_D_psi * de
+        return _describe("decoupled", 0.0, g, self.INPUTS, ("x_I", "x_f"), ("u",), (g * e_y, de), (u,),
+                         self.SCHEDULED)
+
+
+@dataclass(frozen=True)
 class PLaw:
     """The P law of Sec. 5.1: u = g K_P (y_ref − y); no states."""
 
@@ -197,6 +247,8 @@ def law_of(cfg: ControllerConfig, carrier: str | None = None) -> "PIPDLaw | PLaw
     """The configured law (``controller.law``) with its gains (with ``carrier``: that carrier's)."""
     if cfg.law == "p":
         return PLaw(cfg.K_P, cfg.h)
+    if cfg.law == "decoupled":
+        return DecoupledLaw.of(cfg.decoupled, cfg.h)
     return PIPDLaw.of(cfg.gains(carrier) if carrier is not None else cfg.pipd, cfg.h)
 
 
@@ -248,6 +300,7 @@ class PIPDController:
         self._psi_hold = 0.0    # ψ_ref when the hold began
         self._hold_n = 1        # steps of the ramp to 0
         self._hold_k = 0        # steps held so far
+        self._w = 0.0           # what ψ_ref is lowered by (the decoupled law's feed term; 0 here)
 
     kpy = property(lambda self: self.law.K_P_y)
     kiy = property(lambda self: self.law.K_I_y)
@@ -287,7 +340,7 @@ class PIPDController:
         differentiator with the current error (no derivative kick)."""
         e_y = y_ref - y
         kpp = self.law.K_P_psi
-        x_I = self.law.seed(self.g, e_y, psi + u0 / kpp)
+        x_I = self.law.seed(self.g, e_y, psi + u0 / kpp + self._w)
         self.st = PIPDInternals(e_y=e_y, x_I=x_I, psi_ref=psi + u0 / kpp, u=u0, u_unsat=u0)
         self._e_y_prev = e_y
         self._e_psi_prev = u0 / kpp
@@ -309,10 +362,11 @@ class PIPDController:
         elif self._reseed:                  # resumed: ψ_ref goes on from the held value
             self._reseed = False
             dI = 0.0
-            x_I = law.seed(g, e_y, st.psi_ref)
-            psi_ref = law.psi_ref(g, e_y, x_I)
+            x_I = law.seed(g, e_y, st.psi_ref + self._w)
+            psi_ref = law.psi_ref(g, e_y, x_I) - self._w
         else:
             dI, x_I, psi_ref = law.outer(g, e_y, self._e_y_prev, st.x_I)
+            psi_ref -= self._w
         lim = self.psi_ref_max
         if lim is not None and (psi_ref > lim or psi_ref < -lim):
             clipped = lim if psi_ref > 0 else -lim
@@ -335,9 +389,12 @@ class PIPDController:
         self._e_psi_prev = e_psi
         return u
 
+    GAIN_NAMES = PIPD_GAINS
+    law_name = "PI-PD"
+
     def gains(self) -> dict[str, float]:
         """The gains in force, by their config names."""
-        return {n: getattr(self.law, n) for n in PIPD_GAINS}
+        return {n: getattr(self.law, n) for n in self.GAIN_NAMES}
 
     def set_gain(self, name: str, value: float) -> None:
         """Change one gain between two steps (the loop calls it at a cycle boundary; the
@@ -360,8 +417,8 @@ class PIPDController:
         x_I with it. Raises ValueError for a name that is not a gain of this law or a value
         that is not a finite positive number (limits are not gains: they cannot be set here).
         """
-        if name not in PIPD_GAINS:
-            raise ValueError(f"{name!r} is not a gain of the PI-PD law ({', '.join(PIPD_GAINS)})")
+        if name not in self.GAIN_NAMES:
+            raise ValueError(f"{name!r} is not a gain of the {self.law_name} law ({', '.join(self.GAIN_NAMES)})")
         v = _positive(name, value)
         new = replace(self.law, **{name: v})
         st = self.st
@@ -377,6 +434,56 @@ class PIPDController:
         if u_applied != st.u and self._dI != 0.0 and (self._dI > 0) == (st.u > u_applied):
             st.x_I -= self._dI
             self._dI = 0.0
+
+
+class DecoupledController(PIPDController):
+    """Steps :class:`DecoupledLaw`: the PI-PD controller with ψ_ref lowered by the law's feed
+    term w (setpoint weighting, decoupling), which it computes each step from the reference and
+    both carriers' y as the lanes' cross-lane stage gives them (``couple``). Saturation,
+    anti-windup, the ψ_ref limit, bumpless start, hold and resume are the PI-PD's (they act on
+    ψ_ref with w included: a resume or a start continues the ψ_ref the carrier has)."""
+
+    GAIN_NAMES = DECOUPLED_GAINS
+    law_name = "decoupled"
+
+    def __init__(self, cfg: ControllerConfig, u_max: float, psi_ref_max: float | None = None,
+                 gains: DecoupledGains | None = None):
+        super().__init__(cfg, u_max, psi_ref_max, cfg.pipd)
+        self.law = DecoupledLaw.of(gains if gains is not None else cfg.decoupled, cfg.h)
+        self.pair = None          # the cross-lane stage (lanes.LateralPair); None: the other carrier at 0
+        self._fed = (0.0, 0.0, 0.0)   # y_ref, y_f, y_r of the last feed term
+
+    def couple(self, pair) -> None:
+        """Read the carriers' y through ``pair`` (``pair.y(carrier)``) from the next step on."""
+        self.pair = pair
+
+    def _feed(self, y_ref: float) -> None:
+        p = self.pair
+        yf, yr = (p.y("front"), p.y("rear")) if p is not None else (0.0, 0.0)
+        self._fed = (y_ref, yf, yr)
+        self._w = self.law.feed(self.g, y_ref, yf, yr)
+
+    def start(self, y_ref: float, y: float, psi: float, u0: float = 0.0) -> None:
+        self._feed(y_ref)
+        super().start(y_ref, y, psi, u0)
+
+    def step(self, y_ref: float, y: float, psi: float) -> float:
+        self._feed(y_ref)
+        return super().step(y_ref, y, psi)
+
+    def set_gain(self, name: str, value: float) -> None:
+        """As :meth:`PIPDController.set_gain`; a change of K_P_y, K_I_y, b_y or K_x_y keeps ψ_ref
+        (with the last step's feed term) continuous by re-seeding x_I."""
+        if name not in self.GAIN_NAMES:
+            raise ValueError(f"{name!r} is not a gain of the decoupled law ({', '.join(self.GAIN_NAMES)})")
+        v = _positive(name, value) if name != "b_y" else _unit(name, value)
+        old, new = self.law, replace(self.law, **{name: v})
+        st = self.st
+        if self._started and name in ("K_P_y", "K_I_y", "b_y", "K_x_y") and old.K_I_y:
+            psi_ref = old.psi_ref(self.g, st.e_y, st.x_I) - old.feed(self.g, *self._fed)
+            self._w = new.feed(self.g, *self._fed)
+            st.x_I = new.seed(self.g, st.e_y, psi_ref + self._w)
+        self.law = new
 
 
 class PController:
@@ -439,11 +546,21 @@ def _positive(name: str, value: float) -> float:
     return v
 
 
+def _unit(name: str, value: float) -> float:
+    """A weight's new value as a float; ValueError unless finite and in [0, 1]."""
+    v = float(value)
+    if not (math.isfinite(v) and 0.0 <= v <= 1.0):
+        raise ValueError(f"{name}: {value!r} is not a number in [0, 1]")
+    return v
+
+
 def make_controller(cfg: ControllerConfig, u_max: float, psi_ref_max: float | None = None,
                     carrier: str | None = None):
     """The configured control law (with ``carrier``: that carrier's gains, ``cfg.gains``)."""
     if cfg.law == "p":
         return PController(cfg, u_max)
+    if cfg.law == "decoupled":
+        return DecoupledController(cfg, u_max, psi_ref_max)
     return PIPDController(cfg, u_max, psi_ref_max, cfg.gains(carrier) if carrier is not None else None)
 
 

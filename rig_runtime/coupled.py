@@ -203,33 +203,80 @@ def law_at(cfg: RigConfig, carrier: str, v: float, continuous: bool = False) -> 
     return law.continuous(g) if continuous else law.discrete(g)
 
 
-def close(A: np.ndarray, B: np.ndarray, lay: Layout, laws: Mapping[str, DiscreteLaw]) -> np.ndarray:
-    """The closed loop of the plant (A, B over ``lay``: held over h, or continuous) and each
-    controlled carrier's law (``laws``, by carrier, in that order; sampled, or continuous):
-    states [plant, each law's states], y_ref = 0. A law reads ``y`` and ``psi`` of its carrier
-    and drives that carrier's input with its output ``u``. Nothing of a law is written here:
-    its matrices come from its description (:class:`~rig_runtime.control.DiscreteLaw`)."""
+@dataclass(frozen=True)
+class Loop:
+    """A closed loop with its references: z⁺ = M z + R r (sampled; ż = M z + R r continuous),
+    the carriers' inputs u = U z + U_r r. ``refs``/``inputs``: the carriers of r's and u's entries."""
+
+    M: np.ndarray
+    R: np.ndarray
+    U: np.ndarray
+    U_r: np.ndarray
+    refs: tuple[str, ...]
+    inputs: tuple[str, ...]
+
+
+def _signal(name: str, car: str) -> tuple[str, str]:
+    """A law's signal name as (quantity, carrier): ``y`` is its own carrier's y, ``y.front``
+    the front's (a law across carriers names them)."""
+    q, _, c = name.partition(".")
+    return q, (c or car)
+
+
+def closed_loop(A: np.ndarray, B: np.ndarray, lay: Layout, laws: Mapping[str, DiscreteLaw]) -> Loop:
+    """The closed loop of the plant (A, B over ``lay``: held over h, or continuous) and the laws
+    (``laws``: by the carrier they belong to, or by any name for a law whose signals name their
+    carriers; sampled, or continuous): states [plant, each law's states]. A law reads ``y``,
+    ``psi`` (its carrier's, or ``y.front`` …) and ``y_ref`` (a reference: a column of R) and
+    drives ``u`` (its carrier's input, or ``u.rear`` …). Nothing of a law is written here: its
+    matrices come from its description (:class:`~rig_runtime.control.DiscreteLaw`)."""
     n = lay.n_plant
     N = n + sum(len(L.states) for L in laws.values())
+    refs = tuple(c for c in lay.carriers if c in lay.controlled)
     M = np.zeros((N, N))
+    R = np.zeros((N, len(refs)))
+    U = np.zeros((len(lay.carriers), N))
+    U_r = np.zeros((len(lay.carriers), len(refs)))
     M[:n, :n] = A
     off = n
     for car, L in laws.items():
-        src = {"y": lay.y(car), "psi": lay.psi(car)}              # y_ref = 0: no column
-        cols = [(i, src[name]) for i, name in enumerate(L.inputs) if name in src]
+        cols, rcols = [], []
+        for i, name in enumerate(L.inputs):
+            q, c = _signal(name, car)
+            if q == "y_ref":
+                rcols.append((i, refs.index(c)))
+            elif c in lay.carriers:
+                cols.append((i, lay.y(c) if q == "y" else lay.psi(c)))
         ns = len(L.states)
-        out = L.outputs.index("u")
-        u = np.zeros(N)
-        for i, col in cols:
-            u[col] += L.D[out][i]
-        u[off:off + ns] = L.C[out]
         for r in range(ns):
             M[off + r, off:off + ns] = L.A[r]
             for i, col in cols:
                 M[off + r, col] += L.B[r][i]
-        M[:n] += np.outer(B[:, lay.carriers.index(car)], u)
+            for i, col in rcols:
+                R[off + r, col] += L.B[r][i]
+        for o, oname in enumerate(L.outputs):
+            _, c = _signal(oname, car)
+            if c not in lay.carriers:
+                continue
+            u = np.zeros(N)
+            ur = np.zeros(len(refs))
+            for i, col in cols:
+                u[col] += L.D[o][i]
+            for i, col in rcols:
+                ur[col] += L.D[o][i]
+            u[off:off + ns] = L.C[o]
+            j = lay.carriers.index(c)
+            M[:n] += np.outer(B[:, j], u)
+            R[:n] += np.outer(B[:, j], ur)
+            U[j] += u
+            U_r[j] += ur
         off += ns
-    return M
+    return Loop(M, R, U, U_r, refs, lay.carriers)
+
+
+def close(A: np.ndarray, B: np.ndarray, lay: Layout, laws: Mapping[str, DiscreteLaw]) -> np.ndarray:
+    """The closed loop's matrix alone (y_ref = 0): :func:`closed_loop`'s M."""
+    return closed_loop(A, B, lay, laws).M
 
 
 def continuous_matrix(cfg: RigConfig, v: float, D: Mapping[str, float],
@@ -390,3 +437,39 @@ def to_json(r: CoupledResult) -> dict:
         "coupled_setup": {"carriers_in_contact": list(r.carriers), "controlled": list(r.controlled),
                           "v_design": r.v_design, "held_band": list(r.band) if r.band else None},
     }
+
+
+# --------------------------------------------------------------------------- linear step responses
+@dataclass(frozen=True)
+class StepResponse:
+    """The sampled loop's response to a unit reference step on ``stepped`` carriers (at k = 0)."""
+
+    t: np.ndarray
+    y: dict            # carrier -> lateral displacement per unit step
+    u: dict            # carrier -> input (A per m of step)
+
+
+def step_response(cfg: RigConfig, v: float, D: Mapping[str, float], stepped: tuple[str, ...],
+                  t_end: float = 20.0, laws: Optional[Mapping[str, DiscreteLaw]] = None) -> StepResponse:
+    """The linear sampled loop at speed v (damping ``D``) from rest, every carrier of ``stepped``
+    given a unit reference step: each carrier's y and u (the linear model: no hysteresis, no
+    limits). ``laws``: the laws to wire (default: the configured one per controlled carrier)."""
+    lay = layout(cfg)
+    Ad, Bd = held(cfg, v, D, lay)
+    if laws is None:
+        laws = {c: law_at(cfg, c, v) for c in lay.controlled}
+    L = closed_loop(Ad, Bd, lay, laws)
+    r = np.array([1.0 if c in stepped else 0.0 for c in L.refs])
+    n = int(round(t_end / cfg.controller.h)) + 1
+    z = np.zeros(L.M.shape[0])
+    Y = np.zeros((n, len(lay.carriers)))
+    Uo = np.zeros((n, len(lay.carriers)))
+    Rr = L.R @ r
+    Ur = L.U_r @ r
+    for k in range(n):
+        Y[k] = [z[lay.y(c)] for c in lay.carriers]
+        Uo[k] = L.U @ z + Ur
+        z = L.M @ z + Rr
+    t = np.arange(n) * cfg.controller.h
+    return StepResponse(t, {c: Y[:, i] for i, c in enumerate(lay.carriers)},
+                        {c: Uo[:, i] for i, c in enumerate(lay.carriers)})
