@@ -16,7 +16,8 @@ import numpy as np
 from scipy.linalg import expm
 
 from . import coupled
-from .config import RigConfig
+from .config import PIPDGains, RigConfig
+from .control import DiscreteLaw, PIPDLaw, PLaw, law_of
 from .coupled import Instability
 from .errors import ConfigError
 
@@ -50,6 +51,13 @@ def model_10(cfg: RigConfig, D: float | None = None, a: float | None = None) -> 
     return A, B
 
 
+def pipd_gains(cfg: RigConfig) -> PIPDGains:
+    """The PI-PD gains the continuous formulas (15)–(19) and Sec. 5.2.3's checks are of: the
+    configured law's (``controller.decoupled`` for law decoupled, else ``controller.pipd``)."""
+    c = cfg.controller
+    return c.decoupled if c.law == "decoupled" else c.pipd
+
+
 def _outer_a(cfg: RigConfig) -> float:
     p = cfg.plant
     return p.c_y * p.v / p.l0 if cfg.tuning.outer_lateral_form == "eq17" else p.a_lat
@@ -58,13 +66,13 @@ def _outer_a(cfg: RigConfig) -> float:
 def inner_matrix(cfg: RigConfig) -> np.ndarray:
     """A_ψ,cl of (15)."""
     A, B = model_10(cfg)
-    g = cfg.controller.pipd
+    g = pipd_gains(cfg)
     return A[1:, 1:] - np.outer(B[1:], [g.K_P_psi, g.K_D_psi])
 
 
 def inner_filtered_matrix(cfg: RigConfig) -> np.ndarray:
     """Ā_ψ,cl of (16a): inner loop with the differentiator (12)."""
-    p, g = cfg.plant, cfg.controller.pipd
+    p, g = cfg.plant, pipd_gains(cfg)
     w2, T, KD = p.omega0 ** 2, g.T_f_psi, g.K_D_psi
     Kw = p.K * w2
     return np.array([[0.0, 1.0, 0.0],
@@ -75,7 +83,7 @@ def inner_filtered_matrix(cfg: RigConfig) -> np.ndarray:
 def outer_matrix(cfg: RigConfig) -> np.ndarray:
     """A_y,x1 of (17) in states [x_I, e_y] (with ψ = ψ_ref; sign of the K_I entry as it
     follows from (13), (14))."""
-    p, g = cfg.plant, cfg.controller.pipd
+    p, g = cfg.plant, pipd_gains(cfg)
     cv = p.c_y * p.v
     return np.array([[0.0, 1.0], [-g.K_I_y * cv, -_outer_a(cfg) - cv * g.K_P_y]])
 
@@ -83,7 +91,7 @@ def outer_matrix(cfg: RigConfig) -> np.ndarray:
 def closed_loop_matrix(cfg: RigConfig) -> np.ndarray:
     """Ā_cl of (19), states [y, ψ, ψ̇, x_I, x_diff] (a similarity transform of the paper's
     error coordinates: same eigenvalues). ψ̇_ref is taken exactly, ψ̇ through (12)."""
-    g = cfg.controller.pipd
+    g = pipd_gains(cfg)
     A, B = model_10(cfg, a=_outer_a(cfg))
     T = g.T_f_psi
     M = np.zeros((5, 5))
@@ -104,38 +112,29 @@ def closed_loop_matrix(cfg: RigConfig) -> np.ndarray:
 
 
 def _held_plant(cfg: RigConfig, D: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Plant (10) with its input held over one sample time h (zero-order hold)."""
+    """Plant (10) with its input held over one sample time h (zero-order hold): A_d, B_d (a column)."""
     A, B = model_10(cfg, D=D)
     n = 3
     Md = expm(np.block([[A, B[:, None]], [np.zeros((1, n + 1))]]) * cfg.controller.h)
-    return Md[:n, :n], Md[:n, n]
+    return Md[:n, :n], Md[:n, n:]
+
+
+PAPER_LAYOUT = coupled.Layout(("rear",), ("rear",), 3)     # plant (10): [y, ψ, ψ̇] of the rear carrier
+
+
+def _sampled(cfg: RigConfig, law: DiscreteLaw, D: float | None) -> np.ndarray:
+    """Eigenvalues (ln(z)/h, 1/s) of ``law`` (its description, as the runtime steps it) on
+    plant (10) held over h, y_ref = 0."""
+    Ad, Bd = _held_plant(cfg, D)
+    return _continuous(np.linalg.eigvals(coupled.close(Ad, Bd, PAPER_LAYOUT, {"rear": law})), cfg.controller.h)
 
 
 def sampled_closed_loop(cfg: RigConfig, D: float | None = None) -> np.ndarray:
-    """Eigenvalues of the loop as implemented: plant (10) (with (10)'s own lateral pole,
-    damping ``D``, default D_min) held over h, the Tustin PI-PD of ``control.py``;
-    returned as ln(z)/h (1/s)."""
+    """Eigenvalues of the PI-PD loop as implemented: plant (10) (with (10)'s own lateral pole,
+    damping ``D``, default D_min) held over h, the Tustin PI-PD of ``control.py`` (its
+    :class:`~rig_runtime.control.DiscreteLaw`); returned as ln(z)/h (1/s)."""
     c = cfg.controller
-    g, h = c.pipd, c.h
-    Ad, Bd = _held_plant(cfg, D)
-    # controller states: x_I, e_y_prev, e_psi_prev, de (Tustin); u_k depends on x_k
-    a_f = (2 * g.T_f_psi - h) / (2 * g.T_f_psi + h)
-    b_f = 2 / (2 * g.T_f_psi + h)
-    # z = [y, ψ, ψ̇, x_I, e_y_prev, e_psi_prev, de_prev]
-    N = 7
-    def rows():
-        e_y = np.zeros(N); e_y[0] = -1.0
-        x_I = np.zeros(N); x_I[3] = 1.0; x_I += 0.5 * h * (e_y + np.eye(N)[4])
-        psi_ref = g.K_P_y * e_y + g.K_I_y * x_I
-        e_psi = psi_ref - np.eye(N)[1]
-        de = a_f * np.eye(N)[6] + b_f * (e_psi - np.eye(N)[5])
-        u = g.K_P_psi * e_psi + g.K_D_psi * de
-        return e_y, x_I, e_psi, de, u
-    e_y, x_I, e_psi, de, u = rows()
-    Phi = np.zeros((N, N))
-    Phi[:3] = np.hstack([Ad, np.zeros((3, 4))]) + np.outer(Bd, u)
-    Phi[3], Phi[4], Phi[5], Phi[6] = x_I, e_y, e_psi, de
-    return _continuous(np.linalg.eigvals(Phi), h)
+    return _sampled(cfg, PIPDLaw.of(pipd_gains(cfg), c.h).discrete(), D)
 
 
 def _continuous(z: np.ndarray, h: float) -> np.ndarray:
@@ -147,14 +146,13 @@ def _continuous(z: np.ndarray, h: float) -> np.ndarray:
 def sampled_p_loop(cfg: RigConfig, D: float | None = None) -> np.ndarray:
     """Eigenvalues (ln(z)/h, 1/s) of the P law of Sec. 5.1 as implemented: u_k = K_P (y_ref − y_k)
     on plant (10) held over h."""
-    Ad, Bd = _held_plant(cfg, D)
-    C = np.array([1.0, 0.0, 0.0])
-    return _continuous(np.linalg.eigvals(Ad - cfg.controller.K_P * np.outer(Bd, C)), cfg.controller.h)
+    c = cfg.controller
+    return _sampled(cfg, PLaw(c.K_P, c.h).discrete(), D)
 
 
 def sampled_loop(cfg: RigConfig, D: float | None = None) -> np.ndarray:
     """The sampled closed loop of the configured law (``controller.law``), as implemented."""
-    return sampled_p_loop(cfg, D) if cfg.controller.law == "p" else sampled_closed_loop(cfg, D)
+    return _sampled(cfg, law_of(cfg.controller).discrete(), D)
 
 
 class UnstableLoopError(ConfigError):
@@ -192,7 +190,7 @@ def stability_gate(cfg: RigConfig) -> None:
 
 def _gains_key(cfg: RigConfig, bad: "Instability") -> str:
     c = cfg.controller
-    keys = ["controller.pipd"] + [f"controller.{k}" for k in ("front", "rear") if getattr(c, k) is not None]
+    keys = ["controller.decoupled" if c.law == "decoupled" else "controller.pipd"] + [f"controller.{k}" for k in ("front", "rear") if getattr(c, k) is not None]
     if c.schedule is not None:
         keys.append("controller.schedule")
     return " / ".join(keys)
@@ -260,10 +258,10 @@ def root_locus(cfg: RigConfig, kps: np.ndarray, D: float | None = None) -> np.nd
 
 def design_checks(cfg: RigConfig, outer: np.ndarray) -> dict:
     """The criteria of Sec. 5.2.3 (worst-case input and reference yaw angle, slowest pole)."""
-    t, g = cfg.tuning, cfg.controller.pipd
+    t, g = cfg.tuning, pipd_gains(cfg)
     terms = [abs(g.K_P_psi) * t.psi_design, abs(g.K_D_psi) * t.psi_rate_design]   # worst case: signs aligned
     u_worst = sum(terms)
-    psi_ref_worst = g.K_P_y * t.y_design
+    psi_ref_worst = g.K_P_y * t.y_design      # (law decoupled: its feed term is bounded by psi_ref_max, docs/vehicle.md §5)
     slowest = float(np.max(outer.real))
     return {
         # Sec. 5.2.3 asks for <= 2 A; its gains give 2 A per term (4 A together), so the

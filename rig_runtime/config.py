@@ -171,9 +171,19 @@ class PIPDGains:
     T_f_psi: float = check(positive)   # differentiator time constant, s
 
 
+@dataclass(frozen=True, kw_only=True)
+class DecoupledGains(PIPDGains):
+    """The decoupled PI-PD of the vehicle (``law: decoupled``, docs/vehicle.md §5): the PI-PD's
+    gains, a setpoint weight on the outer P term and the gain of the cross-carrier decoupling."""
+
+    b_y: float = check(unit_interval, default=1.0)        # setpoint weight: ψ_ref's P term is K_P,y (b y_ref − y)
+    K_x_y: float = check(nonneg, default=0.0)       # rad/m: ψ_ref − K_x,y (y_f − y_r) (1/(2 l0) cancels (2a)/(2b)'s coupling)
+
+
 PIPD_GAINS = ("K_P_y", "K_I_y", "K_P_psi", "K_D_psi", "T_f_psi")   # the PI-PD law's gains (PIPDGains)
+DECOUPLED_GAINS = PIPD_GAINS + ("b_y", "K_x_y")                     # the decoupled law's (DecoupledGains)
 P_GAINS = ("K_P",)                                                  # the P law's (Controller.K_P)
-TUNABLE_GAINS = PIPD_GAINS + P_GAINS                                # what `rig ctl set` may change
+TUNABLE_GAINS = DECOUPLED_GAINS + P_GAINS                           # what `rig ctl set` may change
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -203,8 +213,9 @@ class Schedule:
 @dataclass(frozen=True, kw_only=True)
 class Controller:
     h: float = check(positive)                      # sample time, s
-    law: Literal["pipd", "p"] = "pipd"
+    law: Literal["pipd", "p", "decoupled"] = "pipd"
     pipd: PIPDGains = field(default=None)  # type: ignore[assignment]
+    decoupled: Optional[DecoupledGains] = None      # the gains of law decoupled (both carriers)
     front: Optional[PIPDGains] = None               # the front carrier's own gains (None: pipd)
     rear: Optional[PIPDGains] = None                # the rear carrier's own gains (None: pipd)
     schedule: Optional[Schedule] = None             # None: fixed gains (the paper's set-up, v fixed)
@@ -217,6 +228,8 @@ class Controller:
     def __post_init__(self) -> None:
         if self.pipd is None:
             raise ConfigError(None, "pipd", "a mapping (missing key)")
+        if self.law == "decoupled" and self.decoupled is None:
+            raise ConfigError(None, "decoupled", "the gains of law decoupled (missing key)")
         for name, (lo, hi) in self.tuning.items():
             key = f"tuning.{name}"
             if name not in TUNABLE_GAINS:

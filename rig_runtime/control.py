@@ -1,6 +1,13 @@
 """Controllers of Sec. 5: the cascaded PI-PD law (11)–(14) and the P baseline of Sec. 5.1,
 plus open-loop input generators for identification experiments.
 
+Each law is written once, as its gains and its arithmetic (:class:`PIPDLaw`, :class:`PLaw`):
+the runtime controllers (:class:`PIPDController`, :class:`PController`) step it with plain
+floats every cycle, and :meth:`PIPDLaw.discrete` evaluates the very same arithmetic on linear
+forms to give its discrete state-space form (:class:`DiscreteLaw`), from which the sampled
+analysis, the coupled analysis and the stability gate build their closed loops
+(:mod:`rig_runtime.coupled`). A new law written here is analysed for free.
+
 Discretisation (h = 5 ms): Tustin (bilinear) for the outer integrator (14) and for the
 differentiator G(s) = s/(T_f s + 1) of (12). Tustin maps the stable left half plane onto
 the unit disc for any h, so the filter stays stable and well damped even for T_f close to
@@ -8,19 +15,244 @@ h, and it matches the continuous frequency response best up to a few Hz where th
 eigenvalues (< 70 1/s ≈ 11 Hz) live. The derivative acts on the error e_ψ = ψ_ref − ψ, so
 the D term sees ψ̇_ref as in (11) without measuring ẏ.
 
-The step is pure-Python scalar arithmetic: it runs every 5 ms inside the loop.
+The step is pure-Python scalar arithmetic: it runs every 5 ms inside the loop (no numpy here).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
-from .config import PIPD_GAINS, PIPDGains
+from .config import DECOUPLED_GAINS, PIPD_GAINS, DecoupledGains, PIPDGains
 from .config import Controller as ControllerConfig
 
+Matrix = tuple[tuple[float, ...], ...]
 
+
+# --------------------------------------------------------------------------- the description
+@dataclass(frozen=True)
+class DiscreteLaw:
+    """A control law's linear state-space form, as implemented, at the schedule's gain factor g:
+
+        x⁺ = A x + B w,   out = C x + D w
+
+    w: the inputs of this step (by name, ``inputs``), x: the states as the previous step left
+    them, x⁺: as this step leaves them (``states``: the names the runtime logs them under),
+    out: the outputs of this step (``outputs``). ``h`` the sample time (0: a continuous law,
+    ẋ = A x + B w). ``scheduled``: the gains the schedule's factor g multiplies (already in the
+    matrices). Saturation, the ψ_ref limit, anti-windup and the standstill hold are not
+    linear: the runtime adds them around the same arithmetic; the analysis, like the paper's,
+    is of the linear loop."""
+
+    law: str
+    h: float
+    g: float
+    inputs: tuple[str, ...]
+    states: tuple[str, ...]
+    outputs: tuple[str, ...]
+    A: Matrix
+    B: Matrix
+    C: Matrix
+    D: Matrix
+    scheduled: tuple[str, ...] = ()
+
+
+class _Form:
+    """A linear form over named basis symbols (a row of coefficients): the law's arithmetic
+    evaluated on these instead of floats gives its matrices, entry by entry with the same
+    floating-point operations as the runtime's step."""
+
+    __slots__ = ("v",)
+
+    def __init__(self, v: list[float]):
+        self.v = v
+
+    def __add__(self, o: "_Form") -> "_Form":
+        return _Form([a + b for a, b in zip(self.v, o.v)])
+
+    def __sub__(self, o: "_Form") -> "_Form":
+        return _Form([a - b for a, b in zip(self.v, o.v)])
+
+    def __rmul__(self, k: float) -> "_Form":
+        return _Form([k * a for a in self.v])
+
+    def __truediv__(self, k: float) -> "_Form":
+        return _Form([a / k for a in self.v])
+
+
+def _basis(n: int) -> list[_Form]:
+    return [_Form([1.0 if j == i else 0.0 for j in range(n)]) for i in range(n)]
+
+
+def _describe(law: str, h: float, g: float, inputs: tuple[str, ...], states: tuple[str, ...],
+              outputs: tuple[str, ...], new: Sequence[_Form], out: Sequence[_Form],
+              scheduled: tuple[str, ...]) -> DiscreteLaw:
+    """Split the forms of the new states and the outputs (over [states, inputs]) into A, B, C, D."""
+    ns = len(states)
+    return DiscreteLaw(law, h, g, inputs, states, outputs,
+                       tuple(tuple(f.v[:ns]) for f in new), tuple(tuple(f.v[ns:]) for f in new),
+                       tuple(tuple(f.v[:ns]) for f in out), tuple(tuple(f.v[ns:]) for f in out), scheduled)
+
+
+LAW_INPUTS = ("y_ref", "y", "psi")      # what a carrier's law reads each step
+
+
+@dataclass(frozen=True)
+class PIPDLaw:
+    """The cascaded PI-PD law (11)–(14) with its gains, discretised at h (Tustin):
+
+        e_y = y_ref − y,   x_I⁺ = x_I + (h/2) g (e_y + e_y,prev),   ψ_ref = g K_P,y e_y + K_I,y x_I⁺
+        e_ψ = ψ_ref − ψ,   ê_ψ⁺ = a ê_ψ + b (e_ψ − e_ψ,prev),       u = K_P,ψ e_ψ + K_D,ψ ê_ψ⁺
+
+    with a = (2T_f − h)/(2T_f + h), b = 2/(2T_f + h) (Tustin of s/(T_f s + 1)) — computed here
+    once. g is the speed schedule's factor on the outer PI (the integrator integrates g·e_y, so
+    its share of ψ_ref does not jump when g changes). :meth:`outer` and :meth:`inner` are the
+    arithmetic, in floats for the runtime and in linear forms for :meth:`discrete`."""
+
+    K_P_y: float
+    K_I_y: float
+    K_P_psi: float
+    K_D_psi: float
+    T_f_psi: float
+    h: float
+    half_h: float = field(init=False)
+    a: float = field(init=False)
+    b: float = field(init=False)
+
+    STATES = ("x_I", "e_y", "e_psi", "de_psi")      # after a step; e_y, e_psi: the previous samples
+    SCHEDULED = ("K_P_y", "K_I_y")
+
+    def __post_init__(self):
+        den = 2.0 * self.T_f_psi + self.h
+        object.__setattr__(self, "half_h", 0.5 * self.h)
+        object.__setattr__(self, "a", (2.0 * self.T_f_psi - self.h) / den)
+        object.__setattr__(self, "b", 2.0 / den)
+
+    @classmethod
+    def of(cls, gains: PIPDGains, h: float) -> "PIPDLaw":
+        return cls(gains.K_P_y, gains.K_I_y, gains.K_P_psi, gains.K_D_psi, gains.T_f_psi, h)
+
+    def psi_ref(self, g, e_y, x_I):
+        """The outer PI's output from the error and the integrator's (updated) state."""
+        return self.K_P_y * g * e_y + self.K_I_y * x_I
+
+    def seed(self, g: float, e_y: float, psi_ref: float) -> float:
+        """The integrator state for which the outer PI gives ``psi_ref`` at error e_y (bumpless
+        start, resume, gain change); 0 without integral action."""
+        return (psi_ref - self.K_P_y * g * e_y) / self.K_I_y if self.K_I_y else 0.0
+
+    def outer(self, g, e_y, e_y_prev, x_I_prev):
+        """The outer PI's step: (the integration done, x_I⁺, ψ_ref)."""
+        dI = self.half_h * g * (e_y + e_y_prev)
+        x_I = x_I_prev + dI
+        return dI, x_I, self.psi_ref(g, e_y, x_I)
+
+    def inner(self, psi_ref, psi, e_psi_prev, de_prev):
+        """The inner PD's step on e_ψ with the Tustin differentiator: (e_ψ, ê_ψ⁺, u)."""
+        e_psi = psi_ref - psi
+        de = self.a * de_prev + self.b * (e_psi - e_psi_prev)
+        return e_psi, de, self.K_P_psi * e_psi + self.K_D_psi * de
+
+    def discrete(self, g: float = 1.0) -> DiscreteLaw:
+        """The linear law as the runtime steps it (:class:`DiscreteLaw`), at factor g."""
+        x_I, e_y0, e_psi0, de0, y_ref, y, psi = _basis(7)
+        e_y = y_ref - y
+        _, x_I1, psi_ref = self.outer(g, e_y, e_y0, x_I)
+        e_psi, de, u = self.inner(psi_ref, psi, e_psi0, de0)
+        return _describe("pipd", self.h, g, LAW_INPUTS, self.STATES, ("u",),
+                         (x_I1, e_y, e_psi, de), (u,), self.SCHEDULED)
+
+    def continuous(self, g: float = 1.0) -> DiscreteLaw:
+        """The law as designed (11)–(14), continuous (h = 0): states x_I (ẋ_I = g e_y) and the
+        differentiator's x_f (ê_ψ = (e_ψ − x_f)/T_f = ẋ_f)."""
+        x_I, x_f, y_ref, y, psi = _basis(5)
+        e_y = y_ref - y
+        e_psi = self.psi_ref(g, e_y, x_I) - psi
+        de = (e_psi - x_f) / self.T_f_psi
+        u = self.K_P_psi * e_psi + self.K_D_psi * de
+        return _describe("pipd", 0.0, g, LAW_INPUTS, ("x_I", "x_f"), ("u",), (g * e_y, de), (u,),
+                         self.SCHEDULED)
+
+
+@dataclass(frozen=True)
+class DecoupledLaw(PIPDLaw):
+    """The decoupled PI-PD of the vehicle (``law: decoupled``; docs/vehicle.md §5): the PI-PD of
+    :class:`PIPDLaw` per carrier, its yaw reference lowered by a feed term w read across the
+    carriers,
+
+        ψ_ref = g K_P,y e_y + K_I,y x_I⁺ − w,   w = g K_P,y (1 − b_y) y_ref + K_x,y (y_f − y_r)
+
+    * setpoint weighting b_y: a reference step moves ψ_ref by g K_P,y b_y Δy_ref, not
+      g K_P,y Δy_ref (the integrator still removes the error: the step does not kick the current);
+    * decoupling K_x,y: (2a)/(2b) drive each carrier by a_c (y_f − y_r) with a_c = c̄_y,c v/(2 l0,c);
+      a yaw angle −(y_f − y_r)/(2 l0,c) cancels it at every speed and direction (a_c / c̄_y,c v does
+      not depend on v), leaving each carrier a pure integrator under its own PI-PD.
+
+    With b_y = 1 and K_x,y = 0 it is the PI-PD. It reads both carriers' y (inputs ``y.front``,
+    ``y.rear``): in the runtime through the lanes' one cross-lane stage (:class:`rig_runtime.lanes.LateralPair`)."""
+
+    b_y: float = 1.0
+    K_x_y: float = 0.0
+
+    SCHEDULED = ("K_P_y", "K_I_y")
+    INPUTS = LAW_INPUTS + ("y.front", "y.rear")
+
+    @classmethod
+    def of(cls, gains: DecoupledGains, h: float) -> "DecoupledLaw":
+        return cls(gains.K_P_y, gains.K_I_y, gains.K_P_psi, gains.K_D_psi, gains.T_f_psi, h,
+                   b_y=gains.b_y, K_x_y=gains.K_x_y)
+
+    def feed(self, g, y_ref, y_front, y_rear):
+        """w: what ψ_ref is lowered by (setpoint weight and decoupling)."""
+        return self.K_P_y * g * (1.0 - self.b_y) * y_ref + self.K_x_y * (y_front - y_rear)
+
+    def discrete(self, g: float = 1.0) -> DiscreteLaw:
+        x_I, e_y0, e_psi0, de0, y_ref, y, psi, yf, yr = _basis(9)
+        e_y = y_ref - y
+        _, x_I1, psi_ref = self.outer(g, e_y, e_y0, x_I)
+        e_psi, de, u = self.inner(psi_ref - self.feed(g, y_ref, yf, yr), psi, e_psi0, de0)
+        return _describe("decoupled", self.h, g, self.INPUTS, self.STATES, ("u",),
+                         (x_I1, e_y, e_psi, de), (u,), self.SCHEDULED)
+
+    def continuous(self, g: float = 1.0) -> DiscreteLaw:
+        x_I, x_f, y_ref, y, psi, yf, yr = _basis(7)
+        e_y = y_ref - y
+        e_psi = self.psi_ref(g, e_y, x_I) - self.feed(g, y_ref, yf, yr) - psi
+        de = (e_psi - x_f) / self.T_f_psi
+        u = self.K_P_psi * e_psi + self.K_D_psi * de
+        return _describe("decoupled", 0.0, g, self.INPUTS, ("x_I", "x_f"), ("u",), (g * e_y, de), (u,),
+                         self.SCHEDULED)
+
+
+@dataclass(frozen=True)
+class PLaw:
+    """The P law of Sec. 5.1: u = g K_P (y_ref − y); no states."""
+
+    K_P: float
+    h: float
+
+    def u(self, g, e):
+        return self.K_P * g * e
+
+    def discrete(self, g: float = 1.0) -> DiscreteLaw:
+        y_ref, y, psi = _basis(3)
+        return _describe("p", self.h, g, LAW_INPUTS, (), ("u",), (), (self.u(g, y_ref - y),), ("K_P",))
+
+    def continuous(self, g: float = 1.0) -> DiscreteLaw:
+        return replace(self.discrete(g), h=0.0)
+
+
+def law_of(cfg: ControllerConfig, carrier: str | None = None) -> "PIPDLaw | PLaw":
+    """The configured law (``controller.law``) with its gains (with ``carrier``: that carrier's)."""
+    if cfg.law == "p":
+        return PLaw(cfg.K_P, cfg.h)
+    if cfg.law == "decoupled":
+        return DecoupledLaw.of(cfg.decoupled, cfg.h)
+    return PIPDLaw.of(cfg.gains(carrier) if carrier is not None else cfg.pipd, cfg.h)
+
+
+# --------------------------------------------------------------------------- the runtime
 @dataclass(slots=True)
 class PIPDInternals:
     """What one step computed, for the recorder."""
@@ -35,7 +267,8 @@ class PIPDInternals:
 
 
 class PIPDController:
-    """Cascaded PI (outer, y → ψ_ref) and PD (inner, ψ → u) control law.
+    """Steps :class:`PIPDLaw` every cycle, with the nonlinear parts around it: the ψ_ref
+    limit, saturation and anti-windup, bumpless start, the standstill hold.
 
     ``step(y_ref, y, psi)`` returns the saturated current command; ``limit_feedback(u)``
     tells the controller what was actually applied after the safety limits, so that the
@@ -52,14 +285,10 @@ class PIPDController:
 
     def __init__(self, cfg: ControllerConfig, u_max: float, psi_ref_max: float | None = None,
                  gains: PIPDGains | None = None):
-        g = gains if gains is not None else cfg.pipd
+        self.law = PIPDLaw.of(gains if gains is not None else cfg.pipd, cfg.h)
         self.h = cfg.h
-        self.kpy, self.kiy, self.kpp, self.kdp, self.tf = g.K_P_y, g.K_I_y, g.K_P_psi, g.K_D_psi, g.T_f_psi
         self.u_max = u_max
         self.psi_ref_max = psi_ref_max
-        den = 2.0 * self.tf + self.h
-        self._a = (2.0 * self.tf - self.h) / den   # Tustin of s/(T s + 1)
-        self._b = 2.0 / den
         self.st = PIPDInternals()
         self._e_y_prev = 0.0
         self._e_psi_prev = 0.0
@@ -71,6 +300,13 @@ class PIPDController:
         self._psi_hold = 0.0    # ψ_ref when the hold began
         self._hold_n = 1        # steps of the ramp to 0
         self._hold_k = 0        # steps held so far
+        self._w = 0.0           # what ψ_ref is lowered by (the decoupled law's feed term; 0 here)
+
+    kpy = property(lambda self: self.law.K_P_y)
+    kiy = property(lambda self: self.law.K_I_y)
+    kpp = property(lambda self: self.law.K_P_psi)
+    kdp = property(lambda self: self.law.K_D_psi)
+    tf = property(lambda self: self.law.T_f_psi)
 
     def reset(self) -> None:
         """Forget all history; the next step starts bumplessly."""
@@ -103,10 +339,11 @@ class PIPDController:
         """Bumpless start: choose x_I so that ψ_ref = ψ (no proportional jump) and seed the
         differentiator with the current error (no derivative kick)."""
         e_y = y_ref - y
-        x_I = (psi + u0 / self.kpp - self.kpy * self.g * e_y) / self.kiy if self.kiy else 0.0
-        self.st = PIPDInternals(e_y=e_y, x_I=x_I, psi_ref=psi + u0 / self.kpp, u=u0, u_unsat=u0)
+        kpp = self.law.K_P_psi
+        x_I = self.law.seed(self.g, e_y, psi + u0 / kpp + self._w)
+        self.st = PIPDInternals(e_y=e_y, x_I=x_I, psi_ref=psi + u0 / kpp, u=u0, u_unsat=u0)
         self._e_y_prev = e_y
-        self._e_psi_prev = u0 / self.kpp
+        self._e_psi_prev = u0 / kpp
         self._started = True
         self.held = self._reseed = False
 
@@ -114,6 +351,7 @@ class PIPDController:
         if not self._started:
             self.start(y_ref, y, psi)
         st = self.st
+        law = self.law
         e_y = y_ref - y
         g = self.g
         if self.held:                       # standstill: integrator frozen, ψ_ref ramps to 0
@@ -121,15 +359,14 @@ class PIPDController:
             x_I = st.x_I
             k = self._hold_k = self._hold_k + 1
             psi_ref = self._psi_hold * (1.0 - k / self._hold_n) if k < self._hold_n else 0.0
+        elif self._reseed:                  # resumed: ψ_ref goes on from the held value
+            self._reseed = False
+            dI = 0.0
+            x_I = law.seed(g, e_y, st.psi_ref + self._w)
+            psi_ref = law.psi_ref(g, e_y, x_I) - self._w
         else:
-            if self._reseed:                # resumed: ψ_ref goes on from the held value
-                self._reseed = False
-                dI = 0.0
-                x_I = (st.psi_ref - self.kpy * g * e_y) / self.kiy if self.kiy else 0.0
-            else:
-                dI = 0.5 * self.h * g * (e_y + self._e_y_prev)
-                x_I = st.x_I + dI
-            psi_ref = self.kpy * g * e_y + self.kiy * x_I
+            dI, x_I, psi_ref = law.outer(g, e_y, self._e_y_prev, st.x_I)
+            psi_ref -= self._w
         lim = self.psi_ref_max
         if lim is not None and (psi_ref > lim or psi_ref < -lim):
             clipped = lim if psi_ref > 0 else -lim
@@ -137,9 +374,7 @@ class PIPDController:
                 x_I -= dI
                 dI = 0.0
             psi_ref = clipped
-        e_psi = psi_ref - psi
-        de = self._a * st.de_psi + self._b * (e_psi - self._e_psi_prev)
-        u_unsat = self.kpp * e_psi + self.kdp * de
+        e_psi, de, u_unsat = law.inner(psi_ref, psi, self._e_psi_prev, st.de_psi)
         u = u_unsat
         if u > self.u_max:
             u = self.u_max
@@ -154,11 +389,12 @@ class PIPDController:
         self._e_psi_prev = e_psi
         return u
 
-    GAINS = dict(zip(PIPD_GAINS, ("kpy", "kiy", "kpp", "kdp", "tf")))     # config name -> attribute
+    GAIN_NAMES = PIPD_GAINS
+    law_name = "PI-PD"
 
     def gains(self) -> dict[str, float]:
         """The gains in force, by their config names."""
-        return {n: getattr(self, a) for n, a in self.GAINS.items()}
+        return {n: getattr(self.law, n) for n in self.GAIN_NAMES}
 
     def set_gain(self, name: str, value: float) -> None:
         """Change one gain between two steps (the loop calls it at a cycle boundary; the
@@ -181,21 +417,15 @@ class PIPDController:
         x_I with it. Raises ValueError for a name that is not a gain of this law or a value
         that is not a finite positive number (limits are not gains: they cannot be set here).
         """
-        attr = self.GAINS.get(name)
-        if attr is None:
-            raise ValueError(f"{name!r} is not a gain of the PI-PD law ({', '.join(self.GAINS)})")
+        if name not in self.GAIN_NAMES:
+            raise ValueError(f"{name!r} is not a gain of the {self.law_name} law ({', '.join(self.GAIN_NAMES)})")
         v = _positive(name, value)
+        new = replace(self.law, **{name: v})
         st = self.st
-        if self._started and name in ("K_P_y", "K_I_y") and self.kiy:
-            g = self.g
-            psi_ref = self.kpy * g * st.e_y + self.kiy * st.x_I      # unclipped, as the last step made it
-            kpy, kiy = (v, self.kiy) if name == "K_P_y" else (self.kpy, v)
-            st.x_I = (psi_ref - kpy * g * st.e_y) / kiy
-        setattr(self, attr, v)
-        if name == "T_f_psi":
-            den = 2.0 * self.tf + self.h
-            self._a = (2.0 * self.tf - self.h) / den
-            self._b = 2.0 / den
+        if self._started and name in PIPDLaw.SCHEDULED and self.law.K_I_y:
+            psi_ref = self.law.psi_ref(self.g, st.e_y, st.x_I)    # unclipped, as the last step made it
+            st.x_I = new.seed(self.g, st.e_y, psi_ref)
+        self.law = new
 
     def limit_feedback(self, u_applied: float) -> None:
         """The safety layer applied ``u_applied`` instead of the last output: undo this
@@ -206,16 +436,68 @@ class PIPDController:
             self._dI = 0.0
 
 
+class DecoupledController(PIPDController):
+    """Steps :class:`DecoupledLaw`: the PI-PD controller with ψ_ref lowered by the law's feed
+    term w (setpoint weighting, decoupling), which it computes each step from the reference and
+    both carriers' y as the lanes' cross-lane stage gives them (``couple``). Saturation,
+    anti-windup, the ψ_ref limit, bumpless start, hold and resume are the PI-PD's (they act on
+    ψ_ref with w included: a resume or a start continues the ψ_ref the carrier has)."""
+
+    GAIN_NAMES = DECOUPLED_GAINS
+    law_name = "decoupled"
+
+    def __init__(self, cfg: ControllerConfig, u_max: float, psi_ref_max: float | None = None,
+                 gains: DecoupledGains | None = None):
+        super().__init__(cfg, u_max, psi_ref_max, cfg.pipd)
+        self.law = DecoupledLaw.of(gains if gains is not None else cfg.decoupled, cfg.h)
+        self.pair = None          # the cross-lane stage (lanes.LateralPair); None: the other carrier at 0
+        self._fed = (0.0, 0.0, 0.0)   # y_ref, y_f, y_r of the last feed term
+
+    def couple(self, pair) -> None:
+        """Read the carriers' y through ``pair`` (``pair.y(carrier)``) from the next step on."""
+        self.pair = pair
+
+    def _feed(self, y_ref: float) -> None:
+        p = self.pair
+        yf, yr = (p.y("front"), p.y("rear")) if p is not None else (0.0, 0.0)
+        self._fed = (y_ref, yf, yr)
+        self._w = self.law.feed(self.g, y_ref, yf, yr)
+
+    def start(self, y_ref: float, y: float, psi: float, u0: float = 0.0) -> None:
+        self._feed(y_ref)
+        super().start(y_ref, y, psi, u0)
+
+    def step(self, y_ref: float, y: float, psi: float) -> float:
+        self._feed(y_ref)
+        return super().step(y_ref, y, psi)
+
+    def set_gain(self, name: str, value: float) -> None:
+        """As :meth:`PIPDController.set_gain`; a change of K_P_y, K_I_y, b_y or K_x_y keeps ψ_ref
+        (with the last step's feed term) continuous by re-seeding x_I."""
+        if name not in self.GAIN_NAMES:
+            raise ValueError(f"{name!r} is not a gain of the decoupled law ({', '.join(self.GAIN_NAMES)})")
+        v = _positive(name, value) if name != "b_y" else _unit(name, value)
+        old, new = self.law, replace(self.law, **{name: v})
+        st = self.st
+        if self._started and name in ("K_P_y", "K_I_y", "b_y", "K_x_y") and old.K_I_y:
+            psi_ref = old.psi_ref(self.g, st.e_y, st.x_I) - old.feed(self.g, *self._fed)
+            self._w = new.feed(self.g, *self._fed)
+            st.x_I = new.seed(self.g, st.e_y, psi_ref + self._w)
+        self.law = new
+
+
 class PController:
-    """The P baseline of Sec. 5.1: u = K_P (y_ref − y), saturated. Scheduled, K_P·g; held,
-    u = 0 (the law has no yaw loop to keep ψ at 0 with)."""
+    """Steps :class:`PLaw`: u = K_P (y_ref − y), saturated. Scheduled, K_P·g; held, u = 0
+    (the law has no yaw loop to keep ψ at 0 with)."""
 
     def __init__(self, cfg: ControllerConfig, u_max: float):
-        self.kp = cfg.K_P
+        self.law = PLaw(cfg.K_P, cfg.h)
         self.u_max = u_max
         self.st = PIPDInternals()
         self.g = 1.0
         self.held = False
+
+    kp = property(lambda self: self.law.K_P)
 
     def reset(self) -> None:
         self.st = PIPDInternals()
@@ -235,14 +517,14 @@ class PController:
 
     def step(self, y_ref: float, y: float, psi: float) -> float:
         e = y_ref - y
-        u = 0.0 if self.held else self.kp * self.g * e
+        u = 0.0 if self.held else self.law.u(self.g, e)
         u_sat = min(self.u_max, max(-self.u_max, u))
         st = self.st
         st.e_y, st.u_unsat, st.u = e, u, u_sat
         return u_sat
 
     def gains(self) -> dict[str, float]:
-        return {"K_P": self.kp}
+        return {"K_P": self.law.K_P}
 
     def set_gain(self, name: str, value: float) -> None:
         """Change K_P between two steps. Not bumpless: the law has no state to absorb the
@@ -250,7 +532,7 @@ class PController:
         the wire. ValueError for another name or a value that is not finite and positive."""
         if name != "K_P":
             raise ValueError(f"{name!r} is not a gain of the P law (K_P)")
-        self.kp = _positive(name, value)
+        self.law = replace(self.law, K_P=_positive(name, value))
 
     def limit_feedback(self, u_applied: float) -> None:
         pass
@@ -264,11 +546,21 @@ def _positive(name: str, value: float) -> float:
     return v
 
 
+def _unit(name: str, value: float) -> float:
+    """A weight's new value as a float; ValueError unless finite and in [0, 1]."""
+    v = float(value)
+    if not (math.isfinite(v) and 0.0 <= v <= 1.0):
+        raise ValueError(f"{name}: {value!r} is not a number in [0, 1]")
+    return v
+
+
 def make_controller(cfg: ControllerConfig, u_max: float, psi_ref_max: float | None = None,
                     carrier: str | None = None):
     """The configured control law (with ``carrier``: that carrier's gains, ``cfg.gains``)."""
     if cfg.law == "p":
         return PController(cfg, u_max)
+    if cfg.law == "decoupled":
+        return DecoupledController(cfg, u_max, psi_ref_max)
     return PIPDController(cfg, u_max, psi_ref_max, cfg.gains(carrier) if carrier is not None else None)
 
 

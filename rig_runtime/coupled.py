@@ -12,16 +12,13 @@ and then this is model (10) of the rear carrier). Offsets, forces and the hyster
 inputs or nonlinear: not in A. The yaw dynamics (6) are taken as speed- and
 direction-independent (ESTIMATE: the paper identified them at v = +1 m/s only).
 
-Controller per controlled carrier in contact, as ``control.PIPDController`` computes it
-(the P law of Sec. 5.1: u = −K_P y, unscheduled):
-
-    e_y = y_ref − y,  ẋ_I = e_y,  ψ_ref = g K_P,y e_y + g K_I,y x_I,  e_ψ = ψ_ref − ψ,
-    u = K_P,ψ e_ψ + K_D,ψ ê_ψ,  ê_ψ = s/(T_f s + 1) e_ψ (the differentiator acts on e_ψ);
-
-continuous, and sampled at h: the plant held over h (ZOH), the integrator and the
-differentiator by Tustin, u_k computed from the samples of cycle k (as ``sampled_closed_loop``
-of :mod:`rig_runtime.analysis`, whose loop this is with the front lifted). A carrier in contact
-that is not controlled has Δu = 0.
+Controller per controlled carrier in contact: the configured law's own description
+(:class:`rig_runtime.control.DiscreteLaw`, from ``control.law_of``) — as implemented (the
+sampled loop: the plant held over h (ZOH), the law's discrete form, u_k computed from the
+samples of cycle k) and as designed (the continuous loop: the law's continuous form). Nothing
+of a law's arithmetic is written here: :func:`close` wires any law's matrices to the plant
+(:func:`rig_runtime.analysis.sampled_closed_loop` is this loop with the front lifted). A
+carrier in contact that is not controlled has Δu = 0.
 
 THE SCHEDULE LAW (docs/vehicle.md implements it): g = v_d / v with
 v_d = ``schedule.v_design`` (else ``plant.v``), sign included, on the outer PI only. Without a
@@ -41,7 +38,9 @@ from typing import Mapping, Optional
 
 import numpy as np
 
+from . import control
 from .config import RigConfig
+from .control import DiscreteLaw
 
 GRID_STEP = 0.05        # m/s: the largest spacing of the analysed speeds over schedule.v_range
 
@@ -196,72 +195,106 @@ def held(cfg: RigConfig, v: float, D: Mapping[str, float], lay: Layout) -> tuple
 
 
 # --------------------------------------------------------------------------- the loops
-def _unit(N: int, i: int) -> np.ndarray:
-    e = np.zeros(N)
-    e[i] = 1.0
-    return e
+def law_at(cfg: RigConfig, carrier: str, v: float, continuous: bool = False) -> DiscreteLaw:
+    """The carrier's configured law (:mod:`rig_runtime.control`) at the schedule's factor for
+    speed v: as implemented (sampled), or as designed (``continuous``)."""
+    law = control.law_of(cfg.controller, carrier)
+    g = gain_factor(cfg, v)
+    return law.continuous(g) if continuous else law.discrete(g)
+
+
+@dataclass(frozen=True)
+class Loop:
+    """A closed loop with its references: z⁺ = M z + R r (sampled; ż = M z + R r continuous),
+    the carriers' inputs u = U z + U_r r. ``refs``/``inputs``: the carriers of r's and u's entries."""
+
+    M: np.ndarray
+    R: np.ndarray
+    U: np.ndarray
+    U_r: np.ndarray
+    refs: tuple[str, ...]
+    inputs: tuple[str, ...]
+
+
+def _signal(name: str, car: str) -> tuple[str, str]:
+    """A law's signal name as (quantity, carrier): ``y`` is its own carrier's y, ``y.front``
+    the front's (a law across carriers names them)."""
+    q, _, c = name.partition(".")
+    return q, (c or car)
+
+
+def closed_loop(A: np.ndarray, B: np.ndarray, lay: Layout, laws: Mapping[str, DiscreteLaw]) -> Loop:
+    """The closed loop of the plant (A, B over ``lay``: held over h, or continuous) and the laws
+    (``laws``: by the carrier they belong to, or by any name for a law whose signals name their
+    carriers; sampled, or continuous): states [plant, each law's states]. A law reads ``y``,
+    ``psi`` (its carrier's, or ``y.front`` …) and ``y_ref`` (a reference: a column of R) and
+    drives ``u`` (its carrier's input, or ``u.rear`` …). Nothing of a law is written here: its
+    matrices come from its description (:class:`~rig_runtime.control.DiscreteLaw`)."""
+    n = lay.n_plant
+    N = n + sum(len(L.states) for L in laws.values())
+    refs = tuple(c for c in lay.carriers if c in lay.controlled)
+    M = np.zeros((N, N))
+    R = np.zeros((N, len(refs)))
+    U = np.zeros((len(lay.carriers), N))
+    U_r = np.zeros((len(lay.carriers), len(refs)))
+    M[:n, :n] = A
+    off = n
+    for car, L in laws.items():
+        cols, rcols = [], []
+        for i, name in enumerate(L.inputs):
+            q, c = _signal(name, car)
+            if q == "y_ref":
+                rcols.append((i, refs.index(c)))
+            elif c in lay.carriers:
+                cols.append((i, lay.y(c) if q == "y" else lay.psi(c)))
+        ns = len(L.states)
+        for r in range(ns):
+            M[off + r, off:off + ns] = L.A[r]
+            for i, col in cols:
+                M[off + r, col] += L.B[r][i]
+            for i, col in rcols:
+                R[off + r, col] += L.B[r][i]
+        for o, oname in enumerate(L.outputs):
+            _, c = _signal(oname, car)
+            if c not in lay.carriers:
+                continue
+            u = np.zeros(N)
+            ur = np.zeros(len(refs))
+            for i, col in cols:
+                u[col] += L.D[o][i]
+            for i, col in rcols:
+                ur[col] += L.D[o][i]
+            u[off:off + ns] = L.C[o]
+            j = lay.carriers.index(c)
+            M[:n] += np.outer(B[:, j], u)
+            R[:n] += np.outer(B[:, j], ur)
+            U[j] += u
+            U_r[j] += ur
+        off += ns
+    return Loop(M, R, U, U_r, refs, lay.carriers)
+
+
+def close(A: np.ndarray, B: np.ndarray, lay: Layout, laws: Mapping[str, DiscreteLaw]) -> np.ndarray:
+    """The closed loop's matrix alone (y_ref = 0): :func:`closed_loop`'s M."""
+    return closed_loop(A, B, lay, laws).M
 
 
 def continuous_matrix(cfg: RigConfig, v: float, D: Mapping[str, float],
                       lay: Optional[Layout] = None) -> np.ndarray:
-    """The continuous closed loop at speed v: states [plant, (x_I, x_f) per controlled
-    carrier] (x_f the differentiator's state, ê_ψ = (e_ψ − x_f)/T_f); P law: plant only."""
+    """The continuous closed loop at speed v: states [plant, each controlled carrier's law
+    as designed (PI-PD: x_I, the differentiator's x_f; P: none)]."""
     lay = layout(cfg) if lay is None else lay
     A, B = plant_matrices(cfg, v, D, lay)
-    c = cfg.controller
-    pipd = c.law == "pipd"
-    N = lay.n_plant + (2 * len(lay.controlled) if pipd else 0)
-    M = np.zeros((N, N))
-    M[:lay.n_plant, :lay.n_plant] = A
-    g = gain_factor(cfg, v)
-    for k, car in enumerate(lay.controlled):
-        e_y = -_unit(N, lay.y(car))                       # y_ref = 0
-        j = lay.carriers.index(car)
-        if not pipd:
-            u = c.K_P * e_y
-        else:
-            G = c.gains(car)
-            iI, iF = lay.n_plant + 2 * k, lay.n_plant + 2 * k + 1
-            e_psi = g * G.K_P_y * e_y + g * G.K_I_y * _unit(N, iI) - _unit(N, lay.psi(car))
-            de = (e_psi - _unit(N, iF)) / G.T_f_psi
-            u = G.K_P_psi * e_psi + G.K_D_psi * de
-            M[iI] = e_y
-            M[iF] = de
-        M[:lay.n_plant] += np.outer(B[:, j], u)
-    return M
+    return close(A, B, lay, {c: law_at(cfg, c, v, continuous=True) for c in lay.controlled})
 
 
 def sampled_matrix(cfg: RigConfig, v: float, D: Mapping[str, float],
                    lay: Optional[Layout] = None) -> np.ndarray:
-    """The sampled closed loop at speed v, as implemented: states [plant, (x_I, e_y,prev,
-    e_ψ,prev, ê_ψ) per controlled carrier]; z_{k+1} = Φ z_k."""
+    """The sampled closed loop at speed v, as implemented: states [plant, each controlled
+    carrier's law states (PI-PD: x_I, e_y, e_ψ, ê_ψ)]; z_{k+1} = Φ z_k."""
     lay = layout(cfg) if lay is None else lay
     Ad, Bd = held(cfg, v, D, lay)
-    c = cfg.controller
-    h = c.h
-    pipd = c.law == "pipd"
-    n = lay.n_plant
-    N = n + (4 * len(lay.controlled) if pipd else 0)
-    Phi = np.zeros((N, N))
-    Phi[:n, :n] = Ad
-    g = gain_factor(cfg, v)
-    for k, car in enumerate(lay.controlled):
-        e_y = -_unit(N, lay.y(car))
-        j = lay.carriers.index(car)
-        if not pipd:
-            u = c.K_P * e_y
-        else:
-            G = c.gains(car)
-            iI, iE, iP, iD = (n + 4 * k + i for i in range(4))
-            a_f = (2 * G.T_f_psi - h) / (2 * G.T_f_psi + h)
-            b_f = 2 / (2 * G.T_f_psi + h)
-            x_I = _unit(N, iI) + 0.5 * h * (e_y + _unit(N, iE))
-            e_psi = g * G.K_P_y * e_y + g * G.K_I_y * x_I - _unit(N, lay.psi(car))
-            de = a_f * _unit(N, iD) + b_f * (e_psi - _unit(N, iP))
-            u = G.K_P_psi * e_psi + G.K_D_psi * de
-            Phi[iI], Phi[iE], Phi[iP], Phi[iD] = x_I, e_y, e_psi, de
-        Phi[:n] += np.outer(Bd[:, j], u)
-    return Phi
+    return close(Ad, Bd, lay, {c: law_at(cfg, c, v) for c in lay.controlled})
 
 
 # --------------------------------------------------------------------------- results
@@ -404,3 +437,39 @@ def to_json(r: CoupledResult) -> dict:
         "coupled_setup": {"carriers_in_contact": list(r.carriers), "controlled": list(r.controlled),
                           "v_design": r.v_design, "held_band": list(r.band) if r.band else None},
     }
+
+
+# --------------------------------------------------------------------------- linear step responses
+@dataclass(frozen=True)
+class StepResponse:
+    """The sampled loop's response to a unit reference step on ``stepped`` carriers (at k = 0)."""
+
+    t: np.ndarray
+    y: dict            # carrier -> lateral displacement per unit step
+    u: dict            # carrier -> input (A per m of step)
+
+
+def step_response(cfg: RigConfig, v: float, D: Mapping[str, float], stepped: tuple[str, ...],
+                  t_end: float = 20.0, laws: Optional[Mapping[str, DiscreteLaw]] = None) -> StepResponse:
+    """The linear sampled loop at speed v (damping ``D``) from rest, every carrier of ``stepped``
+    given a unit reference step: each carrier's y and u (the linear model: no hysteresis, no
+    limits). ``laws``: the laws to wire (default: the configured one per controlled carrier)."""
+    lay = layout(cfg)
+    Ad, Bd = held(cfg, v, D, lay)
+    if laws is None:
+        laws = {c: law_at(cfg, c, v) for c in lay.controlled}
+    L = closed_loop(Ad, Bd, lay, laws)
+    r = np.array([1.0 if c in stepped else 0.0 for c in L.refs])
+    n = int(round(t_end / cfg.controller.h)) + 1
+    z = np.zeros(L.M.shape[0])
+    Y = np.zeros((n, len(lay.carriers)))
+    Uo = np.zeros((n, len(lay.carriers)))
+    Rr = L.R @ r
+    Ur = L.U_r @ r
+    for k in range(n):
+        Y[k] = [z[lay.y(c)] for c in lay.carriers]
+        Uo[k] = L.U @ z + Ur
+        z = L.M @ z + Rr
+    t = np.arange(n) * cfg.controller.h
+    return StepResponse(t, {c: Y[:, i] for i, c in enumerate(lay.carriers)},
+                        {c: Uo[:, i] for i, c in enumerate(lay.carriers)})

@@ -13,7 +13,7 @@ import dataclasses
 import math
 from typing import Mapping
 
-from .config import P_GAINS, PIPD_GAINS, TUNABLE_GAINS, Limits, RigConfig
+from .config import DECOUPLED_GAINS, P_GAINS, PIPD_GAINS, TUNABLE_GAINS, Limits, RigConfig
 from .errors import RigError
 
 LIMIT_NAMES = tuple(f.name for f in dataclasses.fields(Limits))
@@ -32,7 +32,7 @@ class GainChange:
 
 def law_gains(law: str) -> tuple[str, ...]:
     """The tunable gains of control law ``law``."""
-    return P_GAINS if law == "p" else PIPD_GAINS
+    return P_GAINS if law == "p" else DECOUPLED_GAINS if law == "decoupled" else PIPD_GAINS
 
 
 def gains_of(cfg: RigConfig) -> dict[str, float]:
@@ -40,6 +40,8 @@ def gains_of(cfg: RigConfig) -> dict[str, float]:
     c = cfg.controller
     if c.law == "p":
         return {"K_P": c.K_P}
+    if c.law == "decoupled":
+        return {n: getattr(c.decoupled, n) for n in DECOUPLED_GAINS}
     return {n: getattr(c.pipd, n) for n in PIPD_GAINS}
 
 
@@ -51,6 +53,9 @@ def with_gains(cfg: RigConfig, gains: Mapping[str, float]) -> RigConfig:
     kp = {k: float(v) for k, v in gains.items() if k in P_GAINS}
     kpipd = {k: float(v) for k, v in gains.items() if k in PIPD_GAINS}
     own = {k: dataclasses.replace(getattr(c, k), **kpipd) for k in ("front", "rear") if getattr(c, k) is not None}
+    if c.decoupled is not None:
+        own["decoupled"] = dataclasses.replace(c.decoupled, **{k: float(v) for k, v in gains.items()
+                                                               if k in DECOUPLED_GAINS})
     c = dataclasses.replace(c, pipd=dataclasses.replace(c.pipd, **kpipd), **own, **kp)
     return dataclasses.replace(cfg, controller=c)
 

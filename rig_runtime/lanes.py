@@ -114,6 +114,22 @@ class Lane:
             self.controller.limit_feedback(u)
 
 
+class LateralPair:
+    """The cross-lane stage of a law that reads both carriers (``controller.law: decoupled``):
+    each carrier's lateral displacement by name, as its lane controls on it this cycle (after
+    every lane has sensed and estimated: the loop's control stage comes after both). A carrier
+    without a lane (lifted) reads 0, the lifted carrier's y."""
+
+    __slots__ = ("_lanes",)
+
+    def __init__(self, lanes: Sequence["Lane"]):
+        self._lanes = {lane.carrier: lane for lane in lanes}
+
+    def y(self, carrier: str) -> float:
+        lane = self._lanes.get(carrier)
+        return lane.y if lane is not None else 0.0
+
+
 def make_lanes(cfg: RigConfig, reference: Callable[[float], float] | Mapping[str, Callable[[float], float]],
                open_loop: Optional[tuple[str, Callable[[float], float]]] = None,
                observers: Optional[Mapping[str, ObserverDesign]] = None) -> list[Lane]:
@@ -139,6 +155,10 @@ def make_lanes(cfg: RigConfig, reference: Callable[[float], float] | Mapping[str
         ref = refs.get(carrier, _zero) if refs is not None else reference
         lanes.append(Lane(carrier, ctrl, ref, ol_input if carrier in ol_carriers else None,
                           observers.get(carrier) if controlled else None, sch, v_design))
+    pair = LateralPair(lanes)
+    for lane in lanes:
+        if hasattr(lane.controller, "couple"):      # a law across carriers reads them through one stage
+            lane.controller.couple(pair)
     return lanes
 
 

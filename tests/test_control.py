@@ -144,3 +144,163 @@ def test_open_loop_generators():
     assert sin(1 / 4.8e-3 / 2) == pytest.approx(0.0, abs=1e-12)
     assert ZeroInput()(12.3) == 0.0
     assert math.isclose(Sinusoid(1.0, 2.4, bias=0.1, t0=10)(5), 0.1)
+
+
+# --------------------------------------------------------------------------- the description
+def _step_description(L, x, w):
+    """One step of a DiscreteLaw by its matrices: (x⁺, out)."""
+    xn = [sum(a * xi for a, xi in zip(L.A[r], x)) + sum(b * wi for b, wi in zip(L.B[r], w))
+          for r in range(len(L.states))]
+    out = [sum(c * xi for c, xi in zip(L.C[r], x)) + sum(d * wi for d, wi in zip(L.D[r], w))
+           for r in range(len(L.outputs))]
+    return xn, out
+
+
+@pytest.mark.parametrize("g", [1.0, 0.5, -2.0])
+def test_the_description_is_the_law_the_runtime_steps(cfg, g):
+    """The PI-PD's DiscreteLaw, stepped by its matrices, gives the runtime controller's output and
+    its logged states (x_I, e_y, e_ψ, ê_ψ) at every step of a random input sequence (no limits
+    reached), at the schedule's factor g."""
+    from rig_runtime.control import PIPDLaw
+    ctrl = PIPDController(cfg.controller, u_max=1e9)
+    ctrl.set_gain_factor(g)
+    ctrl.start(0.0, 0.0, 0.0)
+    L = PIPDLaw.of(cfg.controller.pipd, cfg.controller.h).discrete(g)
+    assert L.inputs == ("y_ref", "y", "psi") and L.states == ("x_I", "e_y", "e_psi", "de_psi")
+    assert L.outputs == ("u",) and L.g == g and L.h == cfg.controller.h
+    rng = np.random.default_rng(1)
+    x = [ctrl.st.x_I, ctrl.st.e_y, ctrl.st.e_psi, ctrl.st.de_psi]
+    for _ in range(200):
+        w = rng.normal(0, 1e-3, 3).tolist()
+        u = ctrl.step(*w)
+        x, (u_d,) = _step_description(L, x, w)
+        st = ctrl.st
+        assert u == pytest.approx(u_d, rel=1e-9, abs=1e-12)
+        assert [st.x_I, st.e_y, st.e_psi, st.de_psi] == pytest.approx(x, rel=1e-9, abs=1e-15)
+
+
+def test_the_p_description_is_the_p_law(cfg):
+    from rig_runtime.control import PLaw
+    L = PLaw(500.0, 0.005).discrete(2.0)
+    assert L.states == () and L.D == ((1000.0, -1000.0, 0.0),)
+    c = PController(cfg.controller.__class__(h=0.005, law="p", pipd=cfg.controller.pipd, K_P=500.0), 1e9)
+    c.set_gain_factor(2.0)
+    assert c.step(1e-3, 4e-4, 0.3) == pytest.approx(_step_description(L, [], [1e-3, 4e-4, 0.3])[1][0], rel=1e-15)
+
+
+def test_the_continuous_description_is_the_paper_law(cfg):
+    """PI-PD as designed (11)–(14): its transfer function y → u equals the Tustin law's at low
+    frequency (the two describe one law)."""
+    from rig_runtime.control import PIPDLaw
+    law = PIPDLaw.of(cfg.controller.pipd, cfg.controller.h)
+    Lc, Ld = law.continuous(1.0), law.discrete(1.0)
+    h = cfg.controller.h
+    for f in (0.05, 0.5, 2.0):
+        s = 2j * math.pi * f
+        z = np.exp(s * h)
+        def tf(L, lam):
+            A, B, C, D = (np.array(m, dtype=float).reshape(len(r), -1) if len(r) else np.zeros((0, 3))
+                          for m, r in ((L.A, L.states), (L.B, L.states), (L.C, L.outputs), (L.D, L.outputs)))
+            n = len(L.states)
+            return (C @ np.linalg.solve(lam * np.eye(n) - A, B) + D)[0]
+        gc, gd = tf(Lc, s), tf(Ld, z)
+        assert gd[1] == pytest.approx(gc[1], rel=0.02)     # the y channel
+        assert gd[2] == pytest.approx(gc[2], rel=0.02)     # the ψ channel
+
+
+# --------------------------------------------------------------------------- law decoupled
+class _Pair:
+    def __init__(self):
+        self.ys = {"front": 0.0, "rear": 0.0}
+
+    def y(self, c):
+        return self.ys[c]
+
+
+def _decoupled(cfg, **kw):
+    import dataclasses
+    from rig_runtime.config import DecoupledGains
+    g = DecoupledGains(K_P_y=6.0, K_I_y=3.0, K_P_psi=40.0, K_D_psi=5.0, T_f_psi=0.034144, b_y=0.25, K_x_y=9.0)
+    g = dataclasses.replace(g, **kw)
+    return dataclasses.replace(cfg.controller, law="decoupled", decoupled=g), g
+
+
+@pytest.mark.parametrize("carrier", ["front", "rear"])
+def test_the_decoupled_description_is_the_law_the_runtime_steps(cfg, carrier):
+    """Law decoupled: its DiscreteLaw (inputs y_ref, y, ψ, y.front, y.rear) stepped by its matrices
+    gives the runtime controller's output, the other carrier's y read through the cross-lane stage."""
+    from rig_runtime.control import DecoupledController, law_of
+    c, _ = _decoupled(cfg)
+    ctrl = make_controller(c, 1e9, None, carrier)
+    assert isinstance(ctrl, DecoupledController)
+    pair = _Pair()
+    ctrl.couple(pair)
+    ctrl.set_gain_factor(0.8)
+    ctrl.start(0.0, 0.0, 0.0)
+    L = law_of(c, carrier).discrete(0.8)
+    assert L.inputs == ("y_ref", "y", "psi", "y.front", "y.rear") and L.law == "decoupled"
+    rng = np.random.default_rng(2)
+    x = [ctrl.st.x_I, ctrl.st.e_y, ctrl.st.e_psi, ctrl.st.de_psi]
+    for _ in range(200):
+        y_ref, y, psi, y_other = rng.normal(0, 1e-3, 4).tolist()
+        pair.ys[carrier] = y
+        pair.ys["rear" if carrier == "front" else "front"] = y_other
+        u = ctrl.step(y_ref, y, psi)
+        x, (u_d,) = _step_description(L, x, [y_ref, y, psi, pair.ys["front"], pair.ys["rear"]])
+        assert u == pytest.approx(u_d, rel=1e-9, abs=1e-12)
+
+
+def test_decoupled_law_weights_the_setpoint_and_decouples(cfg):
+    """A reference step moves ψ_ref by K_P,y b_y Δy_ref (not K_P,y Δy_ref); a difference
+    y_f − y_r lowers ψ_ref by K_x,y (y_f − y_r)."""
+    c, g = _decoupled(cfg)
+    ctrl = make_controller(c, 1e9, None, "rear")
+    pair = _Pair()
+    ctrl.couple(pair)
+    ctrl.start(0.0, 0.0, 0.0)
+    ctrl.step(1e-3, 0.0, 0.0)
+    h = cfg.controller.h
+    assert ctrl.st.psi_ref == pytest.approx(g.K_P_y * g.b_y * 1e-3 + g.K_I_y * 0.5 * h * 1e-3, rel=1e-12)
+    c2 = make_controller(c, 1e9, None, "rear")
+    c2.couple(pair)
+    c2.start(0.0, 0.0, 0.0)
+    pair.ys["front"] = 2e-4
+    c2.step(0.0, 0.0, 0.0)
+    assert c2.st.psi_ref == pytest.approx(-g.K_x_y * 2e-4, rel=1e-12)
+
+
+@pytest.mark.parametrize("name,value", [("K_P_y", 4.0), ("K_I_y", 5.0), ("b_y", 0.6), ("K_x_y", 7.0)])
+def test_decoupled_gain_change_keeps_psi_ref(cfg, name, value):
+    """`rig ctl set` on the outer gains, the setpoint weight or the decoupling gain: x_I is
+    re-seeded so that ψ_ref (with the feed term) is what the last step made it."""
+    c, _ = _decoupled(cfg)
+    ctrl = make_controller(c, 1e9, None, "front")
+    pair = _Pair()
+    ctrl.couple(pair)
+    ctrl.start(0.0, 0.0, 0.0)
+    pair.ys.update(front=3e-4, rear=-1e-4)
+    for _ in range(20):
+        ctrl.step(1e-3, 3e-4, 1e-4)
+    law = ctrl.law
+    before = law.psi_ref(ctrl.g, ctrl.st.e_y, ctrl.st.x_I) - law.feed(ctrl.g, 1e-3, 3e-4, -1e-4)
+    ctrl.set_gain(name, value)
+    law = ctrl.law
+    assert getattr(law, name) == value
+    after = law.psi_ref(ctrl.g, ctrl.st.e_y, ctrl.st.x_I) - law.feed(ctrl.g, 1e-3, 3e-4, -1e-4)
+    assert after == pytest.approx(before, rel=1e-12)
+    with pytest.raises(ValueError):
+        ctrl.set_gain("b_y", 1.5)
+
+
+def test_lanes_give_a_decoupled_law_both_carriers():
+    """The one cross-lane stage: each decoupled controller reads the lanes' y by carrier name."""
+    import dataclasses
+    from rig_runtime import config
+    from rig_runtime.lanes import make_lanes
+    vcfg = config.load(config.CONFIG_DIR / "vehicle.yaml")
+    c, _ = _decoupled(vcfg)
+    lanes = make_lanes(dataclasses.replace(vcfg, controller=c), lambda t: 0.0)
+    by = {l.carrier: l for l in lanes}
+    by["front"].y, by["rear"].y = 1e-3, -2e-3
+    for l in lanes:
+        assert l.controller.pair.y("front") == 1e-3 and l.controller.pair.y("rear") == -2e-3

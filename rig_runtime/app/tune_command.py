@@ -68,8 +68,11 @@ def cmd_tune(args: argparse.Namespace) -> int:
     pr = r.params
     print(f"plant: omega0={pr['omega0']:g} 1/s  D={pr['D']:g}  K={pr['K']:g} rad/A  c_y={pr['c_y']:.5f}  "
           f"lateral pole (10)={-pr['a_lat']:.4f} 1/s, (17)={-pr['a_outer']:.4f} 1/s")
-    g = cfg.controller.pipd
-    print(f"gains: K_P,y={g.K_P_y:g} K_I,y={g.K_I_y:g} K_P,psi={g.K_P_psi:g} K_D,psi={g.K_D_psi:g} T_f,psi={g.T_f_psi:g} s\n")
+    g = analysis.pipd_gains(cfg)
+    extra = f" b_y={g.b_y:g} K_x,y={g.K_x_y:g} rad/m" if cfg.controller.law == "decoupled" else ""
+    label = "gains" if cfg.controller.law == "pipd" else f"gains ({cfg.controller.law})"
+    print(f"{label}: K_P,y={g.K_P_y:g} K_I,y={g.K_I_y:g} K_P,psi={g.K_P_psi:g} "
+          f"K_D,psi={g.K_D_psi:g} T_f,psi={g.T_f_psi:g} s{extra}\n")
     w = max(len(n) for n, _, _ in rows)
     print(f"{'eigenvalues (1/s)':<{w}}  {'computed':<50} paper")
     for name, ev, paper in rows:

@@ -1,0 +1,163 @@
+"""Can a law reach issue 25's acceptance on the vehicle? A quick exploration on the linear
+sampled coupled model (coupled.step_response: no hysteresis, no limits, no noise):
+
+    .venv/bin/python -m benchmarks.vehicle_law_reach [pipd|pipd-b|modal] [--maxiter N] [--seed S]
+
+Cases: unit reference steps on the front, the rear and both together, at v = ±0.5 … ±1.5 m/s,
+every carrier at D_min. Criteria, each normalised so that 1 is its demand: 10–90 % rise / 3 s,
+overshoot / 10 %, 2 % settling / 8 s, steady-state error (at 20 s) / 2 %, the held carrier's
+excursion / 10 % of the step, peak |u| for a 3 mm step / 3 A; plus the sampled loop's spectral
+radius over v_range at D_min and D_max (each carrier) < 1, and Sec. 5.2.3's per-term input
+check (K_P,ψ 0.05 rad and K_D,ψ 0.4 rad/s under 2 A) as bounds. The cost is the worst
+normalised criterion over all cases (min-max, as MOPS): <= 1 meets the acceptance (linearly).
+scipy's differential_evolution over the log of the tunables (exploration, not the runtime).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+import time
+
+import numpy as np
+from scipy.optimize import differential_evolution
+
+from rig_runtime import config, coupled
+from rig_runtime.config import DecoupledGains, PIPDGains
+
+SPEEDS = (-1.5, -1.0, -0.5, 0.5, 1.0, 1.5)
+CASES = (("front",), ("rear",), ("front", "rear"))
+T_END = 20.0
+
+
+def step_metrics(t, y, target):
+    """rise (10–90 %), overshoot %, 2 % settling, |sse| as fraction; NaN-free (inf when not reached)."""
+    if target == 0.0:
+        return None
+    yn = y / target
+    above10 = np.nonzero(yn >= 0.1)[0]
+    above90 = np.nonzero(yn >= 0.9)[0]
+    T = t[-1]
+    miss = T * (1.0 + min(10.0, abs(1.0 - float(np.max(yn)))))     # not reached: longer than the run
+    rise = (t[above90[0]] - t[above10[0]]) if len(above90) and len(above10) else miss
+    over = min(1e4, max(0.0, float(np.max(yn)) - 1.0) * 100.0)
+    out = np.nonzero(np.abs(yn - 1.0) > 0.02)[0]
+    settle = (t[out[-1] + 1] if out[-1] + 1 < len(t) else T * (1.0 + min(10.0, abs(yn[-1] - 1.0)))) if len(out) else 0.0
+    return rise, over, settle, min(1e3, abs(yn[-1] - 1.0))
+
+
+def evaluate(cfg, laws_at, speeds=SPEEDS, detail=False):
+    """The worst normalised criterion over the cases (and per case with ``detail``)."""
+    rows = []
+    worst = 0.0
+    for v in speeds:
+        D = coupled.d_min(cfg, ("front", "rear"))
+        laws = laws_at(v)
+        resp = {c: coupled.step_response(cfg, v, D, c, T_END, laws) for c in CASES[:2]}
+        for case in CASES:
+            y = {k: sum(resp[(c,)].y[k] for c in case) for k in ("front", "rear")}
+            u = {k: sum(resp[(c,)].u[k] for c in case) for k in ("front", "rear")}
+            t = resp[("front",)].t
+            crit = {}
+            for k in ("front", "rear"):
+                if k in case:
+                    m = step_metrics(t, y[k], 1.0)
+                    crit[f"{k}_rise"] = m[0] / 3.0
+                    crit[f"{k}_overshoot"] = m[1] / 10.0
+                    crit[f"{k}_settling"] = m[2] / 8.0
+                    crit[f"{k}_sse"] = m[3] / 0.02
+                else:
+                    crit[f"{k}_held"] = float(np.max(np.abs(y[k]))) / 0.1
+            crit["peak_u"] = max(float(np.max(np.abs(u[k]))) for k in u) * 3e-3 / 3.0
+            w = max(crit.values())
+            worst = max(worst, w)
+            rows.append((v, case, w, crit))
+    return (worst, rows) if detail else worst
+
+
+def radius(cfg, laws_at, every_damping=False):
+    """The sampled loop's spectral radius over v_range: at the gate's damping cases (D_min where
+    the lateral pair is not open-loop stable), or at every D_min/D_max combination."""
+    lay = coupled.layout(cfg)
+    r = 0.0
+    for v in coupled.speeds(cfg)[0]:
+        cases = (coupled.all_damping_cases(cfg, lay.carriers) if every_damping
+                 else coupled.damping_cases(cfg, v, lay))
+        for D in cases:
+            Ad, Bd = coupled.held(cfg, v, D, lay)
+            M = coupled.close(Ad, Bd, lay, laws_at(v))
+            with np.errstate(all="ignore"):
+                r = max(r, float(np.max(np.abs(np.linalg.eigvals(M)))))
+    return r
+
+
+def pipd_family(cfg, x):
+    """Per-carrier PI-PD, the same gains on both carriers: x = log10 [K_P_y, K_I_y, K_P_psi, K_D_psi]."""
+    kpy, kiy, kpp, kdp = (10.0 ** xi for xi in x)
+    g = PIPDGains(K_P_y=kpy, K_I_y=kiy, K_P_psi=kpp, K_D_psi=kdp, T_f_psi=cfg.controller.pipd.T_f_psi)
+    c = dataclasses.replace(cfg.controller, pipd=g, front=None, rear=None)
+    return dataclasses.replace(cfg, controller=c)
+
+
+def decoupled_family(cfg, x):
+    """Law decoupled, the same gains on both carriers: x = log10 [K_P_y, K_I_y, K_P_psi, K_D_psi],
+    b_y, K_x_y."""
+    kpy, kiy, kpp, kdp = (10.0 ** xi for xi in x[:4])
+    g = DecoupledGains(K_P_y=kpy, K_I_y=kiy, K_P_psi=kpp, K_D_psi=kdp, T_f_psi=cfg.controller.pipd.T_f_psi,
+                       b_y=float(x[4]), K_x_y=float(x[5]))
+    c = dataclasses.replace(cfg.controller, law="decoupled", decoupled=g, front=None, rear=None)
+    return dataclasses.replace(cfg, controller=c)
+
+
+FAMILIES = {
+    # name: (bounds in log10, cfg maker, laws_at(cfg) -> v -> laws)
+    "pipd": ([(-1, 1.5), (-1, 1.5), (0, math.log10(40.0)), (-1, math.log10(5.0))], pipd_family),
+    "decoupled": ([(-1, 1.5), (-1, 1.5), (0, math.log10(40.0)), (-1, math.log10(5.0)), (0.0, 1.0), (0.0, 3.0)],
+                  decoupled_family),
+}
+
+
+def laws_of(cfg):
+    lay = coupled.layout(cfg)
+    return lambda v: {c: coupled.law_at(cfg, c, v) for c in lay.controlled}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("family", nargs="?", default="pipd", choices=sorted(FAMILIES))
+    ap.add_argument("--maxiter", type=int, default=25)
+    ap.add_argument("--popsize", type=int, default=10)
+    ap.add_argument("--seed", type=int, default=0)
+    a = ap.parse_args(argv)
+    base = config.load("configs/vehicle.yaml")
+    bounds, make = FAMILIES[a.family]
+    speeds = (-1.5, -0.5, 0.5, 1.5)
+
+    def cost(x):
+        cfg = make(base, x)
+        laws = laws_of(cfg)
+        r = radius(cfg, laws)
+        if not r < 1.0:
+            return 1e4 + min(r, 1e3)
+        return evaluate(cfg, laws, speeds)
+
+    t0 = time.perf_counter()
+    res = differential_evolution(cost, bounds, maxiter=a.maxiter, popsize=a.popsize, seed=a.seed,
+                                 polish=False, tol=1e-3)
+    cfg = make(base, res.x)
+    worst, rows = evaluate(cfg, laws_of(cfg), SPEEDS, detail=True)
+    print(f"{a.family}: x = {[round(float(v), 4) for v in res.x]} (log10 of the first four)  worst normalised criterion {worst:.3f} "
+          f"(<= 1 meets the acceptance), radius {radius(cfg, laws_of(cfg)):.5f} at D_min, "
+          f"{radius(cfg, laws_of(cfg), True):.5f} at every D_min/D_max combination, "
+          f"{res.nfev} evaluations, {time.perf_counter() - t0:.0f} s")
+    for v, case, w, crit in rows:
+        k = max(crit, key=crit.get)
+        print(f"  v={v:+.1f} {'+'.join(case):11s} worst {w:6.3f} ({k})  " +
+              " ".join(f"{n}={x:.2f}" for n, x in crit.items()))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
