@@ -37,10 +37,15 @@ class Base:
 
 
 def read_base(spec: Spec) -> Base:
-    secs = rig_config.load_sections(spec.config)
+    return config_base(spec.config, rig_config.read_config_file(spec.scenario))
+
+
+def config_base(config: Path, scenario: dict) -> Base:
+    """The config's sections as written and its hardware file's text, with ``scenario``."""
+    secs = rig_config.load_sections(config)
     hw_file = Path(secs["hardware"][1])
     sections = {k: v for k, (v, _) in secs.items() if k != "hardware"}
-    return Base(sections=sections, hardware_text=hw_file.read_text(), scenario=rig_config.read_config_file(spec.scenario))
+    return Base(sections=sections, hardware_text=hw_file.read_text(), scenario=scenario)
 
 
 def config_text(base: Base, values: Mapping[str, float]) -> str:
