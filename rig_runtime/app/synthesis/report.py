@@ -154,15 +154,18 @@ def write_report(d: Path, out: Path, write: Optional[Path] = None) -> tuple[Path
                 cells.append(_fmt(v) + ("" if ok else " ✗"))
                 if c.demand is not None:
                     score = math.inf if v is None else (v - c.demand) / (abs(c.demand) or 1.0)
-                    worst_case_score[k.name] = max(worst_case_score.get(k.name, -math.inf), score)
+                    if score > worst_case_score.get(k.name, (-math.inf, ""))[0]:
+                        worst_case_score[k.name] = (score, c.name)
             demand = "-" if c.demand is None else f"≤ {c.demand:g}"
             L.append(f"| `{c.name}`{' (objective)' if c.objective else ''} | {demand} | " + " | ".join(cells) +
                      f" | {_fmt(chosen['worst'].get(c.name))} ({chosen['worst_case'].get(c.name)}) |")
         if worst_case_score:
-            wc = max(worst_case_score, key=worst_case_score.get)
-            s = worst_case_score[wc]
-            L += ["", f"**The worst case:** `{wc}` (closest to, or furthest beyond, a demand: relative margin "
-                  f"{_fmt(-s)} of that demand)."]
+            wc = max(worst_case_score, key=lambda n: worst_case_score[n][0])
+            sc, crit = worst_case_score[wc]
+            how = ("undefined" if sc == math.inf else f"{100 * sc:.3g} % beyond its demand" if sc > 0
+                   else f"{100 * -sc:.3g} % inside its demand")
+            L += ["", f"**The worst case:** `{wc}`: the case closest to (or furthest beyond) a demand, relative to "
+                  f"that demand — `{crit}` {how}."]
         L += ["", "## Reproducing the chosen point's runs", ""]
         for k in spec.cases:
             r = runs.get(k.name)
