@@ -116,3 +116,21 @@ def test_a_vehicle_campaign_reports_each_carrier_and_the_worst(tmp_path):
                        env=ENV, capture_output=True, text=True, timeout=HANG_S)
     assert q.returncode == 0, q.stderr
     assert outcome.metrics(json.loads(q.stdout), log) == {m: r[m] for m in outcome.METRICS}
+
+
+def test_gain_paths_name_a_carrier_or_every_carrier():
+    from rig_runtime.app.campaign import paths
+    base = {"controller": {"pipd": {"K_P_y": 3.0, "K_I_y": 9.0, "K_P_psi": 40.0, "K_D_psi": 5.0, "T_f_psi": 0.03}},
+            "plant": {"delta0": 0.06, "y_off": 0.0, "front": {"delta0": 0.066, "y_off": 0.001}}}
+    s = yaml.safe_load(yaml.safe_dump(base))
+    values = {"controller.front.K_P_y": 4.0, "controller.pipd.K_I_y": 18.0}
+    for name in paths.order(values):        # every carrier's K_I_y, then the front's own gains from those
+        paths.apply(s, name, values[name], base)
+    assert s["controller"]["front"] == dict(base["controller"]["pipd"], K_P_y=4.0, K_I_y=18.0)
+    assert s["controller"]["pipd"] == dict(base["controller"]["pipd"], K_I_y=18.0)
+    s = yaml.safe_load(yaml.safe_dump(base))
+    paths.apply(s, "plant.y_off", 0.002, base)                  # a common value of 0: the same offset
+    assert s["plant"]["y_off"] == 0.002 and s["plant"]["front"]["y_off"] == pytest.approx(0.003)
+    assert paths.nominal(base, "plant.front.delta0") == 0.066 and paths.nominal(base, "plant.rear.delta0") == 0.06
+    assert paths.nominal(base, "controller.rear.K_D_psi") == 5.0
+    assert paths.order(["plant.front.delta0", "plant.delta0"]) == ["plant.delta0", "plant.front.delta0"]

@@ -99,7 +99,8 @@ def apply(sections: dict, name: str, value: float, base: Mapping) -> None:
     section, carrier, key = q
     if carrier is not None:
         if section == "controller" and not isinstance(_lookup(sections, ["controller", carrier]), Mapping):
-            sections["controller"][carrier] = dict(_lookup(base, ["controller", "pipd"]))
+            # from the gains as varied so far (order(): the every-carrier names come first)
+            sections["controller"][carrier] = dict(_lookup(sections, ["controller", "pipd"]))
         _set(sections, [section, carrier, key], float(value))
         return
     x0 = _number(_lookup(base, [*_common(section), key]))

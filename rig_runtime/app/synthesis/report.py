@@ -122,7 +122,8 @@ def write_report(d: Path, out: Path, write: Optional[Path] = None) -> tuple[Path
         st.close()
     out.mkdir(parents=True, exist_ok=True)
     png = out / "pareto.png"
-    _plot(spec, cands, on, chosen, png)
+    if cands:
+        _plot(spec, cands, on, chosen, png)
     names = [t.name for t in spec.tunables]
     L = [f"# Synthesis {spec.name}", ""]
     if chosen is None:
