@@ -13,6 +13,7 @@ from ..errors import RigError
 from .signals import Interrupted, StopSignals
 from . import commands, ctl_command, ident_commands, latency, log_commands, sim_command, tune_command  # noqa: F401 - each registers its subcommands
 from .campaign import command as _campaign_command  # noqa: F401 - registers `rig campaign`
+from .synthesis import command as _synthesis_command  # noqa: F401 - registers `rig synthesize`
 from .commission import command as _commission_command  # noqa: F401 - registers `rig commission`
 from .command import COMMANDS
 

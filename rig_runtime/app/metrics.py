@@ -1,13 +1,17 @@
 """Step-response figures of a run (python-control's ``step_info`` names, per reference step).
 
 Definitions (also in docs/dry-run.md): for a reference step from ``a`` to ``b`` at ``t0``
-(window up to the next reference change or the end of the run), with the response
+(window up to the next change of any controlled carrier's reference, or the end of the run:
+the other carrier's step is judged by its own figures and the held-carrier excursion), with the response
 normalised as ``r = (y − a)/(b − a)`` and ``y`` smoothed by a centred 50 ms moving average
 (removes sensor noise, not dynamics):
 - rise time: first time ``r`` reaches 0.9 minus first time it reaches 0.1;
 - overshoot: ``max(r) − 1`` in percent (0 if it never exceeds 1);
 - settling time: from ``t0`` to the last time ``|r − 1| > 0.02`` in the window;
-- steady-state error: mean of ``y − b`` over the last second of the window, in mm.
+- steady-state error: mean of ``y − b`` over the last second of the window, in mm;
+- held-carrier excursion (two controlled carriers, the other one's reference holding through
+  the window): max |y_other − y_ref,other| over the window (smoothed), in mm and in % of
+  |b − a| — how far a step on one carrier knocks the other off its reference.
 
 ``y`` is the y the lane controlled on: the measured one, the observer's ŷ while the carrier
 was DEGRADED (:func:`controlled_y`).
@@ -16,6 +20,7 @@ was DEGRADED (:func:`controlled_y`).
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import numpy as np
 
@@ -30,12 +35,15 @@ def _smooth(y: np.ndarray, n: int) -> np.ndarray:
 
 
 def step_info(t: np.ndarray, y: np.ndarray, steps: list[tuple[float, float, float]], t_end: float,
-              h: float = 0.005, smooth_s: float = 0.05) -> list[dict]:
-    """Figures for each (t0, from_m, to_m) step; times in s, values in mm."""
+              h: float = 0.005, smooth_s: float = 0.05, changes: Optional[list[float]] = None) -> list[dict]:
+    """Figures for each (t0, from_m, to_m) step; times in s, values in mm. ``changes``: the
+    times at which any reference changes (a window ends at the first one after its t0);
+    None: the steps' own times."""
     ys = _smooth(np.asarray(y, float), max(1, int(round(smooth_s / h))))
+    ends = sorted(changes) if changes is not None else [s[0] for s in steps]
     out = []
     for i, (t0, a, b) in enumerate(steps):
-        t1 = steps[i + 1][0] if i + 1 < len(steps) else t_end
+        t1 = next((c for c in ends if c > t0), t_end)
         sel = (t >= t0) & (t < t1)
         tw, yw = t[sel], ys[sel]
         d = b - a
@@ -87,7 +95,9 @@ def steps_from_log(log, scenario, h: float) -> list[dict]:
     """``step_info`` for every reference step of ``scenario`` from a recorded run, per
     controlled carrier (the log's ``controlled``) on that carrier's own reference
     (``scenario.reference_for``) and the y its lane controlled on (:func:`controlled_y`);
-    each step names its ``carrier``."""
+    each step names its ``carrier``. A window ends at the next change of any controlled
+    carrier's reference; with another controlled carrier whose reference holds through the
+    window, the step also has ``held`` (that carrier) and its ``held_excursion_mm`` / ``_pct``."""
     from ..scenario import Reference
     from .export import read_log
     if scenario is None:
@@ -97,15 +107,30 @@ def steps_from_log(log, scenario, h: float) -> list[dict]:
     carriers = log_d["attrs"].get("controlled") or ["rear"]
     if isinstance(carriers, str):
         carriers = [carriers]
+    carriers = [c for c in carriers if f"y_{c[0]}" in d]
     run = d["t_run"] > 0
     t = d["t_run"][run]
     if not len(t):
         return []
+    refs = {c: Reference(scenario.reference_for(c)) for c in carriers}
+    own = {c: refs[c].steps() for c in carriers}
+    changes = sorted({s[0] for c in carriers for s in own[c]})
+    t_end = float(t[-1]) + h
+    n_smooth = max(1, int(round(0.05 / h)))
     out = []
     for c in carriers:
-        if f"y_{c[0]}" not in d:
-            continue
         y = controlled_y(d, c)
-        for s in step_info(t, y[run], Reference(scenario.reference_for(c)).steps(), t_end=float(t[-1]) + h, h=h):
-            out.append({"carrier": c, **s})
+        for (t0, a, b), s in zip(own[c], step_info(t, y[run], own[c], t_end=t_end, h=h, changes=changes)):
+            rec = {"carrier": c, **s}
+            for k in carriers:
+                if k == c or any(st[0] == t0 for st in own[k]):
+                    continue                    # the same carrier, or it steps at the same time
+                t1 = next((x for x in changes if x > t0), t_end)
+                sel = (t >= t0) & (t < t1)
+                if sel.sum() < 2 or a == b:
+                    continue
+                yk = _smooth(np.asarray(controlled_y(d, k)[run], float), n_smooth)
+                exc = float(np.max(np.abs(yk[sel] - refs[k](t0))))
+                rec.update(held=k, held_excursion_mm=exc * 1e3, held_excursion_pct=100.0 * exc / abs(b - a))
+            out.append(rec)
     return out

@@ -96,10 +96,12 @@ def threads(client) -> int:
 
 
 def run_all(client, jobs: Iterable[Job], *, on_dispatch: Callable[[int], None],
-            on_row: Callable[[Job, dict], None], stop_requested: Callable[[], bool]) -> bool:
-    """Run ``jobs``; ``on_row`` gets each finished run's row as it arrives. Returns True
-    if every job ran, False if a stop request ended it early (the runs under way were
-    still finished and handed to ``on_row``)."""
+            on_row: Callable[[Job, dict], None], stop_requested: Callable[[], bool],
+            task: Callable[[Job], dict] = run_sample) -> bool:
+    """Run ``task(job)`` for each of ``jobs`` (anything with a ``run_id``; a campaign's run
+    by default, ``rig synthesize`` gives its own task); ``on_row`` gets each finished run's
+    row as it arrives. Returns True if every job ran, False if a stop request ended it early
+    (the runs under way were still finished and handed to ``on_row``)."""
     from distributed import wait
     from distributed.scheduler import KilledWorker
     tag = uuid.uuid4().hex[:8]
@@ -112,7 +114,7 @@ def run_all(client, jobs: Iterable[Job], *, on_dispatch: Callable[[int], None],
                 while queue and len(flying) < cap:
                     job = queue.popleft()
                     on_dispatch(job.run_id)
-                    flying[client.submit(run_sample, job, key=f"rig-run-{tag}-{job.run_id}", pure=False)] = job
+                    flying[client.submit(task, job, key=f"rig-run-{tag}-{job.run_id}", pure=False)] = job
             elif not flying or threads(client) == 0:
                 break                       # stopped; with no worker left the runs under way are the resume's
             try:

@@ -13,7 +13,7 @@ import numpy as np
 from rig_runtime.errors import ConfigError
 
 from . import discovery, stats
-from .outcome import METRICS
+from .outcome import METRICS, split_name
 from .store import DB_NAME, Store
 
 WORST = 5
@@ -188,7 +188,8 @@ def write_report(directory: Path, out: Path) -> tuple[Path, str]:
         why = (r[idx["why"]] or r[idx["error"]] or "").replace("|", "/")[:160]
         L.append(f"| {r[idx['run_id']]} | {status[i]} | {kv[i]:.4g} | {why} | `{r[idx['command']]}` |")
     L += ["", "## Figures", ""] + [f"![{p.stem}]({p.name})" for p in figs] + [""]
-    L += ["Metrics: " + "; ".join(f"`{m}` {d}" for m, d in METRICS.items()) + "."]
+    L += ["Metrics: " + "; ".join(f"`{m}` {d}" for m, d in METRICS.items() if split_name(m)[0] is None)
+          + "; `front_NAME`, `rear_NAME`: that carrier's own (NAME alone: the worst over the controlled carriers)."]
     md = out / "report.md"
     md.write_text("\n".join(L) + "\n")
     return md, line

@@ -18,8 +18,9 @@ from rig_runtime import config as rig_config
 from rig_runtime.errors import ConfigError
 from rig_runtime.scenario import SCENARIO_DIR
 
+from . import paths
 from .distributions import Distribution
-from .outcome import METRICS, STEP_METRICS
+from .outcome import METRIC_NAMES, METRICS, unavailable
 
 METHODS = ("sobol", "lhs", "random", "grid", "saltelli")
 KEEP_LOGS = ("none", "failing", "all")
@@ -94,18 +95,10 @@ def _resolve(src: Path, name: str, default_dir: Path, what: str) -> Path:
     raise _err(str(src), f"base.{what}", f"an existing {what} file (relative to the spec or to {default_dir})", name)
 
 
-def _lookup(sections: dict, name: str) -> Any:
-    node: Any = sections
-    for part in name.split("."):
-        if not isinstance(node, dict) or part not in node:
-            return None
-        node = node[part]
-    return node
-
-
 def nominal_value(sections: dict, scenario: dict, name: str) -> Optional[float]:
     """The base value of a parameter, or None if the name is not a number of the base
-    config or scenario. ``sim.*`` falls back to the simulator's defaults."""
+    config or scenario (a carrier's name, ``plant.front.delta0``: that carrier's value,
+    :mod:`.paths`). ``sim.*`` falls back to the simulator's defaults."""
     if name == SCENARIO_GAIN:
         return 1.0
     m = _DIST_RE.match(name)
@@ -115,7 +108,7 @@ def nominal_value(sections: dict, scenario: dict, name: str) -> Optional[float]:
         return float(ds[i].get(m.group(2), 0.0)) if i < len(ds) and isinstance(ds[i], dict) else None
     if name.split(".")[0] not in VARIABLE_SECTIONS:
         return None
-    v = _lookup(sections, name)
+    v = paths.nominal(sections, name)
     if v is None and name.startswith("sim."):
         from sim_backend.simconfig import SimConfig
         f = {x.name: x for x in dataclasses.fields(SimConfig)}.get(name[4:])
@@ -190,7 +183,7 @@ def _distribution(src: Path, name: str, raw: Any, nominal: float, method: str) -
             raise _err(s, f"{key}.as", "normal or uniform", as_)
         if not name.startswith("plant."):
             raise _err(s, key, "a plant parameter for an identified distribution", name)
-        d = _identified(src, f"{key}.identified", v, name[len("plant."):], as_)
+        d = _identified(src, f"{key}.identified", v, name.split(".")[-1], as_)   # plant.front.K: K
     if method == "grid" and d.kind != "values" and d.levels is None:
         raise _err(s, f"{key}.levels", "levels (points per axis) for a grid design, or values")
     return d
@@ -270,15 +263,17 @@ def load_spec(path: str | Path) -> Spec:
     no_fault = crit.get("no_fault", False)
     if not isinstance(no_fault, bool):
         raise _err(s, "pass.no_fault", "true or false", no_fault)
-    has_steps = len((scenario.get("reference") or [])) > 1
+    from rig_runtime.scenario import load_scenario
+    scenario_obj = load_scenario(sc_path)
     criteria = {}
     for k, v in crit.items():
         if k == "no_fault":
             continue
         if k not in METRICS:
-            raise _err(s, f"pass.{k}", "a known metric (" + ", ".join(METRICS) + ")", k)
-        if k in STEP_METRICS and not has_steps:
-            raise _err(s, f"pass.{k}", "a metric the scenario has: it has no reference step", k)
+            raise _err(s, f"pass.{k}", "a known metric (" + METRIC_NAMES + ")", k)
+        why = unavailable(k, scenario_obj, cfg.controlled)
+        if why:
+            raise _err(s, f"pass.{k}", why, k)
         criteria[k] = _number(s, f"pass.{k}", v, nonneg=True)
     keep = raw.get("keep_logs", "failing")
     if keep not in KEEP_LOGS:
@@ -288,7 +283,7 @@ def load_spec(path: str | Path) -> Spec:
         raise _err(s, "sensitivity", "a list of metrics (or pass)", sens)
     for m in sens:
         if m != "pass" and m not in METRICS:
-            raise _err(s, "sensitivity", "known metrics (" + ", ".join(METRICS) + ") or pass", m)
+            raise _err(s, "sensitivity", "known metrics (" + METRIC_NAMES + ") or pass", m)
     if sens and design.method != "saltelli":
         raise _err(s, "sensitivity", "a saltelli design for Sobol indices (design.method: saltelli)", design.method)
     name = raw.get("name", src.stem)

@@ -24,8 +24,9 @@ from typing import Iterable, Optional, Sequence
 from .outcome import METRICS
 
 DB_NAME = "campaign.sqlite"
-RESULT_COLUMNS = ("status", "why", "error", "final_state", "exit_code", "n_faults_raised", "faults",
-                  "sim_s", "wall_s", "worker", "log", "finished_at") + tuple(METRICS)
+BASE_COLUMNS = ("status", "why", "error", "final_state", "exit_code", "n_faults_raised", "faults",
+                "sim_s", "wall_s", "worker", "log", "finished_at")
+RESULT_COLUMNS = BASE_COLUMNS + tuple(METRICS)
 
 
 def _q(name: str) -> str:
@@ -33,8 +34,12 @@ def _q(name: str) -> str:
 
 
 class Store:
-    def __init__(self, path: Path):
+    """``metrics``: the result columns after the run's own (the campaign metrics; ``rig
+    synthesize`` adds its linear criteria)."""
+
+    def __init__(self, path: Path, metrics: Sequence[str] = tuple(METRICS)):
         self.path = Path(path)
+        self.metrics = tuple(metrics)
         self.db = sqlite3.connect(self.path)
         self.db.execute("PRAGMA journal_mode=WAL")
         self.db.execute("PRAGMA synchronous=NORMAL")
@@ -45,7 +50,7 @@ class Store:
     # ------------------------------------------------------------------ creation
     def create(self, meta: dict, names: Sequence[str]) -> None:
         params = ", ".join(f"{_q('p:' + n)} REAL" for n in names)
-        metrics = ", ".join(f"{_q(m)} REAL" for m in METRICS)
+        metrics = ", ".join(f"{_q(m)} REAL" for m in self.metrics)
         with self.db:
             self.db.execute("CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT)")
             self.db.execute(f"CREATE TABLE samples (run_id INTEGER PRIMARY KEY, seed INTEGER, {params}, "
@@ -56,14 +61,17 @@ class Store:
             self.db.execute("CREATE TABLE dispatches (run_id INTEGER, at TEXT)")
             pcols = ", ".join(f"s.{_q('p:' + n)}" for n in names)
             self.db.execute(f"CREATE VIEW runs AS SELECT s.run_id, s.seed, {pcols}, r.status, r.why, r.error, "
-                            "r.final_state, r.exit_code, r.faults, " + ", ".join(f"r.{_q(m)}" for m in METRICS) +
+                            "r.final_state, r.exit_code, r.faults, " + ", ".join(f"r.{_q(m)}" for m in self.metrics) +
                             ", r.sim_s, r.wall_s, r.worker, r.log, s.command, r.finished_at "
                             "FROM samples s JOIN results r USING (run_id)")
             self.db.executemany("INSERT INTO meta VALUES (?, ?)", [(k, json.dumps(v)) for k, v in meta.items()])
 
-    def add_samples(self, rows: Iterable[tuple]) -> None:
+    def add_samples(self, rows: Iterable[tuple], *, skip_existing: bool = False) -> None:
+        """``skip_existing``: a run_id that has its sample row already keeps it (``rig
+        synthesize --resume`` writes a generation's samples again)."""
+        verb = "INSERT OR IGNORE" if skip_existing else "INSERT"
         with self.db:
-            self.db.executemany(f"INSERT INTO samples VALUES ({','.join('?' * self._n_sample_cols())})", rows)
+            self.db.executemany(f"{verb} INTO samples VALUES ({','.join('?' * self._n_sample_cols())})", rows)
 
     def _n_sample_cols(self) -> int:
         return len(self.db.execute("SELECT * FROM samples LIMIT 0").description)
@@ -102,7 +110,7 @@ class Store:
         """Insert one finished run; False if the run already has a row (never two)."""
         values = dict(row, log=log or "", finished_at=_now(),
                       n_faults_raised=len(json.loads(row.get("faults") or "[]")))
-        cols = ("run_id",) + RESULT_COLUMNS
+        cols = ("run_id",) + BASE_COLUMNS + self.metrics
         with self.db:
             cur = self.db.execute(f"INSERT OR IGNORE INTO results ({','.join(_q(c) for c in cols)}) "
                                   f"VALUES ({','.join('?' * len(cols))})", [values.get(c) for c in cols])
