@@ -47,12 +47,18 @@ def test_poll_reports_what_the_drivers_observed(tmp_path):
             assert type(r) is Reading and r.t == now
             objects.append((id(r.samples), id(r.values), id(r.wrench)))
             rd, fr = seen["drives"], seen["ft"]
-            want, vals, ok, cause = {}, {}, True, ""
+            want, vals, ok, cause, lost, off = {}, {}, True, "", [], []
             for w, x in rd.wheels.items():
                 want[w], vals[w] = Sample(x.omega, x.t, x.health, x.syncs_unanswered), x.omega
-                if ok and x.health.state is Freshness.INVALID:
-                    ok, cause = False, f"drive {x.wheel} (node {x.node_id}): {x.health.cause}"
-            if ok and rd.bus.state is Freshness.INVALID:
+                invalid = x.health.state is Freshness.INVALID
+                if invalid:
+                    lost.append((w, f"drive {x.wheel} (node {x.node_id}): {x.health.cause}"))
+                    if ok:
+                        ok, cause = False, lost[-1][1]
+                if invalid or not x.enabled:
+                    off.append(w)
+            bus_ok = rd.bus.state is not Freshness.INVALID
+            if ok and not bus_ok:
                 ok, cause = False, f"CAN bus: {rd.bus.cause}"
             wrench = []
             for n in dev.ft_names:
@@ -68,7 +74,10 @@ def test_poll_reports_what_the_drivers_observed(tmp_path):
             assert same(list(r.values.values()), list(vals.values()))
             assert same(list(r.wrench), wrench) and len(r.wrench) == len(dev.extra_columns)
             assert type(r.converters) is Converters
-            assert same(r.converters, Converters(ok, cause, rd.enabled, rd.bus_error_t, rd.bus.cause))
+            assert same(r.converters, Converters(
+                ok=ok, cause=cause, enabled=rd.enabled, bus_error_t=rd.bus_error_t, bus_cause=rd.bus.cause,
+                drives=tuple(lost), not_enabled=tuple(off), bus_ok=bus_ok,
+                torque=tuple((w, x.current_A) for w, x in rd.wheels.items())))
             checked.append(now)
             return r
         dev.poll = poll
