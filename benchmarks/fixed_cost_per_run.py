@@ -1,7 +1,8 @@
 """What a lockstep dry run costs besides its cycles, run after run in one process (a warm
 worker: a campaign's, a test session's): the wall time of ``--runs`` dry runs of
 ``--duration`` s, and inside each the time spent designing the observers
-(``observer_design.designs``) and parsing the drives' EDS (``canopen.import_od``).
+(``observer_design.designs``), parsing the drives' EDS (``canopen.import_od``) and in the
+loop's garbage collection before its first cycle (``gc.collect`` called by loop.py).
 
 Runs the code on ``sys.path``: run it from a tree (``cd TREE && python
 benchmarks/fixed_cost_per_run.py``) to measure that tree.
@@ -12,6 +13,7 @@ benchmarks/fixed_cost_per_run.py``) to measure that tree.
 from __future__ import annotations
 
 import argparse
+import gc
 import sys
 import tempfile
 import time
@@ -22,10 +24,25 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import canopen  # noqa: E402
 
 from rig_runtime import config  # noqa: E402
+from rig_runtime import loop  # noqa: E402
 from rig_runtime.app import dryrun, runner  # noqa: E402
 from rig_runtime.scenario import load_scenario  # noqa: E402
 
-spent = {"design": 0.0, "eds": 0.0, "eds_calls": 0}
+spent = {"design": 0.0, "eds": 0.0, "eds_calls": 0, "gc": 0.0}
+
+
+class _TimedGC:
+    """The gc module as loop.py sees it, its ``collect`` timed."""
+
+    def __getattr__(self, name):
+        return getattr(gc, name)
+
+    def collect(self, *a):
+        t = time.perf_counter()
+        try:
+            return gc.collect(*a)
+        finally:
+            spent["gc"] += time.perf_counter() - t
 
 
 def _timed(f, key, count=None):
@@ -49,9 +66,11 @@ def main() -> int:
     a = ap.parse_args()
     canopen.import_od = _timed(canopen.import_od, "eds", "eds_calls")
     runner.observer_designs = _timed(runner.observer_designs, "design")
+    loop.gc = _TimedGC()
     cfg = config.load(a.config)
     print(f"{Path(a.config).name}, {a.scenario}, {a.duration:g} s per run, one process")
-    print(f"  {'run':>4s} {'wall s':>8s} {'observer design s':>18s} {'EDS parse s':>12s} {'EDS parses':>11s}")
+    print(f"  {'run':>4s} {'wall s':>8s} {'observer design s':>18s} {'EDS parse s':>12s} {'EDS parses':>11s} "
+          f"{'loop gc.collect s':>18s}")
     for i in range(a.runs):
         for k in spent:
             spent[k] = 0
@@ -59,7 +78,8 @@ def main() -> int:
         with tempfile.TemporaryDirectory() as d:
             dryrun.run_lockstep(cfg, load_scenario(a.scenario), Path(d) / "x.h5", duration_s=a.duration)
         wall = time.perf_counter() - t
-        print(f"  {i + 1:4d} {wall:8.3f} {spent['design']:18.3f} {spent['eds']:12.4f} {spent['eds_calls']:11d}")
+        print(f"  {i + 1:4d} {wall:8.3f} {spent['design']:18.3f} {spent['eds']:12.4f} {spent['eds_calls']:11d} "
+              f"{spent['gc']:18.3f}")
     return 0
 
 

@@ -18,6 +18,9 @@ from .config import Realtime
 
 
 class Clock(abc.ABC):
+    #: whether releases are wall-clock deadlines (a lockstep clock's are not: nothing is late)
+    deadlines = True
+
     @abc.abstractmethod
     def now(self) -> float:
         """Current time, s."""
@@ -50,6 +53,8 @@ class RealtimeClock(Clock):
 class LockstepClock(Clock):
     """Simulated time; ``advance(t)`` is called before each release and may return a later
     release time (a simulated stall: the runtime wakes up late, as on a starved machine)."""
+
+    deadlines = False
 
     def __init__(self, advance: Callable[[float], float | None] | None = None, t0: float = 0.0):
         self._t = t0

@@ -254,7 +254,8 @@ class ControlLoop:
         self._duration, self._hold, self._arm_timeout = duration_s, hold_on_fault, arm_timeout_s
         self._t_end = self._t_fault_end = math.inf
         wall0 = time.perf_counter()
-        gc.collect()            # before t0: a collection can take tens of ms
+        if clock.deadlines:
+            gc.collect()        # before t0: a collection can take tens of ms (none in the run: disabled)
         gc.freeze()
         gc_was_enabled = gc.isenabled()
         gc.disable()

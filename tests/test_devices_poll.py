@@ -88,3 +88,4 @@ def test_poll_reports_what_the_drivers_observed(tmp_path):
     assert code == 0 and summary["final_state"] == "IDLE"
     assert len(checked) == summary["cycles"] > 60
     assert len(set(prepare.objects)) == 1          # the same mappings every cycle, filled in place
+
