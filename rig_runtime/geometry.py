@@ -72,7 +72,6 @@ class Readings:
 #: takes the six distances and the four speeds in two C calls, not ten lookups
 _LASERS = itemgetter("b_f", "b_r", "s_fl", "s_fr", "s_rl", "s_rr")
 _WHEELS = itemgetter("fl", "fr", "rl", "rr")
-_tuple = tuple.__new__      # a named tuple from all its fields in one C call (devices.py)
 
 
 def measure(v: Mapping[str, float], geo: Geometry) -> Measurement:
@@ -86,9 +85,8 @@ def measure(v: Mapping[str, float], geo: Geometry) -> Measurement:
     lat = geo.l0 * math.sin(psi_m)
     psi_af = math.atan((s_fl - s_fr) / geo.d0)
     psi_ar = math.atan((s_rl - s_rr) / geo.d0)
-    # y_m, psi_m, y_f, y_r, psi_af, psi_ar, psi_f, psi_r, dw_f, dw_r (Measurement's fields)
-    return _tuple(Measurement, (y_m, psi_m, y_m + lat, y_m - lat, psi_af, psi_ar,
-                                psi_af + psi_m, psi_ar + psi_m, fl - fr, rl - rr))
+    return Measurement(y_m=y_m, psi_m=psi_m, y_f=y_m + lat, y_r=y_m - lat, psi_af=psi_af, psi_ar=psi_ar,
+                       psi_f=psi_af + psi_m, psi_r=psi_ar + psi_m, dw_f=fl - fr, dw_r=rl - rr)
 
 
 def ideal_readings(pose: Pose, geo: Geometry, s0: float = 0.0375) -> Readings:
