@@ -580,25 +580,30 @@ class LaserGroup:
             vl._sampled = vl._released = k
             vl._last_x = x
             vl.frames_sent += n
-            lean.append((vl, data, n, x))
+            pipe = vl._pipe
+            if pipe is None:
+                lean.append((vl, data, n, x))
+                continue
+            w = pipe.write(data)                # a memory line: readable once written
+            total += w
+            vl.bytes_written += w
+            if w != len(data):
+                vl.bytes_dropped += len(data) - w
         if lean:
-            # unread bytes at the slaves (the runtime normally drained them): one poll for all
-            q0s = {fd: self._by_fd[fd]._slave_queued() for fd, _ in self._poller.poll(0)} if self._by_fd else {}
+            # the ptys, back to back: unread bytes at the slaves (the runtime normally drained
+            # them), one poll for all
+            q0s = {fd: self._by_fd[fd]._slave_queued() for fd, _ in self._poller.poll(0)}
             write = os.write
             for vl, data, n, x in lean:
-                pipe = vl._pipe
-                if pipe is not None:            # a memory line: readable once written
-                    w = pipe.write(data)
-                else:
-                    try:
-                        w = write(vl._master, data)
-                    except OSError:
-                        w = 0
+                try:
+                    w = write(vl._master, data)
+                except OSError:
+                    w = 0
                 total += w
                 vl.bytes_written += w
                 if w != len(data):
                     vl.bytes_dropped += len(data) - w
-                if w and pipe is None:
+                if w:
                     pend.append((vl, min(q0s.get(vl._slave, 0) + w, _LDISC_CAP)))
         return total
 

@@ -5,7 +5,9 @@ and the F/T Modbus TCP frames on in-process streams (rig_runtime/wires.py); ``ke
 carries the same bytes on pty pairs and loopback TCP. The drivers and the codecs are the
 same on both. A lockstep run of each scenario over both must give bit-identical cycle
 columns (every column but ``work``, the wall-clock compute time of a cycle) and the same
-events. Durations are cut short, each past the scenario's step or fault.
+events. Durations are cut short, each past the scenario's step or fault. Besides the
+shipped scenarios, ``ft-faults`` takes the F/T wire through its timeouts, garbled replies
+and reconnects.
 """
 
 from __future__ import annotations
@@ -18,29 +20,41 @@ import pytest
 from rig_runtime import config
 from rig_runtime.app.dryrun import run_lockstep
 from rig_runtime.app.export import read_log
-from rig_runtime.scenario import load_scenario
+from rig_runtime.scenario import FaultInjection, RefPoint, Scenario, load_scenario
 
 from .e2e import shipped_config_for
+
+# the F/T wire's own failure paths (no shipped scenario has them): a sensor that stops
+# answering (timeouts, reconnects) and one that garbles its replies (bad frames,
+# reconnects), each shorter than the supervisor's 0.5 s (limits.ft_stale_s, the corrupt
+# window), so the run goes on over the recovery
+FT_FAULTS = Scenario(name="ft-faults", duration_s=1.5,
+                     reference=(RefPoint(t=0.0, y_mm=0.0), RefPoint(t=0.2, y_mm=1.0)),
+                     faults=(FaultInjection(kind="dropout", t=0.3, duration_s=0.3, device="ft_rl"),
+                             FaultInjection(kind="corrupt", t=0.3, duration_s=0.3, device="ft_fr")))
 
 WALL_CLOCK_COLUMNS = {"work"}       # the cycle's compute time, measured on the wall clock
 
 # scenario -> RUNNING seconds: past the step (single-step 1 s, vehicle-steps 1 s), the fault
-# (fault-corrupt 3 s, degraded-dropout 8 s) or the first input step (ident-steps 10 s)
+# (fault-corrupt 3 s, degraded-dropout 8 s, ft-faults 0.3 s and their end 0.6 s) or the
+# first input step (ident-steps 10 s)
 CASES = {
     "single-step": 1.6,
     "fault-corrupt": 3.4,
     "degraded-dropout": 8.5,
     "vehicle-steps": 1.6,
     "ident-steps": 10.5,
+    FT_FAULTS.name: 1.5,
 }
 
 
-def _run(tmp_path, name: str, wires: str, duration_s: float) -> tuple[dict, dict]:
+def _run(tmp_path, name: str, wires: str, duration_s: float, prepare=None) -> tuple[dict, dict]:
     path = shipped_config_for(name)
     cfg = config.load(path) if path else config.load()
     cfg = dataclasses.replace(cfg, sim={**(cfg.sim or {}), "wires": wires})
     log = tmp_path / f"{name}-{wires}.h5"
-    summary, _ = run_lockstep(cfg, load_scenario(name), log, duration_s=duration_s)
+    scenario = FT_FAULTS if name == FT_FAULTS.name else load_scenario(name)
+    summary, _ = run_lockstep(cfg, scenario, log, duration_s=duration_s, prepare=prepare)
     return summary, read_log(log)
 
 
@@ -72,6 +86,29 @@ def test_the_scenarios_reach_their_fault_and_step(tmp_path):
     _, log = _run(tmp_path, "degraded-dropout", "memory", CASES["degraded-dropout"])
     kinds = set(log["events"]["kind"]) | set(log["events"]["message"])
     assert any("DEGRADED" in str(k) or "degraded" in str(k) for k in kinds)
+
+
+def test_the_ft_faults_reach_the_driver(tmp_path):
+    """The F/T case is not trivially equal: over memory wires the driver times out on the
+    silent sensor and rejects the garbled replies, reconnects to both, and the run goes on."""
+    devices, last = [], {}
+
+    def prepare(sim, dev, clock):          # keep the F/T driver's last readings
+        poll = dev.ft.poll
+
+        def keep(now):
+            readings = poll(now)
+            last.update(readings)
+            return readings
+        dev.ft.poll = keep
+        devices.append(dev)
+
+    summary, _ = _run(tmp_path, FT_FAULTS.name, "memory", FT_FAULTS.duration_s, prepare=prepare)
+    assert summary["final_state"] == "IDLE" and summary["faults"] == []
+    assert last["ft_rl"].health.timeouts >= 1 and last["ft_fr"].health.bad_frames >= 1
+    assert last["ft_fl"].health.timeouts == last["ft_fl"].health.bad_frames == 0
+    c = devices[0].ft.counters()
+    assert c["ft_rl.connects"] >= 2 and c["ft_fr.connects"] >= 2 and c["ft_fl.connects"] == 1
 
 
 def test_the_wires_are_what_the_setting_says(tmp_path):
