@@ -37,8 +37,9 @@ from ..hardware import Hardware
 from .limiter import Limiter
 from .reconfig import Reconfiguration
 from ..allocation import allocate
-from .rules import (ARM_RULES, CHANNEL_RULES, DRIVE_LOSS_RULES, DEGRADED_STOP_RULES, ISOLATING_RULES, OBSERVER_RULES, OUTPUT_RULES,
-                    POSE_RULES, SPEED_RULES, SYSTEM_RULES, System, bus_error, converter, torque_response)
+from .rules import (ARM_RULES, CHANNEL_RULES, DEGRADED_STOP_RULES, DRIVE_LOSS_RULES, ISOLATING_RULES,
+                    OBSERVER_RULES, OUTPUT_RULES, POSE_RULES, SPEED_RULES, SYSTEM_RULES, System, bus_error,
+                    converter, torque_response)
 from .types import Channel, Converters, Fault, Finding, Pose, Sample, State, Step
 
 
