@@ -475,8 +475,9 @@ class Supervisor:
             cmds = self._cmds.get(w)
             if cmds is None or w in lost:
                 continue
-            r = min(abs(c - actual) for c in cmds)
-            small = min(abs(c) for c in cmds) < thr
+            c0, c1, c2 = cmds
+            r = min(abs(c0 - actual), abs(c1 - actual), abs(c2 - actual))
+            small = min(abs(c0), abs(c1), abs(c2)) < thr
             run = self._torque_run[w] = 0 if small or not r > thr else self._torque_run[w] + 1
             if not small and r > self.torque_residual_max[w]:
                 self.torque_residual_max[w] = r          # the largest judged residual (healthy runs: the margin)
