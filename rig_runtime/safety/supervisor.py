@@ -94,6 +94,11 @@ class Supervisor:
         # the torque response: each wheel's latest commands (newest first) and the cycles in a
         # row its reported torque has been off all of them; the largest healthy residual seen
         self._cmds: dict[str, list[float]] = {w: [0.0, 0.0, 0.0] for w in self.drives.feeds}
+        # (carrier, left, right, their current limit, their command histories), once
+        tb = self._outages
+        self._pairs = [(c, *tb.wheels_of(c), min(tb.i_max.get(w, math.inf) for w in tb.wheels_of(c)),
+                        *(self._cmds[w] for w in tb.wheels_of(c)))
+                       for c in carriers if tb is not None and c in tb.controlled]
         self._torque_run: dict[str, int] = dict.fromkeys(self.drives.feeds, 0)
         self.torque_residual_max: dict[str, float] = dict.fromkeys(self.drives.feeds, 0.0)
         self._lim_of: dict[str, Limits] = {}                 # carrier -> the limits it runs under now
@@ -489,16 +494,11 @@ class Supervisor:
     def _commanded(self) -> None:
         """Each wheel's command of this cycle (the allocation of the limited outputs), for the
         torque response rule of the next cycles."""
-        tb, lost, u = self._outages, self.drives.isolated, self._out.last
-        for car in self.carriers:
-            if car not in tb.controlled:
-                continue
-            left, right = tb.wheels_of(car)
-            il, ir = allocate(u(car), left not in lost, right not in lost,
-                              min(tb.i_max.get(left, math.inf), tb.i_max.get(right, math.inf)))
-            for w, i in ((left, il), (right, ir)):
-                c = self._cmds[w]
-                c[2], c[1], c[0] = c[1], c[0], i
+        lost, u = self.drives.isolated, self._out.last
+        for car, left, right, i_max, cl, cr in self._pairs:
+            il, ir = allocate(u(car), left not in lost, right not in lost, i_max)
+            cl[2], cl[1], cl[0] = cl[1], cl[0], il
+            cr[2], cr[1], cr[0] = cr[1], cr[0], ir
 
     def _update_limits(self) -> None:
         """The limits each carrier runs under now: DEGRADED and RECONFIGURED each tighten them
