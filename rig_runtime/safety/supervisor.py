@@ -37,8 +37,9 @@ from ..hardware import Hardware
 from .limiter import Limiter
 from .reconfig import Reconfiguration
 from ..allocation import allocate
-from .rules import (ARM_RULES, CHANNEL_RULES, DRIVE_LOSS_RULES, DEGRADED_STOP_RULES, ISOLATING_RULES, OBSERVER_RULES, OUTPUT_RULES,
-                    POSE_RULES, SPEED_RULES, SYSTEM_RULES, System, bus_error, converter, torque_response)
+from .rules import (ARM_RULES, CHANNEL_RULES, DEGRADED_STOP_RULES, DRIVE_LOSS_RULES, ISOLATING_RULES,
+                    OBSERVER_RULES, OUTPUT_RULES, POSE_RULES, SPEED_RULES, SYSTEM_RULES, System, bus_error,
+                    converter, torque_response)
 from .types import Channel, Converters, Fault, Finding, Pose, Sample, State, Step
 
 
@@ -93,6 +94,11 @@ class Supervisor:
         # the torque response: each wheel's latest commands (newest first) and the cycles in a
         # row its reported torque has been off all of them; the largest healthy residual seen
         self._cmds: dict[str, list[float]] = {w: [0.0, 0.0, 0.0] for w in self.drives.feeds}
+        # (carrier, left, right, their current limit, their command histories), once
+        tb = self._outages
+        self._pairs = [(c, *tb.wheels_of(c), min(tb.i_max.get(w, math.inf) for w in tb.wheels_of(c)),
+                        *(self._cmds[w] for w in tb.wheels_of(c)))
+                       for c in carriers if tb is not None and c in tb.controlled]
         self._torque_run: dict[str, int] = dict.fromkeys(self.drives.feeds, 0)
         self.torque_residual_max: dict[str, float] = dict.fromkeys(self.drives.feeds, 0.0)
         self._lim_of: dict[str, Limits] = {}                 # carrier -> the limits it runs under now
@@ -474,8 +480,9 @@ class Supervisor:
             cmds = self._cmds.get(w)
             if cmds is None or w in lost:
                 continue
-            r = min(abs(c - actual) for c in cmds)
-            small = min(abs(c) for c in cmds) < thr
+            c0, c1, c2 = cmds
+            r = min(abs(c0 - actual), abs(c1 - actual), abs(c2 - actual))
+            small = min(abs(c0), abs(c1), abs(c2)) < thr
             run = self._torque_run[w] = 0 if small or not r > thr else self._torque_run[w] + 1
             if not small and r > self.torque_residual_max[w]:
                 self.torque_residual_max[w] = r          # the largest judged residual (healthy runs: the margin)
@@ -487,16 +494,11 @@ class Supervisor:
     def _commanded(self) -> None:
         """Each wheel's command of this cycle (the allocation of the limited outputs), for the
         torque response rule of the next cycles."""
-        tb, lost, u = self._outages, self.drives.isolated, self._out.last
-        for car in self.carriers:
-            if car not in tb.controlled:
-                continue
-            left, right = tb.wheels_of(car)
-            il, ir = allocate(u(car), left not in lost, right not in lost,
-                              min(tb.i_max.get(left, math.inf), tb.i_max.get(right, math.inf)))
-            for w, i in ((left, il), (right, ir)):
-                c = self._cmds[w]
-                c[2], c[1], c[0] = c[1], c[0], i
+        lost, u = self.drives.isolated, self._out.last
+        for car, left, right, i_max, cl, cr in self._pairs:
+            il, ir = allocate(u(car), left not in lost, right not in lost, i_max)
+            cl[2], cl[1], cl[0] = cl[1], cl[0], il
+            cr[2], cr[1], cr[0] = cr[1], cr[0], ir
 
     def _update_limits(self) -> None:
         """The limits each carrier runs under now: DEGRADED and RECONFIGURED each tighten them

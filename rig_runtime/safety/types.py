@@ -148,7 +148,7 @@ class Channel:
             # whole periods it was already late: 0 if it arrived within the period before
             # the cycle that sees it, at any phase (a micro-period tolerance for k·h rounding)
             age = now - t
-            self.silent = max(0, math.ceil(age / h - 1e-6) - 1) if age < math.inf else 0
+            self.silent = 0 if age <= h * (1 + 1e-6) or age == math.inf else math.ceil(age / h - 1e-6) - 1
         else:
             self.silent += 1
         self.t = t
