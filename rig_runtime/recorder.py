@@ -108,6 +108,7 @@ class Recorder:
         self._closed = False
         self._mailbox = None
         self.status_refused = 0             # status snapshots too large for the slot
+        self.left_running = ""              # close(timeout) left the sidecar to close the log: why
 
     # ------------------------------------------------------------------ status
     @property
@@ -205,7 +206,10 @@ class Recorder:
             try:
                 proc = subprocess.Popen(
                     [sys.executable, "-c", "from rig_runtime.sidecar import cli; cli()", str(there.fileno()), path],
-                    pass_fds=(there.fileno(),), stdin=subprocess.DEVNULL, env=_child_env())
+                    # stdout: nothing (it prints only to stderr), so a reader of the runtime's
+                    # output (``rig run --json | …``) is not held by a sidecar left to close the log
+                    pass_fds=(there.fileno(),), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                    env=_child_env())
             finally:
                 there.close()               # the child has its own copy: EOF for it once we are gone
             as_background_process(proc.pid, self.cpus)    # before the spec: the child has no thread yet
@@ -301,12 +305,17 @@ class Recorder:
                                f"status snapshot of {len(data)} bytes does not fit its slot: live views not updated")
 
     # ------------------------------------------------------------------ close
-    def close(self, timeout: float | None = None) -> None:
+    def close(self, timeout: float | None = None) -> bool:
         """Let the sidecar drain the ring, write and flush everything and close the file;
         wait for it. Idempotent. Afterwards every row ``append`` accepted is in the file,
-        unless the recorder is unhealthy. ``timeout`` bounds the wait (None: wait)."""
+        unless the recorder is unhealthy. Returns whether the log is closed.
+
+        ``timeout`` bounds the wait (None: wait). A sidecar still at work past it (a disk
+        that does not answer: a write or fsync that blocks) is left running, not stopped: it
+        has the close request and closes the log itself as soon as the disk answers (then
+        it finds its socket closed and ends); ``left_running`` names it."""
         if self._closed:
-            return
+            return self.left_running == ""
         self._closed = True
         self._refuse = True
         proc, conn = self.process, self._conn
@@ -322,6 +331,17 @@ class Recorder:
                         self._final = msg[1]
             except (EOFError, OSError):
                 pass
+            if self._final is None and timeout is not None and proc.poll() is None:
+                rows = self._prod.rows_flushed if self._prod is not None else 0
+                self.left_running = (f"the recording sidecar (pid {proc.pid}) did not close the log within "
+                                     f"{timeout:g} s (its disk does not answer); it closes {self.path} when "
+                                     f"the disk answers (now valid up to row {rows})")
+                self._final = {"rows_written": self._prod.rows_written if self._prod is not None else 0,
+                               "rows_flushed": rows}
+                conn.close()                # the sidecar reads its close request, then this EOF
+                self._release()
+                self._unregister()
+                return False
             if self._final is None:
                 rows = self._prod.rows_flushed if self._prod is not None else 0
                 self._fail(f"recorder sidecar did not close the log (exit code {proc.poll()}); "
@@ -331,6 +351,10 @@ class Recorder:
             self._fail(self._final["error"])
         self._stop_process(proc, conn)
         self._release()
+        self._unregister()
+        return True
+
+    def _unregister(self) -> None:
         try:
             atexit.unregister(self.close)
         except Exception:  # noqa: BLE001
