@@ -78,10 +78,13 @@ def run_attrs(cfg: RigConfig, scenario: Optional[Scenario], duration_s: float, e
 def open_recorder(cfg: RigConfig, devices, log_path: Path, attrs: dict, *, observed: Sequence[str] = (),
                   outputs: Sequence[tuple[str, dict]] = (), when_full: str = "drop") -> Recorder:
     """A run's recorder, open (its sidecar started): the log's columns for this config and
-    device set, the recorder settings of the config, the helper CPUs off the loop's."""
+    device set, the recorder settings of the config, the helper CPUs off the loop's. A
+    lockstep run (``when_full="wait"``) without live outputs writes its log in this process
+    (``writer="inline"``: no interpreter started per run; the same writer and file)."""
+    writer = "inline" if when_full == "wait" and not outputs else "sidecar"
     rec = Recorder(log_path, log_columns(cfg, devices.channels(), devices.extra_columns, list(observed)),
                    attrs=attrs, buffer_cycles=cfg.recorder.buffer_cycles, flush_s=cfg.recorder.flush_s,
-                   outputs=outputs, when_full=when_full, cpus=helper_cpus(cfg.realtime))
+                   outputs=outputs, when_full=when_full, cpus=helper_cpus(cfg.realtime), writer=writer)
     rec.open()
     return rec
 
