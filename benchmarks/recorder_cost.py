@@ -13,9 +13,11 @@ the log), with the recording sidecar process and with the inline writer lockstep
   to closed, each way;
 - ``ipc_round_trip_ms``: one request/answer over a socket pair with a warm child process —
   what a recording sidecar kept per worker (the other option of issue 26) would add to the
-  inline cost twice per run (open, close), on top of the same file work.
+  inline cost twice per run (open, close), on top of the same file work;
+- ``warm_dry_run_s``: with ``--dry-runs N``, a 0.1 s lockstep dry run (``run_lockstep``,
+  configs/sim.yaml, single-step) in a warm process, median of N after a first one.
 
-    python benchmarks/recorder_cost.py [--runs N] [--json]
+    python benchmarks/recorder_cost.py [--runs N] [--dry-runs N] [--json]
 """
 
 from __future__ import annotations
@@ -92,9 +94,24 @@ def ipc_round_trip_ms(n: int = 200) -> float:
     return dt * 1e3
 
 
+def warm_dry_run_s(d: Path, n: int) -> float:
+    from rig_runtime import config
+    from rig_runtime.app.dryrun import run_lockstep
+    from rig_runtime.scenario import load_scenario
+    cfg, sc = config.load(), load_scenario("single-step")
+    run_lockstep(cfg, sc, d / "warm.h5", duration_s=0.1)
+    ts = []
+    for k in range(n):
+        t0 = time.perf_counter()
+        run_lockstep(cfg, sc, d / f"dry-{k}.h5", duration_s=0.1)
+        ts.append(time.perf_counter() - t0)
+    return statistics.median(ts)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--dry-runs", type=int, default=0)
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as td:
@@ -105,6 +122,8 @@ def main() -> None:
             _, _, run = open_close(d, writer, args.runs, 2000)
             out.update({f"{writer}_open_s": o, f"{writer}_close_s": c, f"{writer}_run_s": run})
         out["ipc_round_trip_ms"] = ipc_round_trip_ms()
+        if args.dry_runs:
+            out["warm_dry_run_s"] = warm_dry_run_s(d, args.dry_runs)
     if args.json:
         print(json.dumps(out))
         return
