@@ -103,8 +103,9 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     terminal — the status line, unless an output shows the status (the panel), which then
     gets a snapshot every 0.2 s through the sidecar. ``hold_on_fault``: after a FAULT the
     loop keeps cycling (zero current, power stages off) until ``rig ctl reset-fault`` arms
-    again or a stop ends it. ``recorder_when_full="wait"``: a full recording ring makes the
-    loop wait for the sidecar instead of dropping the row (lockstep runs only)."""
+    again or a stop ends it. ``recorder_when_full="wait"``: a full recording ring is written
+    out instead of dropping the row (lockstep runs only; without ``outputs`` the log is then
+    written in this process, see :func:`open_recorder`)."""
     analysis.stability_gate(cfg)        # also for callers that bypass the CLI's preflight
     # the Riccati design here, not in the loop's modules; a carrier per the set-up in rolling
     # contact only (a carrier the scenario lifts off the rollers has no (2b) and no (4))
@@ -123,6 +124,7 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     loop = None
     phase = "before the log was opened"
     power_off = False
+    log_done = False             # the recorder's close returned (the log closed, or left to its sidecar)
     first = {}                   # what came first: the stop request, relative to the faults and the loop's end
 
     def code_now() -> int:
@@ -135,8 +137,12 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
         """A second stop signal with the power stages off: exit at once, one line."""
         if not power_off:
             return                  # looked at again once the devices are closed
-        left = (f"; the recording sidecar closes {log_path} on its own" if rec is not None and not rec._closed
-                else "")
+        left = ""
+        if rec is not None and not log_done:
+            if rec.writer == "inline":
+                rec.close()         # in this process (lockstep): nobody else would close the log
+            else:
+                left = f"; the recording sidecar closes {log_path} on its own"
         sys.stdout.flush()
         sys.stderr.write(f"\nrig: second {stops.name or 'stop signal'}: exiting now (power stages off){left}\n")
         sys.stderr.flush()
@@ -188,6 +194,7 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
                 else:
                     sys.stderr.write(f"rig: {rec.left_running}; exiting\n")
         finally:
+            log_done = True
             stops.forget(on_stop)
             stops.forget(leave_now)
     # a stop that came after the first fault or after the loop had ended did not end the run
