@@ -444,6 +444,7 @@ class Realtime:
 class Recorder:
     buffer_cycles: int = check(positive, default=4096)
     flush_s: float = check(positive, default=0.5)
+    close_timeout_s: float = check(positive, default=3.0)   # shutdown: the wait for the log's close (issue 29)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -23,6 +23,12 @@ flush the file on disk is complete and readable up to that point, also if the ru
 the machine dies afterwards. If the runtime process dies, the sidecar drains the ring,
 records an event saying so and closes the log.
 
+``writer="inline"`` (a lockstep run without live outputs, where time does not matter and a
+campaign worker runs many runs): no process is started; the same :class:`~rig_runtime.sidecar.Sidecar`
+writes the same ring into the same file from the loop's own process, when the ring is full
+and at ``close`` (it flushes then, at most every ``flush_s``). No interpreter start (0.5–1 s)
+and exit per run; the log is the same.
+
 File layout: see ``docs/log-format.md``.
 """
 
@@ -68,12 +74,14 @@ class Recorder:
     is never overwritten. ``outputs``: live outputs the sidecar feeds, as
     ``("package.module:Class", {options})`` (see :mod:`rig_runtime.sidecar`). ``cpus``: where
     the sidecar runs (:func:`rig_runtime.clock.helper_cpus`; None: wherever this process may).
+    ``writer``: "sidecar" (a process of its own; every real-time run) or "inline" (see the
+    module docstring; implies ``when_full="wait"``, no live outputs).
     """
 
     def __init__(self, path: str | Path, columns: Sequence[str], *, attrs: Mapping[str, object],
                  buffer_cycles: int = 4096, flush_s: float = 0.5, event_capacity: int = 1024,
                  min_free_bytes: int = MIN_FREE_BYTES, outputs: Sequence[tuple[str, dict]] = (),
-                 when_full: str = "drop", cpus: Sequence[int] | None = None):
+                 when_full: str = "drop", cpus: Sequence[int] | None = None, writer: str = "sidecar"):
         self.path = Path(path)
         self.columns: tuple[str, ...] = check_columns(columns)
         self._attrs = check_attrs(attrs)
@@ -92,6 +100,13 @@ class Recorder:
         if when_full not in ("drop", "wait"):
             raise ValueError(f"recorder: when_full is 'drop' or 'wait', got {when_full!r}")
         self.when_full = when_full
+        if writer not in ("sidecar", "inline"):
+            raise ValueError(f"recorder: writer is 'sidecar' or 'inline', got {writer!r}")
+        if writer == "inline" and (self.outputs or when_full != "wait"):
+            raise ValueError("recorder: writer 'inline' is for lockstep runs: when_full='wait', no live outputs")
+        self.writer = writer
+        self._inline = None                 # writer "inline": the Sidecar this process drives
+        self._next_flush = 0.0
         self.cpus = tuple(cpus) if cpus else None
         self._ncols = len(self.columns)
         self._prod: ring.Producer | None = None
@@ -108,6 +123,7 @@ class Recorder:
         self._closed = False
         self._mailbox = None
         self.status_refused = 0             # status snapshots too large for the slot
+        self.left_running = ""              # close(timeout) left the sidecar to close the log: why
 
     # ------------------------------------------------------------------ status
     @property
@@ -191,6 +207,9 @@ class Recorder:
             raise RuntimeError(f"recorder {self.path}: already opened")
         self._opened = True
         layout = ring.Layout(self._ncols, self.buffer_cycles, self.event_capacity)
+        if self.writer == "inline":
+            self._open_inline(layout)
+            return
         try:
             path, self._mm = ring.create(layout)
         except OSError as e:
@@ -205,7 +224,10 @@ class Recorder:
             try:
                 proc = subprocess.Popen(
                     [sys.executable, "-c", "from rig_runtime.sidecar import cli; cli()", str(there.fileno()), path],
-                    pass_fds=(there.fileno(),), stdin=subprocess.DEVNULL, env=_child_env())
+                    # stdout: nothing (it prints only to stderr), so a reader of the runtime's
+                    # output (``rig run --json | …``) is not held by a sidecar left to close the log
+                    pass_fds=(there.fileno(),), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                    env=_child_env())
             finally:
                 there.close()               # the child has its own copy: EOF for it once we are gone
             as_background_process(proc.pid, self.cpus)    # before the spec: the child has no thread yet
@@ -244,6 +266,29 @@ class Recorder:
         self._refuse = False
         atexit.register(self.close)
 
+    def _open_inline(self, layout: ring.Layout) -> None:
+        from .sidecar import open_log
+        self._mm = ring.create_private(layout)
+        spec = SidecarSpec(str(self.path), self.columns, self._attrs, self.flush_s, self.min_free_bytes, ())
+        res = open_log(ring.Consumer(self._mm, layout), spec, None)
+        if isinstance(res, tuple):
+            self._release()
+            self._closed = True
+            _, device, message, cause = res
+            raise DeviceInitError(device, message) from cause
+        self._inline = res
+        self._next_flush = time.monotonic() + self.flush_period
+        self._prod = ring.Producer(self._mm, layout)
+        self._refuse = False
+        atexit.register(self.close)
+
+    def _drain_inline(self) -> None:
+        now = time.monotonic()
+        flush = now >= self._next_flush
+        if flush:
+            self._next_flush = now + self.flush_period
+        self._inline.drain(flush)           # type: ignore[union-attr]
+
     # ------------------------------------------------------------------ loop side
     def append(self, row: Sequence[float]) -> bool:
         """Record one cycle: one number per column, in column order. Never blocks.
@@ -257,7 +302,11 @@ class Recorder:
         try:
             if self._prod.append(row):      # type: ignore[union-attr]
                 return True
-            if self.when_full == "wait" and self._wait_for_room() and self._prod.append(row):  # type: ignore[union-attr]
+            if self._inline is not None:
+                self._drain_inline()
+                if self._prod.append(row):  # type: ignore[union-attr]
+                    return True
+            elif self.when_full == "wait" and self._wait_for_room() and self._prod.append(row):  # type: ignore[union-attr]
                 return True
         except struct.error as e:
             raise ValueError(f"recorder row: expected {self._ncols} numbers in column order {self.columns} ({e})") from None
@@ -283,7 +332,11 @@ class Recorder:
         """Record an event (state change, fault, operator action). Non-blocking."""
         if self._refuse:
             return
-        if not self._prod.event(t, kind, device, check, value, limit, message):   # type: ignore[union-attr]
+        ok = self._prod.event(t, kind, device, check, value, limit, message)     # type: ignore[union-attr]
+        if not ok and self._inline is not None:
+            self._drain_inline()
+            ok = self._prod.event(t, kind, device, check, value, limit, message)  # type: ignore[union-attr]
+        if not ok:
             self._ev_dropped += 1
             self._prod.count_dropped(self._dropped, self._ev_dropped)         # type: ignore[union-attr]
             self._fail(f"recorder event buffer overflow: {self.event_capacity} events pending; events dropped")
@@ -301,14 +354,27 @@ class Recorder:
                                f"status snapshot of {len(data)} bytes does not fit its slot: live views not updated")
 
     # ------------------------------------------------------------------ close
-    def close(self, timeout: float | None = None) -> None:
+    def close(self, timeout: float | None = None) -> bool:
         """Let the sidecar drain the ring, write and flush everything and close the file;
         wait for it. Idempotent. Afterwards every row ``append`` accepted is in the file,
-        unless the recorder is unhealthy. ``timeout`` bounds the wait (None: wait)."""
+        unless the recorder is unhealthy. Returns whether the log is closed.
+
+        ``timeout`` bounds the wait (None: wait). A sidecar still at work past it (a disk
+        that does not answer: a write or fsync that blocks) is left running, not stopped: it
+        has the close request and closes the log itself as soon as the disk answers (then
+        it finds its socket closed and ends); ``left_running`` names it."""
         if self._closed:
-            return
+            return self.left_running == ""
         self._closed = True
         self._refuse = True
+        if self._inline is not None:
+            self._final = self._inline.finish({"error": self._error})
+            self._inline = None
+            if self._final.get("error"):
+                self._fail(self._final["error"])
+            self._release()
+            self._unregister()
+            return True
         proc, conn = self.process, self._conn
         if conn is not None and proc is not None:
             try:
@@ -322,6 +388,17 @@ class Recorder:
                         self._final = msg[1]
             except (EOFError, OSError):
                 pass
+            if self._final is None and timeout is not None and proc.poll() is None:
+                rows = self._prod.rows_flushed if self._prod is not None else 0
+                self.left_running = (f"the recording sidecar (pid {proc.pid}) did not close the log within "
+                                     f"{timeout:g} s (its disk does not answer); it closes {self.path} when "
+                                     f"the disk answers (now valid up to row {rows})")
+                self._final = {"rows_written": self._prod.rows_written if self._prod is not None else 0,
+                               "rows_flushed": rows}
+                conn.close()                # the sidecar reads its close request, then this EOF
+                self._release()
+                self._unregister()
+                return False
             if self._final is None:
                 rows = self._prod.rows_flushed if self._prod is not None else 0
                 self._fail(f"recorder sidecar did not close the log (exit code {proc.poll()}); "
@@ -331,6 +408,10 @@ class Recorder:
             self._fail(self._final["error"])
         self._stop_process(proc, conn)
         self._release()
+        self._unregister()
+        return True
+
+    def _unregister(self) -> None:
         try:
             atexit.unregister(self.close)
         except Exception:  # noqa: BLE001

@@ -103,12 +103,24 @@ def create(layout: Layout) -> tuple[str, mmap.mmap]:
         raise
     finally:
         os.close(fd)
+    _init_header(mm, layout)
+    return path, mm
+
+
+def create_private(layout: Layout) -> mmap.mmap:
+    """A zero-filled block in this process's memory only (no file): for a recorder whose
+    writer runs in the loop's own process (a lockstep run, :mod:`rig_runtime.recorder`)."""
+    mm = mmap.mmap(-1, layout.size)
+    _init_header(mm, layout)
+    return mm
+
+
+def _init_header(mm: mmap.mmap, layout: Layout) -> None:
     h = memoryview(mm).cast("q")
     h[_NCOLS], h[_CAP], h[_EVCAP] = layout.ncols, layout.capacity, layout.event_capacity
     h[_STATUS_BYTES], h[_MAILBOX_BYTES] = layout.status_bytes, layout.mailbox_bytes
     h[_MAGIC] = MAGIC
     h.release()
-    return path, mm
 
 
 def attach(path: str) -> tuple[Layout, mmap.mmap]:

@@ -15,6 +15,11 @@ flushing and closing the file — or when its pipe to the runtime reports EOF: t
 died (SIGKILL, crash). Then it takes what the ring holds (every row the loop published),
 records an event saying so, and closes the log readable up to that last row.
 
+A lockstep run (no deadlines) without live outputs does not start this process: its
+recorder drives the same :class:`Sidecar` in the loop's own process (``Recorder(writer=
+"inline")``), draining the ring when it is full and at close — the same ring, the same
+writer, the same file; only no interpreter to start per run.
+
 Outputs are named by the application as ``"package.module:Class"`` strings, imported here
 (lazily: the core names none) and constructed as ``Class(info, **options)``; a class whose
 constructor takes ``mailbox`` also gets the operator mailbox. Each has ``rows(block)``,
@@ -113,7 +118,17 @@ def main(ring_path: str, spec: SidecarSpec, conn: multiprocessing.connection.Con
     """The sidecar process's work (after :func:`cli`, which ignores the stop signals first)."""
     as_background_thread()
     layout, mm = ring.attach(ring_path)
-    cons = ring.Consumer(mm, layout)
+    sidecar = open_log(ring.Consumer(mm, layout), spec, conn)
+    if isinstance(sidecar, tuple):
+        conn.send(sidecar)
+        return
+    conn.send(("ready",))
+    sidecar.run()
+
+
+def open_log(cons: ring.Consumer, spec: SidecarSpec, conn) -> "Sidecar | tuple":
+    """Start the outputs and create the log: the :class:`Sidecar` that writes it, or the
+    ``("error", device, message, cause)`` that says why not."""
     info = LogInfo(spec.path, tuple(spec.columns), dict(spec.attrs))
     outputs: list[tuple[str, Any]] = []
     from .logfile import LogFile        # h5py: in the sidecar's process only, never the loop's
@@ -127,18 +142,14 @@ def main(ring_path: str, spec: SidecarSpec, conn: multiprocessing.connection.Con
         log.create()
     except DeviceError as e:
         _close_outputs(outputs)
-        conn.send(("error", e.device, str(e)[len(e.device) + 2:], picklable(e.__cause__)))
-        return
+        return ("error", e.device, str(e)[len(e.device) + 2:], picklable(e.__cause__))
     except RigError as e:           # an output's option the operator got wrong (a port in use, ...)
         _close_outputs(outputs)
-        conn.send(("error", "recorder", f"live output: {e}", None))
-        return
+        return ("error", "recorder", f"live output: {e}", None)
     except Exception as e:  # noqa: BLE001 - an output that cannot start: its cause, one line
         _close_outputs(outputs)
-        conn.send(("error", "recorder", f"live output failed to start ({type(e).__name__}: {e})", None))
-        return
-    conn.send(("ready",))
-    Sidecar(cons, log, outputs, spec, conn).run()
+        return ("error", "recorder", f"live output failed to start ({type(e).__name__}: {e})", None)
+    return Sidecar(cons, log, outputs, spec, conn)
 
 
 def _us(h: Histogram) -> dict:
@@ -155,7 +166,9 @@ def _close_outputs(outputs) -> None:
 
 
 class Sidecar:
-    """The sidecar's loop (one thread): drain, write, feed, until close or the runtime's death."""
+    """The sidecar's loop (one thread): drain, write, feed, until close or the runtime's death.
+    Inline (``conn`` None): the recorder calls :meth:`drain` and :meth:`finish` instead of
+    :meth:`run`."""
 
     def __init__(self, cons: ring.Consumer, log: LogFile, outputs: list, spec: SidecarSpec, conn):
         self.cons = cons
@@ -200,6 +213,15 @@ class Sidecar:
                          "the runtime process ended without closing the log (killed or crashed); "
                          "the log holds every cycle it published"))
         self._finish(closing or {}, parent_gone)
+
+    def drain(self, flush: bool) -> None:
+        """Inline: take what the ring holds and write it (and flush, if ``flush``)."""
+        self._service(flush=flush)
+
+    def finish(self, closing: dict) -> dict:
+        """Inline: take the rest, close the log; what the process would answer to ``close``."""
+        self._service(flush=False)
+        return self._finish(closing, False)
 
     def _event(self, ev: tuple) -> None:
         self._events.append(ev)
@@ -258,7 +280,7 @@ class Sidecar:
                 except Exception:  # noqa: BLE001
                     pass
 
-    def _finish(self, closing: dict, parent_gone: bool) -> None:
+    def _finish(self, closing: dict, parent_gone: bool) -> dict:
         import numpy as np
         rows_dropped, events_dropped = self.cons.dropped()
         loop_error = closing.get("error", "")
@@ -270,11 +292,12 @@ class Sidecar:
         if self.log.error:
             self.cons.set_error(self.log.error)
         _close_outputs(self.outputs)
-        if not parent_gone:
+        closed = {"rows_written": self.log.rows_written, "rows_flushed": self.log.rows_flushed,
+                  "events_written": self.log.events_written, "error": self.log.error, "flushes": self.log.flushes}
+        if not parent_gone and self.conn is not None:
             try:
-                self.conn.send(("closed", {"rows_written": self.log.rows_written, "rows_flushed": self.log.rows_flushed,
-                                           "events_written": self.log.events_written, "error": self.log.error,
-                                           "flushes": self.log.flushes}))
+                self.conn.send(("closed", closed))
             except (OSError, ValueError):
                 pass
         self.cons.release()
+        return closed

@@ -39,6 +39,9 @@ def _print_summary(summary: dict, as_json: bool) -> None:
     t = summary["timing"]
     if summary.get("stopped_by"):
         print(f"stopped by {summary['stopped_by']} (operator stop: current ramped to zero, power stages off)")
+    elif summary.get("ended_by"):
+        print(f"ended by {summary['ended_by']}"
+              + (f" ({summary['late_stop']} came after the end)" if summary.get("late_stop") else ""))
     print(f"final state: {summary['final_state']}   cycles: {summary['cycles']}   log: {summary['log']}")
     wire = summary["max_abs_wire_current_A"]
     print(f"currents: max |u| (differential current per carrier) {summary['max_abs_current_A']:.3f} A, "

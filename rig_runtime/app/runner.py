@@ -4,6 +4,13 @@ loop, stop cleanly, close the log, and summarise.
 SIGINT/SIGTERM ask the loop to stop (STOPPING → zero current → converters disabled → log
 closed, exit 0). Any exception inside the loop zeroes the current and disables the
 converters before it propagates (exit ≠ 0).
+
+Shutdown is bounded: once the devices are closed (power stages off) the recorder gets
+``recorder.close_timeout_s`` to close the log; past it (a disk that does not answer) the
+recording sidecar is left to close the log when the disk answers, one line says so, and the
+run exits with the code of what happened. A second stop signal ends the process at once
+once the power stages are off (at once if they already are). The summary's ``ended_by``
+names what ended the run first (a fault, a signal, ``rig ctl``, the duration).
 """
 
 from __future__ import annotations
@@ -71,10 +78,13 @@ def run_attrs(cfg: RigConfig, scenario: Optional[Scenario], duration_s: float, e
 def open_recorder(cfg: RigConfig, devices, log_path: Path, attrs: dict, *, observed: Sequence[str] = (),
                   outputs: Sequence[tuple[str, dict]] = (), when_full: str = "drop") -> Recorder:
     """A run's recorder, open (its sidecar started): the log's columns for this config and
-    device set, the recorder settings of the config, the helper CPUs off the loop's."""
+    device set, the recorder settings of the config, the helper CPUs off the loop's. A
+    lockstep run (``when_full="wait"``) without live outputs writes its log in this process
+    (``writer="inline"``: no interpreter started per run; the same writer and file)."""
+    writer = "inline" if when_full == "wait" and not outputs else "sidecar"
     rec = Recorder(log_path, log_columns(cfg, devices.channels(), devices.extra_columns, list(observed)),
                    attrs=attrs, buffer_cycles=cfg.recorder.buffer_cycles, flush_s=cfg.recorder.flush_s,
-                   outputs=outputs, when_full=when_full, cpus=helper_cpus(cfg.realtime))
+                   outputs=outputs, when_full=when_full, cpus=helper_cpus(cfg.realtime), writer=writer)
     rec.open()
     return rec
 
@@ -93,8 +103,9 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     terminal — the status line, unless an output shows the status (the panel), which then
     gets a snapshot every 0.2 s through the sidecar. ``hold_on_fault``: after a FAULT the
     loop keeps cycling (zero current, power stages off) until ``rig ctl reset-fault`` arms
-    again or a stop ends it. ``recorder_when_full="wait"``: a full recording ring makes the
-    loop wait for the sidecar instead of dropping the row (lockstep runs only)."""
+    again or a stop ends it. ``recorder_when_full="wait"``: a full recording ring is written
+    out instead of dropping the row (lockstep runs only; without ``outputs`` the log is then
+    written in this process, see :func:`open_recorder`)."""
     analysis.stability_gate(cfg)        # also for callers that bypass the CLI's preflight
     # the Riccati design here, not in the loop's modules; a carrier per the set-up in rolling
     # contact only (a carrier the scenario lifts off the rollers has no (2b) and no (4))
@@ -112,6 +123,39 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     result = None
     loop = None
     phase = "before the log was opened"
+    power_off = False
+    log_done = False             # the recorder's close returned (the log closed, or left to its sidecar)
+    first = {}                   # what came first: the stop request, relative to the faults and the loop's end
+
+    def code_now() -> int:
+        """The exit code of what has happened so far (for a second signal that ends at once)."""
+        if result is None:
+            return 128 + (stops.signum or 0)
+        return EXIT_FAULT if result.final_state == "FAULT" or result.arm_blockers else EXIT_OK
+
+    def leave_now() -> None:
+        """A second stop signal with the power stages off: exit at once, one line."""
+        if not power_off:
+            return                  # looked at again once the devices are closed
+        left = ""
+        if rec is not None and not log_done:
+            if rec.writer == "inline":
+                rec.close()         # in this process (lockstep): nobody else would close the log
+            else:
+                left = f"; the recording sidecar closes {log_path} on its own"
+        sys.stdout.flush()
+        sys.stderr.write(f"\nrig: second {stops.name or 'stop signal'}: exiting now (power stages off){left}\n")
+        sys.stderr.flush()
+        os._exit(code_now())
+
+    def on_stop() -> None:
+        if loop is not None:
+            loop.stop_requested = True
+            first.setdefault("faults_before_stop", len(loop.supervisor.faults))
+        first.setdefault("loop_ended_before_stop", result is not None)
+
+    stops.on_stop(on_stop)
+    stops.on_repeat(leave_now)
     try:
         if not stops.requested and log_path is not None:
             rec = open_recorder(cfg, devices, log_path, run_attrs(cfg, scenario, duration, extra_attrs),
@@ -119,7 +163,8 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
         # the mailbox carries operator commands, if an output (rig ctl's server) sends any
         loop = ControlLoop(cfg, devices, clock, reference=reference, open_loop=open_loop, recorder=rec,
                            mailbox=rec.mailbox if rec is not None else None, observers=observers)
-        stops.on_stop(lambda: setattr(loop, "stop_requested", True))
+        if stops.requested:
+            on_stop()
         if not stops.requested:
             phase = "while configuring the devices"
         if not stops.requested:
@@ -133,13 +178,28 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
                 live = StatusLine()
             result = loop.run(duration, arm_timeout_s=arm_timeout_s, status=live, hold_on_fault=hold_on_fault)
     finally:
-        devices.close()
-        if rec is not None:
-            rec.close()
-            if result is None and rec.rows_written == 0:
-                log_path.unlink(missing_ok=True)    # the loop never ran: no empty log left behind
+        try:
+            devices.close()
+        finally:
+            power_off = True
         if status and not outputs:
             sys.stderr.write("\n")
+        if stops.repeats:
+            leave_now()
+        try:
+            if rec is not None:
+                if rec.close(timeout=cfg.recorder.close_timeout_s):
+                    if result is None and rec.rows_written == 0:
+                        log_path.unlink(missing_ok=True)    # the loop never ran: no empty log left behind
+                else:
+                    sys.stderr.write(f"rig: {rec.left_running}; exiting\n")
+        finally:
+            log_done = True
+            stops.forget(on_stop)
+            stops.forget(leave_now)
+    # a stop that came after the first fault or after the loop had ended did not end the run
+    signal_ended = (stops.requested and not first.get("loop_ended_before_stop", False)
+                    and first.get("faults_before_stop", 0) == 0)
     operator_stop = loop is not None and not stops.requested and loop.stop_requested      # rig ctl stop
     if result is None or (result.t_start is None and not result.faults and not operator_stop):
         if stops.requested:
@@ -158,8 +218,9 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
         "max_abs_wire_current_A": max(map(abs, split(result.max_abs_current_A))),
         "timing": result.timing,
         "log": str(log_path) if log_path is not None else None,
-        "recorder": ({"rows": rec.rows_written, "healthy": rec.healthy, "error": rec.error} if rec is not None
-                     else {"rows": 0, "healthy": True, "error": "not recording"}),
+        "recorder": ({"rows": rec.rows_written, "healthy": rec.healthy, "error": rec.error,
+                      "closed": not rec.left_running, "left_running": rec.left_running} if rec is not None
+                     else {"rows": 0, "healthy": True, "error": "not recording", "closed": True, "left_running": ""}),
         "run_started_t": result.t_start if result.t_start is not None else math.nan,
         "wall_time_s": result.wall_time_s,
     }
@@ -167,10 +228,21 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
         summary["degraded"] = result.degraded       # DEGRADED intervals (docs/observer.md)
     if result.reconfigured:
         summary["reconfigured"] = result.reconfigured   # RECONFIGURED intervals (docs/safety.md)
-    if stops.requested:
+    if signal_ended:
+        summary["ended_by"] = stops.name
+    elif result.faults:
+        f = result.faults[0]
+        summary["ended_by"] = f"fault: {f['device']} {f['check']}: {f['message']}"
+    elif operator_stop:
+        summary["ended_by"] = "rig ctl stop"
+    else:
+        summary["ended_by"] = "duration reached"
+    if signal_ended:
         summary["stopped_by"] = stops.name
     elif operator_stop:
         summary["stopped_by"] = "rig ctl"
+    elif stops.requested:
+        summary["late_stop"] = stops.name           # came after the run had ended (a fault, or its end)
     code = EXIT_FAULT if result.final_state == "FAULT" else EXIT_OK
     if result.arm_blockers:     # RUNNING once, then arming again after `rig ctl reset-fault` failed
         summary["arm_failed"] = "could not arm again after the fault reset: " + "; ".join(result.arm_blockers[:4])

@@ -3,7 +3,11 @@ moment :class:`StopSignals` is installed — before anything is configured — u
 command ends. A signal never interrupts what is under way (a blocking configure step, a
 log being closed); the run looks at the request at the next safe point: before
 configuring, before the loop, and every cycle (the supervisor ramps the current down and
-switches the power stages off)."""
+switches the power stages off).
+
+A second stop signal is for an operator who does not want to wait (e.g. for a log whose
+disk does not answer): :meth:`StopSignals.on_repeat` listeners hear it — ``rig run`` ends at
+once if the power stages are already off, else as soon as they are."""
 
 from __future__ import annotations
 
@@ -27,7 +31,9 @@ class StopSignals:
 
     def __init__(self) -> None:
         self.signum: int | None = None
+        self.repeats = 0                    # stop signals after the first
         self._listeners: list[Callable[[], None]] = []
+        self._repeat_listeners: list[Callable[[], None]] = []
         self._old: dict[int, object] = {}
 
     def install(self) -> "StopSignals":
@@ -50,12 +56,26 @@ class StopSignals:
             self.signum = signum
             for f in self._listeners:
                 f()
+        else:
+            self.repeats += 1
+            for f in self._repeat_listeners:
+                f()
 
     def on_stop(self, fn: Callable[[], None]) -> None:
         """Call ``fn`` at the stop request (at once if one already came)."""
         self._listeners.append(fn)
         if self.signum is not None:
             fn()
+
+    def on_repeat(self, fn: Callable[[], None]) -> None:
+        """Call ``fn`` at each stop signal after the first (from the signal handler)."""
+        self._repeat_listeners.append(fn)
+
+    def forget(self, fn: Callable[[], None]) -> None:
+        """Stop calling ``fn`` (a listener of a run that has ended)."""
+        for lst in (self._listeners, self._repeat_listeners):
+            while fn in lst:
+                lst.remove(fn)
 
     @property
     def requested(self) -> bool:
