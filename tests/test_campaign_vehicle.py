@@ -134,3 +134,12 @@ def test_gain_paths_name_a_carrier_or_every_carrier():
     assert paths.nominal(base, "plant.front.delta0") == 0.066 and paths.nominal(base, "plant.rear.delta0") == 0.06
     assert paths.nominal(base, "controller.rear.K_D_psi") == 5.0
     assert paths.order(["plant.front.delta0", "plant.delta0"]) == ["plant.delta0", "plant.front.delta0"]
+
+
+def test_the_shipped_vehicle_spec_loads_and_plant_v_under_a_speed_profile_is_refused(tmp_path, capsys):
+    spec = load_spec(ROOT / "configs/campaigns/vehicle-steps.yaml")
+    assert {p.name for p in spec.parameters} >= {"plant.front.K", "plant.rear.K", "plant.delta0"}
+    bad = vehicle_spec(tmp_path, parameters={"plant.v": {"uniform": [0.5, 1.5]}})
+    assert main(["campaign", "run", str(bad), "--out", str(tmp_path / "out"), "--workers", "1"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "parameters.plant.v" in err and "speed" in err

@@ -249,6 +249,10 @@ def load_spec(path: str | Path) -> Spec:
                        f"or {SCENARIO_GAIN} or scenario.disturbances[i].F_y|M_z (unknown parameter)", name)
         params.append(Parameter(name=str(name), dist=_distribution(src, str(name), dist, nominal, design.method),
                                 nominal=nominal))
+    if any(p.name == "plant.v" for p in params) and scenario.get("speed"):
+        # the simulator follows the scenario's speed profile: plant.v would vary nothing
+        raise _err(s, "parameters.plant.v", f"a scenario without a speed: profile (the profile of {sc_path.name} "
+                   "sets the roller speed, so plant.v would vary nothing)", "plant.v")
     seed = raw.get("seed", {"per_run": 0})
     if isinstance(seed, dict) and set(seed) == {"per_run"} and isinstance(seed["per_run"], int) \
             and not isinstance(seed["per_run"], bool) and seed["per_run"] >= 0:

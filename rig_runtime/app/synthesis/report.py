@@ -164,7 +164,7 @@ def write_report(d: Path, out: Path, write: Optional[Path] = None) -> tuple[Path
             wc = max(worst_case_score, key=lambda n: worst_case_score[n][0])
             sc, crit = worst_case_score[wc]
             how = ("undefined" if sc == math.inf else f"{100 * sc:.3g} % beyond its demand" if sc > 0
-                   else f"{100 * -sc:.3g} % inside its demand")
+                   else "exactly at its demand" if sc == 0 else f"{100 * -sc:.3g} % inside its demand")
             L += ["", f"**The worst case:** `{wc}`: the case closest to (or furthest beyond) a demand, relative to "
                   f"that demand — `{crit}` {how}."]
         L += ["", "## Reproducing the chosen point's runs", ""]
