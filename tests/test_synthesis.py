@@ -163,3 +163,29 @@ def test_a_bad_spec_is_refused_before_anything_runs(tmp_path, capsys, change, ke
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
     assert key in err and str(spec.resolve()) in err
     assert not out.exists()
+
+
+def test_a_lost_scheduler_ends_the_synthesis_and_resume_completes_it(tmp_path, procs):  # noqa: F811
+    from .test_campaign import dask_cluster
+    spec = write_spec(tmp_path / "s.yaml", optimizer={"method": "nsga2", "population": 2, "generations": 2, "seed": 5})
+    out = tmp_path / "out"
+    address = dask_cluster(tmp_path, procs, 1)
+    scheduler = procs[0]
+    p = start(rig("synthesize", "run", str(spec), "--out", str(out), "--scheduler", address), tmp_path)
+    procs.append(p)
+    wait_for(lambda: len(started_lines(out)) >= 2, "two runs started")     # one worker thread: run 0 has its row
+    os.killpg(scheduler.pid, signal.SIGKILL)
+    code, _, err = finish(p)
+    assert code == 1, err
+    assert "Traceback" not in err
+    said = [l for l in err.splitlines() if "--resume" in l]
+    assert len(said) == 1 and "lost the Dask cluster" in said[0]
+    before = rows(out, "SELECT run_id FROM results")
+    assert 1 <= len(before) < 4
+    code, _, err = finish(start(rig("synthesize", "run", str(spec), "--out", str(out), "--workers", "1", "--resume"),
+                                tmp_path))
+    assert code == 0, err
+    assert [r["run_id"] for r in rows(out, "SELECT run_id FROM results ORDER BY run_id")] == list(range(4))
+    starts = [int(l[0]) for l in started_lines(out)]
+    assert set(starts) == set(range(4))
+    assert all(starts.count(r["run_id"]) == 1 for r in before)    # a run with a row was not run again
