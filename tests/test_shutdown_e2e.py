@@ -8,7 +8,11 @@ readable. A second SIGINT during that wait ends `rig run` at once.
 The blocking disk: where this process may (root, loop devices) a real ext4 image mounted on
 a loop device and frozen with ``fsfreeze`` — what an operator meets; elsewhere a stub that
 makes the recording sidecar's ``fsync`` block while a gate file exists (``sitecustomize``
-on the sidecar's PYTHONPATH), which blocks the sidecar at its next flush the same way."""
+on the sidecar's PYTHONPATH), which blocks the sidecar at its next flush the same way
+(``RIG_TEST_BLOCKING_DISK=stub`` picks the stub everywhere). A frozen filesystem blocks
+every writer in uninterruptible sleep: the fixture thaws it whatever the test's outcome, but
+a test process killed from outside (a timeout) leaves it frozen — ``fsfreeze -u`` the
+``mnt`` under the test's tmp_path then."""
 
 import json
 import os
@@ -53,7 +57,8 @@ class BlockingDisk:
         self.real = False
         self.env = dict(os.environ)
         self.dir = tmp_path / "logs"
-        if os.geteuid() == 0 and shutil.which("fsfreeze") and shutil.which("mkfs.ext4"):
+        real_ok = os.environ.get("RIG_TEST_BLOCKING_DISK", "") != "stub"      # "stub": the stub even as root
+        if real_ok and os.geteuid() == 0 and shutil.which("fsfreeze") and shutil.which("mkfs.ext4"):
             img, mnt = tmp_path / "disk.img", tmp_path / "mnt"
             mnt.mkdir()
             with open(img, "wb") as f:
