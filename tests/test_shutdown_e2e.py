@@ -32,7 +32,7 @@ from sim_backend.launcher import start_sim_process
 from .e2e import REALTIME_CEILINGS, REALTIME_TOLERANCE, config_with, realtime_sim_config
 
 BOUND_S = 1.0                 # recorder.close_timeout_s for these runs
-RING_CYCLES = 40              # 0.2 s at 200 Hz: the blocked sidecar's ring fills quickly
+RING_CYCLES = 200             # 1 s at 200 Hz: fills soon after the freeze, not on a stall of the loaded machine before it
 WHEELS = ("fl", "fr", "rl", "rr")
 
 _STUB = textwrap.dedent('''
@@ -149,7 +149,9 @@ def _wait_powered(sim, proc, timeout=30.0) -> None:
     """Until the runtime has the drives enabled with current on the rear carrier."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        assert proc.poll() is None, _communicate(proc)
+        if proc.poll() is not None:
+            out, err = _communicate(proc)
+            pytest.fail(f"rig run ended ({proc.returncode}) before it drove the rig\nstdout {out[-3000:]}\nstderr {err[-3000:]}")
         st = sim.status()
         if st["session"]["active"] and abs(st["currents"]["rl"]) > 0.02:
             return
