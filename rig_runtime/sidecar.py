@@ -13,7 +13,10 @@ and SIGHUP (a Ctrl-C reaches the whole process group; the runtime stops the rig 
 closes the log itself). It ends when the recorder says ``close`` — after draining the ring,
 flushing and closing the file — or when its pipe to the runtime reports EOF: the runtime
 died (SIGKILL, crash). Then it takes what the ring holds (every row the loop published),
-records an event saying so, and closes the log readable up to that last row.
+records an event saying so, and closes the log readable up to that last row. A runtime that
+stops waiting for the close (its bound, ``recorder.close_timeout_s``: a disk that does not
+answer) leaves it running: it has the close request, finishes the log when the disk answers,
+finds its socket closed and ends.
 
 A lockstep run (no deadlines) without live outputs does not start this process: its
 recorder drives the same :class:`Sidecar` in the loop's own process (``Recorder(writer=

@@ -48,9 +48,19 @@ def _signal_when(stops: StopSignals, when):
     return prepare
 
 
-def test_the_duration_ended_the_run(tmp_path):
+def test_the_duration_ended_the_run_and_no_sidecar_process_was_started(tmp_path, monkeypatch):
+    """A lockstep run without live outputs writes its log in its own process (issue 26):
+    no interpreter is started for the recorder."""
+    import subprocess
+    popen = subprocess.Popen
+
+    def no_sidecar(cmd, *a, **kw):
+        assert "rig_runtime.sidecar" not in " ".join(map(str, cmd)), f"a sidecar process was started: {cmd}"
+        return popen(cmd, *a, **kw)
+    monkeypatch.setattr(subprocess, "Popen", no_sidecar)
     summary, code = run_lockstep(config.load(), STEP, tmp_path / "d.h5", duration_s=0.3)
     assert code == 0 and summary["ended_by"] == "duration reached" and "stopped_by" not in summary
+    assert summary["recorder"]["healthy"] and summary["recorder"]["rows"] == summary["cycles"] > 0
 
 
 def test_a_signal_while_running_ended_the_run(tmp_path):

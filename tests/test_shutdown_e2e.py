@@ -8,7 +8,11 @@ readable. A second SIGINT during that wait ends `rig run` at once.
 The blocking disk: where this process may (root, loop devices) a real ext4 image mounted on
 a loop device and frozen with ``fsfreeze`` — what an operator meets; elsewhere a stub that
 makes the recording sidecar's ``fsync`` block while a gate file exists (``sitecustomize``
-on the sidecar's PYTHONPATH), which blocks the sidecar at its next flush the same way."""
+on the sidecar's PYTHONPATH), which blocks the sidecar at its next flush the same way
+(``RIG_TEST_BLOCKING_DISK=stub`` picks the stub everywhere). A frozen filesystem blocks
+every writer in uninterruptible sleep: the fixture thaws it whatever the test's outcome, but
+a test process killed from outside (a timeout) leaves it frozen — ``fsfreeze -u`` the
+``mnt`` under the test's tmp_path then."""
 
 import json
 import os
@@ -28,7 +32,7 @@ from sim_backend.launcher import start_sim_process
 from .e2e import REALTIME_CEILINGS, REALTIME_TOLERANCE, config_with, realtime_sim_config
 
 BOUND_S = 1.0                 # recorder.close_timeout_s for these runs
-RING_CYCLES = 40              # 0.2 s at 200 Hz: the blocked sidecar's ring fills quickly
+RING_CYCLES = 200             # 1 s at 200 Hz: fills soon after the freeze, not on a stall of the loaded machine before it
 WHEELS = ("fl", "fr", "rl", "rr")
 
 _STUB = textwrap.dedent('''
@@ -53,7 +57,8 @@ class BlockingDisk:
         self.real = False
         self.env = dict(os.environ)
         self.dir = tmp_path / "logs"
-        if os.geteuid() == 0 and shutil.which("fsfreeze") and shutil.which("mkfs.ext4"):
+        real_ok = os.environ.get("RIG_TEST_BLOCKING_DISK", "") != "stub"      # "stub": the stub even as root
+        if real_ok and os.geteuid() == 0 and shutil.which("fsfreeze") and shutil.which("mkfs.ext4"):
             img, mnt = tmp_path / "disk.img", tmp_path / "mnt"
             mnt.mkdir()
             with open(img, "wb") as f:
@@ -144,7 +149,9 @@ def _wait_powered(sim, proc, timeout=30.0) -> None:
     """Until the runtime has the drives enabled with current on the rear carrier."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        assert proc.poll() is None, _communicate(proc)
+        if proc.poll() is not None:
+            out, err = _communicate(proc)
+            pytest.fail(f"rig run ended ({proc.returncode}) before it drove the rig\nstdout {out[-3000:]}\nstderr {err[-3000:]}")
         st = sim.status()
         if st["session"]["active"] and abs(st["currents"]["rl"]) > 0.02:
             return
