@@ -155,7 +155,8 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
         "faults": result.faults,
         "cycles": result.cycles,
         "max_abs_current_A": result.max_abs_current_A,
-        "max_abs_wire_current_A": max(map(abs, split(result.max_abs_current_A))),
+        "max_abs_wire_current_A": max(max(map(abs, split(result.max_abs_current_A))),
+                                      result.max_abs_reconfigured_wheel_A),
         "timing": result.timing,
         "log": str(log_path) if log_path is not None else None,
         "recorder": ({"rows": rec.rows_written, "healthy": rec.healthy, "error": rec.error} if rec is not None
