@@ -54,6 +54,7 @@ class RunResult:
     arm_blockers: list = field(default_factory=list)
     degraded: list = field(default_factory=list)    # DEGRADED intervals (carrier, laser, t_start, t_end, end)
     reconfigured: list = field(default_factory=list)    # RECONFIGURED intervals (carrier, device, t_start, t_end, end)
+    max_abs_reconfigured_wheel_A: float = 0.0       # largest wheel current while a wheel was lost (a lone wheel: all of u)
 
 
 CYCLE_FIELDS = ("t", "t_run", "lateness", "work", "state", "y_ref")
@@ -135,6 +136,7 @@ class ControlLoop:
         self.stop_reason = "stop requested (signal)"
         self.t_start: float | None = None
         self.max_abs_current = 0.0
+        self.max_abs_reconfigured_wheel = 0.0
         self.cycle = Cycle()
         self._values: Mapping[str, float] = {}      # this cycle's channel values by name
         self.columns = log_columns(cfg, self.channels, devices.extra_columns, [l.carrier for l in self.observed])
@@ -305,7 +307,8 @@ class ControlLoop:
                          cycles=summary.pop("cycles"), max_abs_current_A=self.max_abs_current,
                          timing=summary, t_start=self.t_start, wall_time_s=time.perf_counter() - wall0,
                          arm_blockers=sup.arm_blockers if sup.arm_failed or self.t_start is None else [],
-                         degraded=list(sup.degraded_log), reconfigured=list(sup.reconfigured_log))
+                         degraded=list(sup.degraded_log), reconfigured=list(sup.reconfigured_log),
+                         max_abs_reconfigured_wheel_A=self.max_abs_reconfigured_wheel)
 
     # ---- the stages, in cycle order
     def _operator_command(self, t: float) -> None:
@@ -393,6 +396,10 @@ class ControlLoop:
         fault = sup.end_cycle(t)
         cy.state = float(sup.state)
         wheel_currents(self.lanes, cy.currents, sup.wheels_lost, self._i_wheel)
+        if sup.wheels_lost:                 # RECONFIGURED: a lone wheel carries its carrier's whole command
+            m = max(abs(i) for i in cy.currents.values())
+            if m > self.max_abs_reconfigured_wheel:
+                self.max_abs_reconfigured_wheel = m
         return fault
 
     def _account(self, t0: float, k: int, t: float, t_done: float) -> int:

@@ -22,8 +22,7 @@ import numpy as np
 
 from . import coupled
 from .config import RigConfig
-
-CARRIER_WHEELS = {"front": ("fl", "fr"), "rear": ("rl", "rr")}      # (left, right), as lanes.py
+from .lanes import CARRIER_WHEELS
 
 
 @dataclass(frozen=True)

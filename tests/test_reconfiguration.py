@@ -249,3 +249,9 @@ def test_a_wheel_speed_out_of_range_is_a_fault_not_a_lost_drive(vcfg, vtable):
     r.s.cycle(t, sm, conv(), [("front", 0.0, 0.0), ("rear", 0.0, 0.0)], 0, True, "")
     assert r.s.state is State.FAULT and (r.s.fault.device, r.s.fault.check) == ("fl", "range")
     assert not r.s.wheels_lost
+
+
+def test_telemetry_status_names_the_lost_drives():
+    from rig_runtime.app.telemetry import status_parts
+    assert status_parts({"wheels_lost": ["fl"], "timing": {"deadline_misses": 0}})["reconfigured"] == {"fl": 1}
+    assert "reconfigured" not in status_parts({"wheels_lost": []})

@@ -45,7 +45,7 @@ def _print_summary(summary: dict, as_json: bool) -> None:
     print(f"final state: {summary['final_state']}   cycles: {summary['cycles']}   log: {summary['log']}")
     wire = summary["max_abs_wire_current_A"]
     print(f"currents: max |u| (differential current per carrier) {summary['max_abs_current_A']:.3f} A, "
-          f"max |i| per wheel (wire current, ±u/2) {wire:.3f} A")
+          f"max |i| per wheel (wire current: ±u/2, all of u on a lone wheel) {wire:.3f} A")
     for f in summary["faults"]:
         print(f"  fault at {_run_time(summary, f['t'])}: {f['device']} {f['check']} value={f['value']} "
               f"limit={f['limit']} {f['message']}")

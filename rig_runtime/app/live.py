@@ -37,6 +37,7 @@ def snapshot(loop: ControlLoop, duration_s: float) -> dict:
         "controlled": list(loop.cfg.controlled),
         "faults": [{**f.as_dict(), "t_run": (f.t - t0) if started else None} for f in sup.faults[-STATUS_FAULTS:]],
         "faults_total": len(sup.faults),
+        "wheels_lost": sorted(sup.wheels_lost),        # RECONFIGURED: the drives the run does without
         "devices": [{"name": c.name, "kind": c.kind, "state": c.state.value, "cause": c.cause,
                      "value": _num(c.value), "age_s": _num(t - c.t), "bad_frames": c.bad} for c in loop.channels],
         "counters": loop.dev.counters() if hasattr(loop.dev, "counters") else {},

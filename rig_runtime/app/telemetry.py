@@ -187,6 +187,9 @@ def status_parts(st: dict) -> dict[str, Any]:
         health["recorder_healthy"] = int(rec["healthy"])
     if health:
         out["health"] = health
+    lost = st.get("wheels_lost")
+    if isinstance(lost, list) and lost:        # RECONFIGURED: 1 per drive the run does without
+        out["reconfigured"] = {str(w): 1 for w in lost}
     devices = {}
     for d in st.get("devices") or ():
         if not isinstance(d, dict) or not d.get("name"):
