@@ -310,3 +310,20 @@ def test_lanes_give_a_decoupled_law_both_carriers():
     by["front"].y, by["rear"].y = 1e-3, -2e-3
     for l in lanes:
         assert l.controller.pair.y("front") == 1e-3 and l.controller.pair.y("rear") == -2e-3
+
+
+def test_rig_ctl_set_judges_the_decoupled_law_with_the_same_gate():
+    """On configs/vehicle.yaml (law decoupled) `rig ctl set` takes the law's own gains within their
+    bounds, refuses one outside them, and the stability gate analyses the decoupled law: a yaw
+    loop too soft for the outer gains is refused naming controller.decoupled."""
+    import dataclasses
+    from rig_runtime import analysis, config, tuning
+    vcfg = config.load(config.CONFIG_DIR / "vehicle.yaml")
+    assert vcfg.controller.law == "decoupled"
+    assert tuning.check(vcfg, "K_x_y", 4.0).new == 4.0
+    with pytest.raises(tuning.TuningError, match="outside its bounds"):
+        tuning.check(vcfg, "b_y", 0.9)
+    soft = dataclasses.replace(vcfg.controller.decoupled, K_P_psi=1.0, K_D_psi=0.1, K_I_y=60.0)
+    bad = dataclasses.replace(vcfg, controller=dataclasses.replace(vcfg.controller, decoupled=soft))
+    with pytest.raises(analysis.UnstableLoopError, match="controller.decoupled"):
+        analysis.stability_gate(bad)
