@@ -103,10 +103,11 @@ def pipd_family(cfg, x):
 
 def decoupled_family(cfg, x):
     """Law decoupled, the same gains on both carriers: x = log10 [K_P_y, K_I_y, K_P_psi, K_D_psi],
-    b_y, K_x_y."""
+    b_y, K_x_y[, T_x_y, log10 K_I_psi]."""
     kpy, kiy, kpp, kdp = (10.0 ** xi for xi in x[:4])
+    more = {"T_x_y": float(x[6]), "K_I_psi": 10.0 ** float(x[7])} if len(x) > 6 else {}
     g = DecoupledGains(K_P_y=kpy, K_I_y=kiy, K_P_psi=kpp, K_D_psi=kdp, T_f_psi=cfg.controller.pipd.T_f_psi,
-                       b_y=float(x[4]), K_x_y=float(x[5]))
+                       b_y=float(x[4]), K_x_y=float(x[5]), **more)
     c = dataclasses.replace(cfg.controller, law="decoupled", decoupled=g, front=None, rear=None)
     return dataclasses.replace(cfg, controller=c)
 
@@ -114,8 +115,14 @@ def decoupled_family(cfg, x):
 FAMILIES = {
     # name: (bounds in log10, cfg maker, laws_at(cfg) -> v -> laws)
     "pipd": ([(-1, 1.5), (-1, 1.5), (0, math.log10(40.0)), (-1, math.log10(5.0))], pipd_family),
-    "decoupled": ([(-1, 1.5), (-1, 1.5), (0, math.log10(40.0)), (-1, math.log10(5.0)), (0.0, 1.0), (0.0, 3.0)],
+    # K_P,y <= 7.5 rad/m (Sec. 5.2.3's psi_ref check at y_design = 8 mm)
+    "decoupled": ([(-1, math.log10(7.5)), (-1, 1.5), (0, math.log10(40.0)), (-1, math.log10(5.0)), (0.0, 1.0),
+                   (0.0, 15.0)],
                   decoupled_family),
+    # with the yaw loop's integrator (ψ reaches ψ_ref whatever the yaw statics: K_x,y = 1/(2 l0) decouples)
+    # and the decoupling's lead
+    "decoupled-i": ([(-1, math.log10(7.5)), (-1, 1.5), (0, math.log10(40.0)), (-1, math.log10(5.0)), (0.0, 1.0),
+                     (1.5, 2.2), (0.0, 0.5), (1.0, 3.0)], decoupled_family),
 }
 
 

@@ -178,10 +178,12 @@ class DecoupledGains(PIPDGains):
 
     b_y: float = check(unit_interval, default=1.0)        # setpoint weight: ψ_ref's P term is K_P,y (b y_ref − y)
     K_x_y: float = check(nonneg, default=0.0)       # rad/m: ψ_ref − K_x,y (y_f − y_r) (1/(2 l0) cancels (2a)/(2b)'s coupling)
+    K_I_psi: float = check(nonneg, default=0.0)     # A/(rad s): the yaw loop's integral term
+    T_x_y: float = check(nonneg, default=0.0)       # s: the decoupling term's lead (on d/dt (y_f − y_r), filtered by T_f_psi)
 
 
 PIPD_GAINS = ("K_P_y", "K_I_y", "K_P_psi", "K_D_psi", "T_f_psi")   # the PI-PD law's gains (PIPDGains)
-DECOUPLED_GAINS = PIPD_GAINS + ("b_y", "K_x_y")                     # the decoupled law's (DecoupledGains)
+DECOUPLED_GAINS = PIPD_GAINS + ("b_y", "K_x_y", "K_I_psi", "T_x_y")                     # the decoupled law's (DecoupledGains)
 P_GAINS = ("K_P",)                                                  # the P law's (Controller.K_P)
 TUNABLE_GAINS = DECOUPLED_GAINS + P_GAINS                           # what `rig ctl set` may change
 
@@ -230,6 +232,9 @@ class Controller:
             raise ConfigError(None, "pipd", "a mapping (missing key)")
         if self.law == "decoupled" and self.decoupled is None:
             raise ConfigError(None, "decoupled", "the gains of law decoupled (missing key)")
+        if self.law == "decoupled" and (self.front is not None or self.rear is not None):
+            raise ConfigError(None, "front" if self.front is not None else "rear",
+                              "no per-carrier gains with law decoupled (one set, controller.decoupled)")
         for name, (lo, hi) in self.tuning.items():
             key = f"tuning.{name}"
             if name not in TUNABLE_GAINS:

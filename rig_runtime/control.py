@@ -95,6 +95,15 @@ def _describe(law: str, h: float, g: float, inputs: tuple[str, ...], states: tup
                        tuple(tuple(f.v[:ns]) for f in out), tuple(tuple(f.v[ns:]) for f in out), scheduled)
 
 
+def _without(law: DiscreteLaw, state: str) -> DiscreteLaw:
+    """``law`` without a state that no output and no other state depends on."""
+    i = law.states.index(state)
+    keep = [j for j in range(len(law.states)) if j != i]
+    cut = lambda M: tuple(tuple(row[j] for j in keep) for row in M)     # noqa: E731
+    return replace(law, states=tuple(law.states[j] for j in keep), A=cut(tuple(law.A[j] for j in keep)),
+                   B=tuple(law.B[j] for j in keep), C=cut(law.C))
+
+
 LAW_INPUTS = ("y_ref", "y", "psi")      # what a carrier's law reads each step
 
 
@@ -179,50 +188,78 @@ class PIPDLaw:
 class DecoupledLaw(PIPDLaw):
     """The decoupled PI-PD of the vehicle (``law: decoupled``; docs/vehicle.md §5): the PI-PD of
     :class:`PIPDLaw` per carrier, its yaw reference lowered by a feed term w read across the
-    carriers,
+    carriers, and an integral term on the yaw error:
 
-        ψ_ref = g K_P,y e_y + K_I,y x_I⁺ − w,   w = g K_P,y (1 − b_y) y_ref + K_x,y (y_f − y_r)
+        ψ_ref = g K_P,y e_y + K_I,y x_I⁺ − w,   w = g K_P,y (1 − b_y) y_ref + K_x,y (d + T_x,y d̂')
+        d = y_f − y_r,   d̂'⁺ = a d̂' + b (d − d_prev)  (the PD's Tustin differentiator, on d)
+        u = K_P,ψ e_ψ + K_D,ψ ê_ψ⁺ + K_I,ψ x_Iψ⁺,   x_Iψ⁺ = x_Iψ + (h/2)(e_ψ + e_ψ,prev)
 
     * setpoint weighting b_y: a reference step moves ψ_ref by g K_P,y b_y Δy_ref, not
       g K_P,y Δy_ref (the integrator still removes the error: the step does not kick the current);
     * decoupling K_x,y: (2a)/(2b) drive each carrier by a_c (y_f − y_r) with a_c = c̄_y,c v/(2 l0,c);
       a yaw angle −(y_f − y_r)/(2 l0,c) cancels it at every speed and direction (a_c / c̄_y,c v does
-      not depend on v), leaving each carrier a pure integrator under its own PI-PD.
+      not depend on v), leaving each carrier a pure integrator under its own PI-PD; T_x,y leads
+      the term by the yaw loop's lag (ψ follows ψ_ref with ~0.2 s: (15)'s slow pole);
+    * K_I,ψ: the yaw loop's own integrator, so that ψ reaches ψ_ref (the PD alone holds ψ at
+      K K_P,ψ/(1 + K K_P,ψ) ≈ 0.2 of it, and the hysteresis of (6) moves that) — then
+      K_x,y = 1/(2 l0) decouples exactly and the outer loop is not left to fight the yaw's statics.
 
-    With b_y = 1 and K_x,y = 0 it is the PI-PD. It reads both carriers' y (inputs ``y.front``,
-    ``y.rear``): in the runtime through the lanes' one cross-lane stage (:class:`rig_runtime.lanes.LateralPair`)."""
+    With b_y = 1, K_x,y = 0 and K_I,ψ = 0 it is the PI-PD. It reads both carriers' y (inputs
+    ``y.front``, ``y.rear``): in the runtime through the lanes' one cross-lane stage
+    (:class:`rig_runtime.lanes.LateralPair`)."""
 
     b_y: float = 1.0
     K_x_y: float = 0.0
+    K_I_psi: float = 0.0
+    T_x_y: float = 0.0
 
     SCHEDULED = ("K_P_y", "K_I_y")
     INPUTS = LAW_INPUTS + ("y.front", "y.rear")
+    STATES = PIPDLaw.STATES + ("x_I_psi", "d_y", "dd_y")
 
     @classmethod
     def of(cls, gains: DecoupledGains, h: float) -> "DecoupledLaw":
         return cls(gains.K_P_y, gains.K_I_y, gains.K_P_psi, gains.K_D_psi, gains.T_f_psi, h,
-                   b_y=gains.b_y, K_x_y=gains.K_x_y)
+                   b_y=gains.b_y, K_x_y=gains.K_x_y, K_I_psi=gains.K_I_psi, T_x_y=gains.T_x_y)
 
-    def feed(self, g, y_ref, y_front, y_rear):
+    def cross(self, y_front, y_rear, d_prev, dd_prev):
+        """The carriers' difference d = y_f − y_r and its filtered derivative's step: (d, d̂'⁺)."""
+        d = y_front - y_rear
+        return d, self.a * dd_prev + self.b * (d - d_prev)
+
+    def feed(self, g, y_ref, d, dd):
         """w: what ψ_ref is lowered by (setpoint weight and decoupling)."""
-        return self.K_P_y * g * (1.0 - self.b_y) * y_ref + self.K_x_y * (y_front - y_rear)
+        return self.K_P_y * g * (1.0 - self.b_y) * y_ref + self.K_x_y * (d + self.T_x_y * dd)
+
+    def inner_i(self, psi_ref, psi, e_psi_prev, de_prev, x_Ip_prev):
+        """The inner PID's step: (e_ψ, ê_ψ⁺, the integration done, x_Iψ⁺, u)."""
+        e_psi, de, u = self.inner(psi_ref, psi, e_psi_prev, de_prev)
+        dIp = self.half_h * (e_psi + e_psi_prev)
+        x_Ip = x_Ip_prev + dIp
+        return e_psi, de, dIp, x_Ip, u + self.K_I_psi * x_Ip
 
     def discrete(self, g: float = 1.0) -> DiscreteLaw:
-        x_I, e_y0, e_psi0, de0, y_ref, y, psi, yf, yr = _basis(9)
+        x_I, e_y0, e_psi0, de0, x_Ip, d0, dd0, y_ref, y, psi, yf, yr = _basis(12)
         e_y = y_ref - y
         _, x_I1, psi_ref = self.outer(g, e_y, e_y0, x_I)
-        e_psi, de, u = self.inner(psi_ref - self.feed(g, y_ref, yf, yr), psi, e_psi0, de0)
-        return _describe("decoupled", self.h, g, self.INPUTS, self.STATES, ("u",),
-                         (x_I1, e_y, e_psi, de), (u,), self.SCHEDULED)
+        d, dd = self.cross(yf, yr, d0, dd0)
+        e_psi, de, _, x_Ip1, u = self.inner_i(psi_ref - self.feed(g, y_ref, d, dd), psi, e_psi0, de0, x_Ip)
+        law = _describe("decoupled", self.h, g, self.INPUTS, self.STATES, ("u",),
+                        (x_I1, e_y, e_psi, de, x_Ip1, d, dd), (u,), self.SCHEDULED)
+        # K_I,ψ = 0: the yaw integrator acts on nothing (a pole at z = 1 that no output sees): not part of the law
+        return law if self.K_I_psi else _without(law, "x_I_psi")
 
     def continuous(self, g: float = 1.0) -> DiscreteLaw:
-        x_I, x_f, y_ref, y, psi, yf, yr = _basis(7)
+        x_I, x_f, x_Ip, x_d, y_ref, y, psi, yf, yr = _basis(9)
         e_y = y_ref - y
-        e_psi = self.psi_ref(g, e_y, x_I) - self.feed(g, y_ref, yf, yr) - psi
+        d = yf - yr
+        dd = (d - x_d) / self.T_f_psi                  # s/(T_f s + 1) d, as the PD's differentiator
+        e_psi = self.psi_ref(g, e_y, x_I) - self.feed(g, y_ref, d, dd) - psi
         de = (e_psi - x_f) / self.T_f_psi
-        u = self.K_P_psi * e_psi + self.K_D_psi * de
-        return _describe("decoupled", 0.0, g, self.INPUTS, ("x_I", "x_f"), ("u",), (g * e_y, de), (u,),
-                         self.SCHEDULED)
+        u = self.K_P_psi * e_psi + self.K_D_psi * de + self.K_I_psi * x_Ip
+        law = _describe("decoupled", 0.0, g, self.INPUTS, ("x_I", "x_f", "x_I_psi", "x_d"), ("u",),
+                        (g * e_y, de, e_psi, dd), (u,), self.SCHEDULED)
+        return law if self.K_I_psi else _without(law, "x_I_psi")
 
 
 @dataclass(frozen=True)
@@ -374,7 +411,7 @@ class PIPDController:
                 x_I -= dI
                 dI = 0.0
             psi_ref = clipped
-        e_psi, de, u_unsat = law.inner(psi_ref, psi, self._e_psi_prev, st.de_psi)
+        e_psi, de, u_unsat = self._inner(law, psi_ref, psi)
         u = u_unsat
         if u > self.u_max:
             u = self.u_max
@@ -391,6 +428,10 @@ class PIPDController:
 
     GAIN_NAMES = PIPD_GAINS
     law_name = "PI-PD"
+
+    def _inner(self, law, psi_ref, psi):
+        """The inner loop's step on this cycle's ψ_ref: (e_ψ, ê_ψ, u before saturation)."""
+        return law.inner(psi_ref, psi, self._e_psi_prev, self.st.de_psi)
 
     def gains(self) -> dict[str, float]:
         """The gains in force, by their config names."""
@@ -451,25 +492,54 @@ class DecoupledController(PIPDController):
         super().__init__(cfg, u_max, psi_ref_max, cfg.pipd)
         self.law = DecoupledLaw.of(gains if gains is not None else cfg.decoupled, cfg.h)
         self.pair = None          # the cross-lane stage (lanes.LateralPair); None: the other carrier at 0
-        self._fed = (0.0, 0.0, 0.0)   # y_ref, y_f, y_r of the last feed term
+        self._fed = (0.0, 0.0, 0.0)   # y_ref, d, d̂' of the last feed term
+        self.d_y = self.dd_y = 0.0    # the carriers' difference (last step) and its filtered derivative
+        self.x_I_psi = 0.0        # the yaw loop's integrator
+        self._dIp = 0.0           # its integration in the last step (undone into saturation)
+
+    def _inner(self, law, psi_ref, psi):
+        e_psi, de, self._dIp, self.x_I_psi, u = law.inner_i(psi_ref, psi, self._e_psi_prev, self.st.de_psi,
+                                                            self.x_I_psi)
+        return e_psi, de, u
+
+    def reset(self) -> None:
+        super().reset()
+        self.x_I_psi = self._dIp = 0.0
 
     def couple(self, pair) -> None:
         """Read the carriers' y through ``pair`` (``pair.y(carrier)``) from the next step on."""
         self.pair = pair
 
-    def _feed(self, y_ref: float) -> None:
+    def _feed(self, y_ref: float, seed: bool = False) -> None:
         p = self.pair
         yf, yr = (p.y("front"), p.y("rear")) if p is not None else (0.0, 0.0)
-        self._fed = (y_ref, yf, yr)
-        self._w = self.law.feed(self.g, y_ref, yf, yr)
+        if seed:                            # start: no derivative kick
+            self.d_y, self.dd_y = yf - yr, 0.0
+        self.d_y, self.dd_y = self.law.cross(yf, yr, self.d_y, self.dd_y)
+        self._fed = (y_ref, self.d_y, self.dd_y)
+        self._w = self.law.feed(self.g, *self._fed)
 
     def start(self, y_ref: float, y: float, psi: float, u0: float = 0.0) -> None:
-        self._feed(y_ref)
+        """As the PI-PD's (ψ_ref = ψ + u0/K_P,ψ: no jump), the yaw integrator at 0."""
+        self._feed(y_ref, seed=True)
+        self.x_I_psi = self._dIp = 0.0
         super().start(y_ref, y, psi, u0)
 
     def step(self, y_ref: float, y: float, psi: float) -> float:
         self._feed(y_ref)
-        return super().step(y_ref, y, psi)
+        u = super().step(y_ref, y, psi)
+        st = self.st
+        if u != st.u_unsat and self._dIp != 0.0 and (self._dIp > 0) == (st.u_unsat > 0):
+            self.x_I_psi -= self._dIp      # conditional integration, as the outer integrator
+            self._dIp = 0.0
+        return u
+
+    def limit_feedback(self, u_applied: float) -> None:
+        st = self.st
+        if u_applied != st.u and self._dIp != 0.0 and (self._dIp > 0) == (st.u > u_applied):
+            self.x_I_psi -= self._dIp
+            self._dIp = 0.0
+        super().limit_feedback(u_applied)
 
     def set_gain(self, name: str, value: float) -> None:
         """As :meth:`PIPDController.set_gain`; a change of K_P_y, K_I_y, b_y or K_x_y keeps ψ_ref
@@ -479,7 +549,9 @@ class DecoupledController(PIPDController):
         v = _positive(name, value) if name != "b_y" else _unit(name, value)
         old, new = self.law, replace(self.law, **{name: v})
         st = self.st
-        if self._started and name in ("K_P_y", "K_I_y", "b_y", "K_x_y") and old.K_I_y:
+        if name == "K_I_psi" and self._started and v:    # the integral term's share of u stays
+            self.x_I_psi = old.K_I_psi * self.x_I_psi / v
+        if self._started and name in ("K_P_y", "K_I_y", "b_y", "K_x_y", "T_x_y") and old.K_I_y:
             psi_ref = old.psi_ref(self.g, st.e_y, st.x_I) - old.feed(self.g, *self._fed)
             self._w = new.feed(self.g, *self._fed)
             st.x_I = new.seed(self.g, st.e_y, psi_ref + self._w)

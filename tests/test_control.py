@@ -220,7 +220,8 @@ class _Pair:
 def _decoupled(cfg, **kw):
     import dataclasses
     from rig_runtime.config import DecoupledGains
-    g = DecoupledGains(K_P_y=6.0, K_I_y=3.0, K_P_psi=40.0, K_D_psi=5.0, T_f_psi=0.034144, b_y=0.25, K_x_y=9.0)
+    g = DecoupledGains(K_P_y=6.0, K_I_y=3.0, K_P_psi=40.0, K_D_psi=5.0, T_f_psi=0.034144, b_y=0.25, K_x_y=9.0,
+                       K_I_psi=60.0, T_x_y=0.1)
     g = dataclasses.replace(g, **kw)
     return dataclasses.replace(cfg.controller, law="decoupled", decoupled=g), g
 
@@ -239,8 +240,9 @@ def test_the_decoupled_description_is_the_law_the_runtime_steps(cfg, carrier):
     ctrl.start(0.0, 0.0, 0.0)
     L = law_of(c, carrier).discrete(0.8)
     assert L.inputs == ("y_ref", "y", "psi", "y.front", "y.rear") and L.law == "decoupled"
+    assert L.states == ("x_I", "e_y", "e_psi", "de_psi", "x_I_psi", "d_y", "dd_y")
     rng = np.random.default_rng(2)
-    x = [ctrl.st.x_I, ctrl.st.e_y, ctrl.st.e_psi, ctrl.st.de_psi]
+    x = [ctrl.st.x_I, ctrl.st.e_y, ctrl.st.e_psi, ctrl.st.de_psi, ctrl.x_I_psi, ctrl.d_y, ctrl.dd_y]
     for _ in range(200):
         y_ref, y, psi, y_other = rng.normal(0, 1e-3, 4).tolist()
         pair.ys[carrier] = y
@@ -248,12 +250,13 @@ def test_the_decoupled_description_is_the_law_the_runtime_steps(cfg, carrier):
         u = ctrl.step(y_ref, y, psi)
         x, (u_d,) = _step_description(L, x, [y_ref, y, psi, pair.ys["front"], pair.ys["rear"]])
         assert u == pytest.approx(u_d, rel=1e-9, abs=1e-12)
+        assert [ctrl.x_I_psi, ctrl.d_y, ctrl.dd_y] == pytest.approx(x[4:], rel=1e-9, abs=1e-15)
 
 
 def test_decoupled_law_weights_the_setpoint_and_decouples(cfg):
     """A reference step moves ψ_ref by K_P,y b_y Δy_ref (not K_P,y Δy_ref); a difference
     y_f − y_r lowers ψ_ref by K_x,y (y_f − y_r)."""
-    c, g = _decoupled(cfg)
+    c, g = _decoupled(cfg, T_x_y=0.0)
     ctrl = make_controller(c, 1e9, None, "rear")
     pair = _Pair()
     ctrl.couple(pair)
@@ -269,7 +272,8 @@ def test_decoupled_law_weights_the_setpoint_and_decouples(cfg):
     assert c2.st.psi_ref == pytest.approx(-g.K_x_y * 2e-4, rel=1e-12)
 
 
-@pytest.mark.parametrize("name,value", [("K_P_y", 4.0), ("K_I_y", 5.0), ("b_y", 0.6), ("K_x_y", 7.0)])
+@pytest.mark.parametrize("name,value", [("K_P_y", 4.0), ("K_I_y", 5.0), ("b_y", 0.6), ("K_x_y", 7.0),
+                                        ("K_I_psi", 30.0), ("T_x_y", 0.3)])
 def test_decoupled_gain_change_keeps_psi_ref(cfg, name, value):
     """`rig ctl set` on the outer gains, the setpoint weight or the decoupling gain: x_I is
     re-seeded so that ψ_ref (with the feed term) is what the last step made it."""
@@ -282,12 +286,14 @@ def test_decoupled_gain_change_keeps_psi_ref(cfg, name, value):
     for _ in range(20):
         ctrl.step(1e-3, 3e-4, 1e-4)
     law = ctrl.law
-    before = law.psi_ref(ctrl.g, ctrl.st.e_y, ctrl.st.x_I) - law.feed(ctrl.g, 1e-3, 3e-4, -1e-4)
+    i_term = law.K_I_psi * ctrl.x_I_psi
+    before = law.psi_ref(ctrl.g, ctrl.st.e_y, ctrl.st.x_I) - law.feed(ctrl.g, *ctrl._fed)
     ctrl.set_gain(name, value)
     law = ctrl.law
     assert getattr(law, name) == value
-    after = law.psi_ref(ctrl.g, ctrl.st.e_y, ctrl.st.x_I) - law.feed(ctrl.g, 1e-3, 3e-4, -1e-4)
+    after = law.psi_ref(ctrl.g, ctrl.st.e_y, ctrl.st.x_I) - law.feed(ctrl.g, *ctrl._fed)
     assert after == pytest.approx(before, rel=1e-12)
+    assert law.K_I_psi * ctrl.x_I_psi == pytest.approx(i_term, rel=1e-12)      # the yaw integral's share of u
     with pytest.raises(ValueError):
         ctrl.set_gain("b_y", 1.5)
 
@@ -304,3 +310,20 @@ def test_lanes_give_a_decoupled_law_both_carriers():
     by["front"].y, by["rear"].y = 1e-3, -2e-3
     for l in lanes:
         assert l.controller.pair.y("front") == 1e-3 and l.controller.pair.y("rear") == -2e-3
+
+
+def test_rig_ctl_set_judges_the_decoupled_law_with_the_same_gate():
+    """On configs/vehicle.yaml (law decoupled) `rig ctl set` takes the law's own gains within their
+    bounds, refuses one outside them, and the stability gate analyses the decoupled law: a yaw
+    loop too soft for the outer gains is refused naming controller.decoupled."""
+    import dataclasses
+    from rig_runtime import analysis, config, tuning
+    vcfg = config.load(config.CONFIG_DIR / "vehicle.yaml")
+    assert vcfg.controller.law == "decoupled"
+    assert tuning.check(vcfg, "K_x_y", 4.0).new == 4.0
+    with pytest.raises(tuning.TuningError, match="outside its bounds"):
+        tuning.check(vcfg, "b_y", 0.9)
+    soft = dataclasses.replace(vcfg.controller.decoupled, K_P_psi=1.0, K_D_psi=0.1, K_I_y=60.0)
+    bad = dataclasses.replace(vcfg, controller=dataclasses.replace(vcfg.controller, decoupled=soft))
+    with pytest.raises(analysis.UnstableLoopError, match="controller.decoupled"):
+        analysis.stability_gate(bad)

@@ -214,8 +214,8 @@ def test_the_p_law_keeps_working(cfg):
 
 # ------------------------------------------------------------------ lanes
 def test_lanes_get_their_own_gains_references_and_the_schedule(vcfg):
-    fr = dataclasses.replace(vcfg.controller.pipd, K_P_y=4.0)
-    cfg = dataclasses.replace(vcfg, controller=dataclasses.replace(vcfg.controller, front=fr))
+    fr = dataclasses.replace(vcfg.controller.pipd, K_P_y=4.0)      # per-carrier gains: law pipd's
+    cfg = dataclasses.replace(vcfg, controller=dataclasses.replace(vcfg.controller, front=fr, law="pipd"))
     lanes = make_lanes(cfg, {"front": lambda t: 1e-3, "rear": lambda t: -1e-3})
     front, rear = lanes
     assert (front.carrier, rear.carrier) == ("front", "rear")
@@ -252,7 +252,7 @@ def test_open_loop_on_both_carriers_is_the_controller_off(vcfg):
 
 def test_make_controller_takes_the_carriers_gains(vcfg):
     fr = dataclasses.replace(vcfg.controller.pipd, K_D_psi=7.0)
-    c = dataclasses.replace(vcfg.controller, front=fr)
+    c = dataclasses.replace(vcfg.controller, front=fr, law="pipd")
     assert make_controller(c, 4.0, None, "front").kdp == 7.0
     assert make_controller(c, 4.0, None, "rear").kdp == vcfg.controller.pipd.K_D_psi
     assert make_controller(c, 4.0).kdp == vcfg.controller.pipd.K_D_psi

@@ -47,7 +47,7 @@ class Design:
 
 
 def with_gains(cfg: RigConfig, g: PIPDGains) -> RigConfig:
-    return replace(cfg, controller=replace(cfg.controller, pipd=g))
+    return replace(cfg, controller=replace(cfg.controller, pipd=g, law="pipd"))     # the design is a PI-PD's
 
 
 def _slowest(ev) -> float:
@@ -137,7 +137,7 @@ def controller_yaml(cfg: RigConfig, g: PIPDGains) -> str:
     return ("# Gains designed by `rig tune --design` (Sec. 5.2.3, rig_runtime/app/design.py)\n"
             f"# for the plant of {cfg.source}\n"
             "controller:\n"
-            f"  h: {c.h!r}\n  law: {c.law}\n  pipd:\n"
+            f"  h: {c.h!r}\n  law: pipd\n  pipd:\n"
             f"    K_P_y: {g.K_P_y:.6g}\n    K_I_y: {g.K_I_y:.6g}\n    K_P_psi: {g.K_P_psi:.6g}\n"
             f"    K_D_psi: {g.K_D_psi:.6g}\n    T_f_psi: {g.T_f_psi:.6g}\n"
             f"  K_P: {c.K_P!r}\n  discretization: {c.discretization}\n" + _tuning_yaml(cfg, g))
@@ -194,7 +194,7 @@ def with_vehicle_gains(cfg: RigConfig, gains: dict) -> RigConfig:
     (else the first's), for what reads the common gains."""
     pipd = gains.get("rear") or next(iter(gains.values()))
     return replace(cfg, controller=replace(cfg.controller, pipd=pipd, front=gains.get("front"),
-                                           rear=gains.get("rear")))
+                                           rear=gains.get("rear"), law="pipd"))   # the design is a PI-PD's
 
 
 def design_vehicle(cfg: RigConfig) -> VehicleDesign:
@@ -273,7 +273,7 @@ def vehicle_yaml(cfg: RigConfig, gains: dict) -> str:
         return (f"  {name}:\n    K_P_y: {g.K_P_y:.6g}\n    K_I_y: {g.K_I_y:.6g}\n    K_P_psi: {g.K_P_psi:.6g}\n"
                 f"    K_D_psi: {g.K_D_psi:.6g}\n    T_f_psi: {g.T_f_psi:.6g}\n")
     text = ("# Gains designed by `rig tune --design` for the vehicle (coupled loop, rig_runtime/app/design.py)\n"
-            f"# for the plant of {cfg.source}\ncontroller:\n  h: {c.h!r}\n  law: {c.law}\n")
+            f"# for the plant of {cfg.source}\ncontroller:\n  h: {c.h!r}\n  law: pipd\n")
     text += block("pipd", gains.get("rear") or vals[0])
     if not equal:
         for name, g in gains.items():

@@ -240,7 +240,8 @@ def describe(plan: Plan) -> list[str]:
     """``rig check``'s report: config, hardware, carriers, gains, limits with their
     ceilings, scenario, duration, log."""
     cfg, sc = plan.cfg, plan.scenario
-    c, g = cfg.controller, cfg.controller.pipd
+    c = cfg.controller
+    g = c.decoupled if c.law == "decoupled" else c.pipd
     hw = cfg.hardware
     out = [f"config: {cfg.source}",
            f"hardware: {hw.source}" + (f" ({hw.name})" if hw.name else ""),
@@ -248,8 +249,11 @@ def describe(plan: Plan) -> list[str]:
     if c.law == "p":
         out.append(f"law: p   K_P = {c.K_P:g} A/m   h = {c.h:g} s")
     else:
-        out.append(f"law: pipd   K_P,y = {g.K_P_y:g}  K_I,y = {g.K_I_y:g}  K_P,psi = {g.K_P_psi:g}  "
+        out.append(f"law: {c.law}   K_P,y = {g.K_P_y:g}  K_I,y = {g.K_I_y:g}  K_P,psi = {g.K_P_psi:g}  "
                    f"K_D,psi = {g.K_D_psi:g}  T_f,psi = {g.T_f_psi:g} s   h = {c.h:g} s")
+        if c.law == "decoupled":
+            out.append(f"  across the carriers: b_y = {g.b_y:g}  K_x,y = {g.K_x_y:g} rad/m  T_x,y = {g.T_x_y:g} s  "
+                       f"K_I,psi = {g.K_I_psi:g} A/(rad s)")
         for who in ("front", "rear"):
             own = getattr(c, who)
             if own is not None:
