@@ -322,6 +322,9 @@ class JointDesign:
     rear: CarrierPart
     v: float = math.nan
     table: Optional["SpeedTable"] = None
+    #: 6×6, row j: the weights w_j of the bias test on measurement j over the window's summed
+    #: innovations (all lasers in use; observer_design._isolation_weights)
+    isolation: tuple[float, ...] = ()
 
     @property
     def lateral_lasers(self) -> tuple[str, str]:
@@ -397,6 +400,9 @@ class JointObserver:
         self._N = N
         self._ring = [[0.0] * N for _ in JOINT_MEASUREMENTS]
         self._sum = [0.0] * 6
+        self._raw = [[0.0] * N for _ in JOINT_MEASUREMENTS]     # the innovations themselves
+        self._rsum = [0.0] * 6
+        self._nfull = 0                          # cycles of the window on all lasers
         self._i = self._n = 0
         self.T = [0.0] * 6
         self.nu = [0.0] * 6
@@ -433,8 +439,12 @@ class JointObserver:
         for r in self._ring:
             for k in range(self._N):
                 r[k] = 0.0
+        for r in self._raw:
+            for k in range(self._N):
+                r[k] = 0.0
         for k in range(6):
-            self._sum[k] = self.T[k] = 0.0
+            self._sum[k] = self._rsum[k] = self.T[k] = 0.0
+        self._nfull = 0
         self._i = self._n = 0
         self.outage = 0
         self.set = 0
@@ -507,14 +517,34 @@ class JointObserver:
         sm[4] += z4 - r4[i]
         sm[5] += z5 - r5[i]
         r0[i], r1[i], r2[i], r3[i], r4[i], r5[i] = z0, z1, z2, z3, z4, z5
+        rs = self._rsum
+        q0, q1, q2, q3, q4, q5 = self._raw
+        rs[0] += nu[0] - q0[i]
+        rs[1] += nu[1] - q1[i]
+        rs[2] += nu[2] - q2[i]
+        rs[3] += nu[3] - q3[i]
+        rs[4] += nu[4] - q4[i]
+        rs[5] += nu[5] - q5[i]
+        q0[i], q1[i], q2[i], q3[i], q4[i], q5[i] = nu
+        self._nfull = self._nfull + 1 if s == 0 else 0
         self._i = i + 1 if i + 1 < N else 0
         if self._n < N:
             self._n += 1
         if self._n == N:
             invN = 1.0 / N
             T = self.T
-            T[0], T[1], T[2] = sm[0] * sm[0] * invN, sm[1] * sm[1] * invN, sm[2] * sm[2] * invN
-            T[3], T[4], T[5] = sm[3] * sm[3] * invN, sm[4] * sm[4] * invN, sm[5] * sm[5] * invN
+            W = self.d.isolation
+            if self._nfull >= N and W:
+                # the whole window on all lasers: the bias test of each measurement (it tells a
+                # lateral laser from a yaw laser and from the encoders; b_f from b_r it cannot)
+                a0, a1, a2, a3, a4, a5 = rs
+                for j in range(6):
+                    k = 6 * j
+                    w = W[k] * a0 + W[k + 1] * a1 + W[k + 2] * a2 + W[k + 3] * a3 + W[k + 4] * a4 + W[k + 5] * a5
+                    T[j] = w * w * invN
+            else:                                # a laser out: each measurement's own statistic
+                T[0], T[1], T[2] = sm[0] * sm[0] * invN, sm[1] * sm[1] * invN, sm[2] * sm[2] * invN
+                T[3], T[4], T[5] = sm[3] * sm[3] * invN, sm[4] * sm[4] * invN, sm[5] * sm[5] * invN
 
     def _publish(self, ok_f: bool, ok_r: bool) -> None:
         """Write each carrier's view (its own laser's statistic as its lateral one; the window

@@ -357,6 +357,7 @@ def _joint(pf: Plant, pr: Plant, g: Geometry, o: ObserverConfig, h: float, outag
         variances.append(tuple(float(x) for x in Sp))
         if P_full is None:
             P_full, K_full = P, K
+            glr = _isolation_weights(Ad, C, K, S)
             Pp = (np.eye(6) - K @ C[idx]) @ P
             sigmas.append(((math.sqrt(Pp[0, 0]),), (math.sqrt(Pp[3, 3]),)))
         else:
@@ -372,7 +373,23 @@ def _joint(pf: Plant, pr: Plant, g: Geometry, o: ObserverConfig, h: float, outag
     flat = lambda M: tuple(float(x) for x in np.asarray(M).ravel())     # noqa: E731
     return JointDesign(A=flat(Ad), Bu=flat(Bd[:, 0:2]), BF=flat(Bd[:, 2:4]), c=flat(Bd[:, 4]),
                        laser_rows=((ff, fr), (rf, rr)), b0=g.b0, K=tuple(gains), S=tuple(variances),
-                       sigma_y=tuple(sigmas), window=window, front=parts[0], rear=parts[1], v=v)
+                       sigma_y=tuple(sigmas), window=window, front=parts[0], rear=parts[1], v=v,
+                       isolation=flat(glr))
+
+
+def _isolation_weights(Ad: np.ndarray, C: np.ndarray, K: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """The generalised likelihood ratio test of a bias on one measurement (rows: b_f, b_r, ψ_f,
+    ψ_r, Δω_f, Δω_r): a constant bias β on measurement j leaves the steady-state filter's
+    innovations at β g_j, g_j = (I − C (I − A(I − K C))⁻¹ A K) e_j (the predictor error settles at
+    −(I − A(I − KC))⁻¹ A K e_j β); row j of the result, w_j = S⁻¹ g_j / √(g_jᵀ S⁻¹ g_j), makes
+    (w_j · Σν)²/N over a window of N cycles χ²(1) without a bias and N (β √(g_jᵀ S⁻¹ g_j))² with
+    one — the statistic that names the measurement whose bias explains the innovations best."""
+    n = Ad.shape[0]
+    G = np.eye(C.shape[0]) - C @ np.linalg.solve(np.eye(n) - Ad @ (np.eye(n) - K @ C), Ad @ K)
+    Si = np.linalg.inv(S)
+    W = Si @ G
+    norm = np.sqrt(np.einsum("ij,ij->j", G, W))
+    return (W / norm[None, :]).T
 
 
 #: the entries of the held model the yaw rows may have (each carrier's ψ, ψ̇ and its own u and
