@@ -36,6 +36,8 @@ from .reconfig_analysis import table as outage_table
 from .mailbox import Command
 from .observer import LOG_FIELDS as OBSERVER_FIELDS
 from .observer import ObserverDesign
+
+_JOINT_LASERS, _B_F, _B_R = ("b_f", "b_r"), ("b_f",), ("b_r",)     # the joint filter's lateral lasers
 from .safety import Channel, State, Supervisor
 from .speed import SpeedEstimate
 from .speed import columns as speed_columns
@@ -352,8 +354,12 @@ class ControlLoop:
         joint = self._joint
         if joint is not None:                   # the running gear's filter: each lateral laser on its own
             lf, lr = self._joint_lanes
-            joint.step(values["b_f"], values["b_r"], sup.fit(("b_f",), t) and not sup.isolated_any(("b_f",)),
-                       sup.fit(("b_r",), t) and not sup.isolated_any(("b_r",)), lf.psi, lr.psi, lf.dw, lr.dw,
+            if sup.fit(_JOINT_LASERS, t) and not sup.isolated_any(_JOINT_LASERS):
+                ok_f = ok_r = True              # the common case: one check for both
+            else:
+                ok_f = sup.fit(_B_F, t) and not sup.isolated_any(_B_F)
+                ok_r = sup.fit(_B_R, t) and not sup.isolated_any(_B_R)
+            joint.step(values["b_f"], values["b_r"], ok_f, ok_r, lf.psi, lr.psi, lf.dw, lr.dw,
                        lf.u, lr.u, self._force(lf, t), self._force(lr, t))
         for lane in self.observed:
             if joint is not None:

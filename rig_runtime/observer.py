@@ -398,8 +398,6 @@ class JointObserver:
         self.outage = 0
         N = design.window
         self._N = N
-        self._ring = [[0.0] * N for _ in JOINT_MEASUREMENTS]
-        self._sum = [0.0] * 6
         self._raw = [[0.0] * N for _ in JOINT_MEASUREMENTS]     # the innovations themselves
         self._rsum = [0.0] * 6
         self._nfull = 0                          # cycles of the window on all lasers
@@ -436,14 +434,11 @@ class JointObserver:
 
     def reset(self) -> None:
         self.started = False
-        for r in self._ring:
-            for k in range(self._N):
-                r[k] = 0.0
         for r in self._raw:
             for k in range(self._N):
                 r[k] = 0.0
         for k in range(6):
-            self._sum[k] = self._rsum[k] = self.T[k] = 0.0
+            self._rsum[k] = self.T[k] = 0.0
         self._nfull = 0
         self._i = self._n = 0
         self.outage = 0
@@ -506,17 +501,7 @@ class JointObserver:
         self._publish(ok_f, ok_r)
 
     def _window(self, s: int) -> None:
-        inv, i, N, sm, nu = self._inv[s], self._i, self._N, self._sum, self.nu
-        r0, r1, r2, r3, r4, r5 = self._ring
-        z0, z1, z2 = nu[0] * inv[0], nu[1] * inv[1], nu[2] * inv[2]
-        z3, z4, z5 = nu[3] * inv[3], nu[4] * inv[4], nu[5] * inv[5]
-        sm[0] += z0 - r0[i]
-        sm[1] += z1 - r1[i]
-        sm[2] += z2 - r2[i]
-        sm[3] += z3 - r3[i]
-        sm[4] += z4 - r4[i]
-        sm[5] += z5 - r5[i]
-        r0[i], r1[i], r2[i], r3[i], r4[i], r5[i] = z0, z1, z2, z3, z4, z5
+        i, N, nu = self._i, self._N, self.nu
         rs = self._rsum
         q0, q1, q2, q3, q4, q5 = self._raw
         rs[0] += nu[0] - q0[i]
@@ -543,8 +528,10 @@ class JointObserver:
                     w = W[k] * a0 + W[k + 1] * a1 + W[k + 2] * a2 + W[k + 3] * a3 + W[k + 4] * a4 + W[k + 5] * a5
                     T[j] = w * w * invN
             else:                                # a laser out: each measurement's own statistic
-                T[0], T[1], T[2] = sm[0] * sm[0] * invN, sm[1] * sm[1] * invN, sm[2] * sm[2] * invN
-                T[3], T[4], T[5] = sm[3] * sm[3] * invN, sm[4] * sm[4] * invN, sm[5] * sm[5] * invN
+                inv = self._inv[s]                   # (normalised by this set's variances)
+                for j in range(6):
+                    z = rs[j] * inv[j]
+                    T[j] = z * z * invN
 
     def _publish(self, ok_f: bool, ok_r: bool) -> None:
         """Write each carrier's view (its own laser's statistic as its lateral one; the window
@@ -565,12 +552,10 @@ class JointObserver:
         f.sigma_y = tf[k] if k < len(tf) else tf[-1]
         r.sigma_y = tr[k] if k < len(tr) else tr[-1]
         if full:
-            sm, S, invN = self._sum, d.S[self.set], 1.0 / self._N
+            rs, invN = self._rsum, 1.0 / self._N
             f.window_full = r.window_full = True
-            f.mean_lat = sm[0] * invN * math.sqrt(S[0])
-            r.mean_lat = sm[1] * invN * math.sqrt(S[1])
-            f.mean_dw = sm[4] * invN * math.sqrt(S[4])
-            r.mean_dw = sm[5] * invN * math.sqrt(S[5])
+            f.mean_lat, r.mean_lat = rs[0] * invN, rs[1] * invN     # the window means (m, rad/s)
+            f.mean_dw, r.mean_dw = rs[4] * invN, rs[5] * invN
         else:
             f.window_full = r.window_full = False
 
