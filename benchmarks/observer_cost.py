@@ -1,7 +1,9 @@
 """Cost of the observer's per-cycle work (docs/performance.md): the lane stage's filter
 step (``Observer.step``, one carrier), the supervisor's fitness check of the two lateral
 lasers (``Supervisor.fit``: ARM_RULES on two channels) and the innovation rule; median of
-repeated timings per call, µs.
+repeated timings per call, µs. Then the vehicle's running-gear filter (``JointObserver.step``,
+both carriers, vehicle.yaml's speed table) with its per-laser fitness checks, the innovation
+rule on both carriers' views and their log rows: the observer's cost per cycle on the vehicle.
 
     python benchmarks/observer_cost.py
 """
@@ -9,6 +11,7 @@ repeated timings per call, µs.
 from __future__ import annotations
 
 import math
+import os
 import statistics
 import sys
 import timeit
@@ -17,9 +20,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from rig_runtime import config  # noqa: E402
-from rig_runtime.app.observer_design import design  # noqa: E402
+from rig_runtime.app.observer_design import design, joint_speed_table  # noqa: E402
 from rig_runtime.hardware import Freshness, Health  # noqa: E402
-from rig_runtime.observer import Observer  # noqa: E402
+from rig_runtime.observer import JointObserver, Observer  # noqa: E402
 from rig_runtime.safety import Channel, Sample, Supervisor, innovation  # noqa: E402
 
 
@@ -48,6 +51,31 @@ def main() -> None:
         print(f"{k:34s} {v:6.2f} us")
     print(f"{'total per observed carrier':34s} {res['Observer.step (lateral used)'] + res['Supervisor.fit(b_r, b_f)'] + res['innovation rule'] + res['log_values']:6.2f} us")
     assert math.isfinite(o.y)
+
+    vcfg = config.load(config.resolve_config_path("vehicle.yaml"))
+    j = JointObserver(joint_speed_table(vcfg))
+    j.select(1.0)
+    args = (0.071, 0.0705, True, True, 1e-3, 1e-3, 0.01, 0.01, 0.1, 0.1, 1.0, 1.0)
+    for _ in range(300):
+        j.step(*args)
+    lost = args[:3] + (False,) + args[4:]
+    fit1 = lambda: sup.fit(("b_f",), 1.0)   # noqa: E731 (the loop checks each laser on its own)
+    vres = {
+        "JointObserver.step (both lasers)": per_call_us(lambda: j.step(*args)),
+        "JointObserver.step (b_r lost)": per_call_us(lambda: j.step(*lost)),
+        "Supervisor.fit(b_f), one laser": per_call_us(fit1),
+        "innovation rule, one carrier": per_call_us(lambda: innovation(j.front, vcfg.limits)),
+        "log_values, one carrier": per_call_us(j.front.log_values),
+    }
+    print()
+    for k, v in vres.items():
+        print(f"{k:34s} {v:6.2f} us")
+    total = (vres["JointObserver.step (both lasers)"] + 2 * vres["Supervisor.fit(b_f), one laser"]
+             + 2 * vres["innovation rule, one carrier"] + 2 * vres["log_values, one carrier"])
+    print(f"{'total per cycle, vehicle (joint)':34s} {total:6.2f} us")
+    print(f"{'per-carrier filters, both carriers':34s} {2 * (res['Observer.step (lateral used)'] + res['Supervisor.fit(b_r, b_f)'] + res['innovation rule'] + res['log_values']):6.2f} us")
+    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    assert math.isfinite(j.front.y)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,7 @@ from .allocation import split, wheel_currents  # noqa: F401 - the allocation's, 
 from .config import RigConfig, Schedule
 from .control import make_controller
 from .geometry import Measurement
-from .observer import Observer, ObserverDesign
+from .observer import Observer, ObserverDesign, make_observers
 
 CARRIER_WHEELS: dict[str, tuple[str, str]] = {"front": ("fl", "fr"), "rear": ("rl", "rr")}   # (left, right)
 
@@ -40,9 +40,10 @@ class Lane:
         self.carrier = carrier
         self.sched = schedule if controller is not None else None   # None: fixed gains
         self.v_design = v_design
-        self.observer = Observer(observer) if observer is not None else None
-        self.lateral_lasers = observer.lateral_lasers if observer is not None else ()
-        self.ft_sensors = observer.ft_sensors if observer is not None else ()
+        # a design (its own filter) or a built observer (a carrier's view of the joint filter)
+        self.observer = Observer(observer) if isinstance(observer, ObserverDesign) else observer
+        self.lateral_lasers = self.observer.d.lateral_lasers if observer is not None else ()
+        self.ft_sensors = self.observer.d.ft_sensors if observer is not None else ()
         self.wheels = CARRIER_WHEELS[carrier]
         self.controller = controller            # None: the lane only plays an open-loop input
         self.controlled = controller is not None
@@ -139,7 +140,7 @@ def make_lanes(cfg: RigConfig, reference: Callable[[float], float] | Mapping[str
     its observer. ``reference``: one y_ref(t) for every carrier, or one per carrier by name
     (a carrier without one holds 0). ``open_loop``: (carrier, u(t)); the carrier ``both``
     plays the input on every controlled carrier (the controller off)."""
-    observers = observers or {}
+    observers = make_observers(observers)      # one joint filter shared by its carriers' lanes
     lim = cfg.limits
     refs = reference if isinstance(reference, Mapping) else None
     ol_carrier, ol_input = open_loop if open_loop is not None else (None, None)

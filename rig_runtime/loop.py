@@ -36,6 +36,8 @@ from .reconfig_analysis import table as outage_table
 from .mailbox import Command
 from .observer import LOG_FIELDS as OBSERVER_FIELDS
 from .observer import ObserverDesign
+
+_JOINT_LASERS, _B_F, _B_R = ("b_f", "b_r"), ("b_f",), ("b_r",)     # the joint filter's lateral lasers
 from .safety import Channel, State, Supervisor
 from .speed import SpeedEstimate
 from .speed import columns as speed_columns
@@ -149,6 +151,10 @@ class ControlLoop:
         self._controller_fields = attrgetter(*CONTROLLER_FIELDS)
         self._wheel_currents = itemgetter(*WHEELS)
         self._observers = [l.observer for l in self.lanes if l.observer is not None]
+        # the running gear's joint filter (both carriers' lanes hold a view of it), else None
+        self._joint = next((o.joint for o in self._observers if getattr(o, "joint", None) is not None), None)
+        self._joint_lanes = tuple(next(l for l in self.observed if l.carrier == c) for c in ("front", "rear")) \
+            if self._joint is not None else ()
 
     @property
     def currents(self) -> dict[str, float]:
@@ -349,7 +355,20 @@ class ControlLoop:
         if not self.observed:
             return
         sup, m, values = self.supervisor, self.cycle.m, self._values
+        joint = self._joint
+        if joint is not None:                   # the running gear's filter: each lateral laser on its own
+            lf, lr = self._joint_lanes
+            if sup.fit(_JOINT_LASERS, t) and not sup.isolated_any(_JOINT_LASERS):
+                ok_f = ok_r = True              # the common case: one check for both
+            else:
+                ok_f = sup.fit(_B_F, t) and not sup.isolated_any(_B_F)
+                ok_r = sup.fit(_B_R, t) and not sup.isolated_any(_B_R)
+            joint.step(values["b_f"], values["b_r"], ok_f, ok_r, lf.psi, lr.psi, lf.dw, lr.dw,
+                       lf.u, lr.u, self._force(lf, t), self._force(lr, t))
         for lane in self.observed:
+            if joint is not None:
+                self._mark_degraded(lane)
+                continue
             y_other = 0.0
             if self._front_contact:
                 y_other = m.y_f if lane.carrier == "rear" else m.y_r
@@ -360,12 +379,23 @@ class ControlLoop:
                     f_lat += values[n]
             lat = lane.lateral_lasers
             lane.estimate(sup.fit(lat, t) and not sup.isolated_any(lat), y_other, f_lat)
-            o = lane.observer
-            if lane.carrier in sup.degraded_since:      # DEGRADED: the lane runs on ŷ
-                lane.y = o.y
-                o.degraded = 1.0
-            else:
-                o.degraded = 0.0
+            self._mark_degraded(lane)
+
+    def _mark_degraded(self, lane) -> None:
+        o = lane.observer
+        if lane.carrier in self.supervisor.degraded_since:      # DEGRADED: the lane runs on ŷ
+            lane.y = o.y
+            o.degraded = 1.0
+        else:
+            o.degraded = 0.0
+
+    def _force(self, lane, t: float) -> float:
+        """The carrier's measured lateral force (the sum of its F/T sensors' Fy; 0 unless all fit)."""
+        ft = lane.ft_sensors
+        if not ft or not self.supervisor.fit(ft, t):
+            return 0.0
+        values = self._values
+        return sum(values[n] for n in ft)
 
     def _start(self, t: float) -> None:
         """RUNNING began: the scenario's time origin, the duration, bumpless controllers."""

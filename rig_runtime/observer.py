@@ -270,3 +270,309 @@ def dw_row(cfg) -> tuple[float, float, float]:
     """:func:`dw_row_at` for the configured common plant at plant.v (``cfg``: a RigConfig)."""
     return dw_row_at(cfg.plant, cfg.plant.v)
 
+
+
+# ---------------------------------------------------------------------- the running gear's filter
+#: the joint filter's measurements, in gain-column order: both lateral lasers (less b0), each
+#: carrier's ψ and Δω
+JOINT_MEASUREMENTS = ("b_f", "b_r", "psi_f", "psi_r", "dw_f", "dw_r")
+#: the measurement sets by index 2·(b_f not fit) + (b_r not fit): the measurements used
+JOINT_SETS = ((0, 1, 2, 3, 4, 5), (0, 2, 3, 4, 5), (1, 2, 3, 4, 5), (2, 3, 4, 5))
+
+
+@dataclass(frozen=True)
+class CarrierPart:
+    """What the supervisor's rules and the lane read of one carrier in the joint filter (the
+    names an :class:`ObserverDesign` gives them)."""
+
+    carrier: str
+    lateral_lasers: tuple[str, ...]
+    lateral_weights: tuple[float, ...]
+    yaw_lasers: tuple[str, ...]
+    encoders: tuple[str, ...]
+    ft_sensors: tuple[str, ...]
+    dw_row: tuple[float, float, float]
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return self.lateral_lasers + self.yaw_lasers + self.encoders
+
+
+@dataclass(frozen=True)
+class JointDesign:
+    """Both carriers in one filter as plain numbers (docs/observer.md, "One filter for the
+    running gear"): state (y_f, ψ_f, ψ̇_f, y_r, ψ_r, ψ̇_r); ``A`` 6×6, ``Bu`` 6×2 (u_f, u_r),
+    ``BF`` 6×2 (F_f, F_r), ``c`` 6, row-major; ``laser_rows``: ∂(b − b0)/∂(y_f, y_r) of b_f and
+    b_r; ``K[s]`` the steady-state gain (6×6, state × ``JOINT_MEASUREMENTS``, an unused
+    measurement's column 0) and ``S[s]`` the innovation variances (unused: 1) of measurement set
+    s (``JOINT_SETS``); ``sigma_y[s]`` = (front, rear) σ of ŷ's error after k cycles on set s
+    (set 0: the steady state)."""
+
+    A: tuple[float, ...]
+    Bu: tuple[float, ...]
+    BF: tuple[float, ...]
+    c: tuple[float, ...]
+    laser_rows: tuple[tuple[float, float], tuple[float, float]]
+    b0: float
+    K: tuple[tuple[float, ...], ...]
+    S: tuple[tuple[float, ...], ...]
+    sigma_y: tuple[tuple[tuple[float, ...], tuple[float, ...]], ...]
+    window: int
+    front: CarrierPart
+    rear: CarrierPart
+    v: float = math.nan
+    table: Optional["SpeedTable"] = None
+    #: 6×6, row j: the weights w_j of the bias test on measurement j over the window's summed
+    #: innovations (all lasers in use; observer_design._isolation_weights)
+    isolation: tuple[float, ...] = ()
+
+    @property
+    def lateral_lasers(self) -> tuple[str, str]:
+        return ("b_f", "b_r")
+
+    def part(self, carrier: str) -> CarrierPart:
+        return self.front if carrier == "front" else self.rear
+
+
+@dataclass(frozen=True)
+class JointCarrier:
+    """A carrier's share of the running gear's filter: what a lane is given (``make_observers``
+    builds one :class:`JointObserver` per ``joint`` and a :class:`CarrierView` per carrier)."""
+
+    carrier: str
+    joint: JointDesign
+
+    @property
+    def lateral_lasers(self) -> tuple[str, ...]:
+        return self.joint.part(self.carrier).lateral_lasers
+
+    @property
+    def ft_sensors(self) -> tuple[str, ...]:
+        return self.joint.part(self.carrier).ft_sensors
+
+
+class CarrierView:
+    """One carrier of the joint filter, by the names the supervisor, the lane and the log read
+    of an :class:`Observer` (the joint filter writes them every step)."""
+
+    __slots__ = ("joint", "carrier", "d", "y", "psi", "rate", "nu_lat", "nu_psi", "nu_dw", "T_lat", "T_psi",
+                 "T_dw", "lat_used", "mean_lat", "mean_dw", "degraded", "outage", "sigma_y", "window_full",
+                 "started")
+
+    def __init__(self, joint: "JointObserver", carrier: str):
+        self.joint = joint
+        self.carrier = carrier
+        self.d = joint.d.part(carrier)
+        self.y = self.psi = self.rate = 0.0
+        self.nu_lat = self.nu_psi = self.nu_dw = 0.0
+        self.T_lat = self.T_psi = self.T_dw = 0.0
+        self.mean_lat = self.mean_dw = 0.0
+        self.lat_used = 0.0
+        self.degraded = 0.0
+        self.outage = 0
+        self.sigma_y = 0.0
+        self.window_full = False
+        self.started = False
+
+    def select(self, v: float) -> None:
+        self.joint.select(v)
+
+    def reset(self) -> None:
+        self.joint.reset()
+
+    def log_values(self) -> tuple[float, ...]:
+        return (self.y, self.psi, self.rate, self.nu_lat, self.nu_psi, self.nu_dw,
+                self.T_lat, self.T_psi, self.T_dw, self.lat_used, self.degraded, self.sigma_y)
+
+
+class JointObserver:
+    """The running gear's filter, updated in place by :meth:`step`: scalar arithmetic on the
+    design's precomputed gains (a lost laser switches to that set's gains), the health window
+    of every measurement, and the two carriers' views."""
+
+    def __init__(self, design: JointDesign):
+        self.d = design
+        self.x = [0.0] * 6
+        self.started = False
+        self.set = 0
+        self.outage = 0
+        N = design.window
+        self._N = N
+        self._raw = [[0.0] * N for _ in JOINT_MEASUREMENTS]     # the innovations themselves
+        self._rsum = [0.0] * 6
+        self._nfull = 0                          # cycles of the window on all lasers
+        self._i = self._n = 0
+        self.T = [0.0] * 6
+        self.nu = [0.0] * 6
+        self._inv = tuple(tuple(1.0 / math.sqrt(s) for s in S) for S in design.S)
+        self.front = CarrierView(self, "front")
+        self.rear = CarrierView(self, "rear")
+        t = design.table
+        self._fw = self._bw = None
+        if t is not None:
+            self._fw = t.forward
+            self._bw = t.backward
+            self._invs = {id(e): tuple(tuple(1.0 / math.sqrt(s) for s in S) for S in e.S) for e in t.forward + t.backward}
+            self._lref, self._ilr = math.log(t.v_ref), 1.0 / math.log(t.ratio)
+            self._klo, self._khi = t.k_lo, t.k_hi
+
+    def view(self, carrier: str) -> CarrierView:
+        return self.front if carrier == "front" else self.rear
+
+    def select(self, v: float) -> None:
+        """The design of the grid speed nearest ``v`` (as :meth:`Observer.select`)."""
+        fw = self._fw
+        if fw is None or v == 0.0 or v != v:
+            return
+        k = round((math.log(v if v > 0.0 else -v) - self._lref) * self._ilr)
+        k = self._klo if k < self._klo else self._khi if k > self._khi else k
+        e = (fw if v > 0.0 else self._bw)[k - self._klo]
+        if e is not self.d:
+            self.d = e
+            self._inv = self._invs[id(e)]
+            self.front.d, self.rear.d = e.front, e.rear
+
+    def reset(self) -> None:
+        self.started = False
+        for r in self._raw:
+            for k in range(self._N):
+                r[k] = 0.0
+        for k in range(6):
+            self._rsum[k] = self.T[k] = 0.0
+        self._nfull = 0
+        self._i = self._n = 0
+        self.outage = 0
+        self.set = 0
+
+    def step(self, b_f: float, b_r: float, ok_f: bool, ok_r: bool, psi_f: float, psi_r: float,
+             dw_f: float, dw_r: float, u_f: float, u_r: float, F_f: float = 0.0, F_r: float = 0.0) -> None:
+        """One cycle: the lateral lasers' readings (m; used only where ``ok_*``), each carrier's
+        measured ψ and Δω, the currents held since the last cycle and the measured lateral
+        forces (N, 0: none)."""
+        d = self.d
+        (ff, fr), (rf, rr) = d.laser_rows
+        zf, zr = b_f - d.b0, b_r - d.b0
+        x = self.x
+        if not self.started:                    # first cycle: start on the measurements
+            self.started = True
+            det = ff * rr - fr * rf
+            if ok_f and ok_r:
+                x[0], x[3] = (rr * zf - fr * zr) / det, (ff * zr - rf * zf) / det
+            else:
+                x[0] = x[3] = 0.0
+            x[1], x[4] = psi_f, psi_r
+            x[2] = x[5] = 0.0
+            f, r = self.front, self.rear
+            f.started = r.started = True
+            self._publish(ok_f, ok_r)
+            return
+        A, Bu, BF, c = d.A, d.Bu, d.BF, d.c
+        x0, x1, x2, x3, x4, x5 = x
+        # predict: the yaw rows depend on their own carrier's ψ, ψ̇ and u only (the design's
+        # block structure, exact zeros elsewhere: JointDesign)
+        p0 = (A[0] * x0 + A[1] * x1 + A[2] * x2 + A[3] * x3 + A[4] * x4 + A[5] * x5
+              + Bu[0] * u_f + Bu[1] * u_r + BF[0] * F_f + BF[1] * F_r + c[0])
+        p1 = A[7] * x1 + A[8] * x2 + Bu[2] * u_f + c[1]
+        p2 = A[13] * x1 + A[14] * x2 + Bu[4] * u_f + c[2]
+        p3 = (A[18] * x0 + A[19] * x1 + A[20] * x2 + A[21] * x3 + A[22] * x4 + A[23] * x5
+              + Bu[6] * u_f + Bu[7] * u_r + BF[6] * F_f + BF[7] * F_r + c[3])
+        p4 = A[28] * x4 + A[29] * x5 + Bu[9] * u_r + c[4]
+        p5 = A[34] * x4 + A[35] * x5 + Bu[11] * u_r + c[5]
+        gf, gr = d.front.dw_row, d.rear.dw_row
+        s = (0 if ok_f else 2) + (0 if ok_r else 1)
+        n0 = zf - (ff * p0 + fr * p3) if ok_f else 0.0
+        n1 = zr - (rf * p0 + rr * p3) if ok_r else 0.0
+        n2 = psi_f - p1
+        n3 = psi_r - p4
+        n4 = dw_f - (gf[0] * p0 + gf[1] * p2 + gf[2] * u_f)
+        n5 = dw_r - (gr[0] * p3 + gr[1] * p5 + gr[2] * u_r)
+        nu = self.nu
+        nu[0], nu[1], nu[2], nu[3], nu[4], nu[5] = n0, n1, n2, n3, n4, n5
+        K = d.K[s]
+        x[0] = p0 + K[0] * n0 + K[1] * n1 + K[2] * n2 + K[3] * n3 + K[4] * n4 + K[5] * n5
+        x[1] = p1 + K[6] * n0 + K[7] * n1 + K[8] * n2 + K[9] * n3 + K[10] * n4 + K[11] * n5
+        x[2] = p2 + K[12] * n0 + K[13] * n1 + K[14] * n2 + K[15] * n3 + K[16] * n4 + K[17] * n5
+        x[3] = p3 + K[18] * n0 + K[19] * n1 + K[20] * n2 + K[21] * n3 + K[22] * n4 + K[23] * n5
+        x[4] = p4 + K[24] * n0 + K[25] * n1 + K[26] * n2 + K[27] * n3 + K[28] * n4 + K[29] * n5
+        x[5] = p5 + K[30] * n0 + K[31] * n1 + K[32] * n2 + K[33] * n3 + K[34] * n4 + K[35] * n5
+        self.set = s
+        self.outage = 0 if s == 0 else self.outage + 1
+        self._window(s)
+        self._publish(ok_f, ok_r)
+
+    def _window(self, s: int) -> None:
+        i, N, nu = self._i, self._N, self.nu
+        rs = self._rsum
+        q0, q1, q2, q3, q4, q5 = self._raw
+        rs[0] += nu[0] - q0[i]
+        rs[1] += nu[1] - q1[i]
+        rs[2] += nu[2] - q2[i]
+        rs[3] += nu[3] - q3[i]
+        rs[4] += nu[4] - q4[i]
+        rs[5] += nu[5] - q5[i]
+        q0[i], q1[i], q2[i], q3[i], q4[i], q5[i] = nu
+        self._nfull = self._nfull + 1 if s == 0 else 0
+        self._i = i + 1 if i + 1 < N else 0
+        if self._n < N:
+            self._n += 1
+        if self._n == N:
+            invN = 1.0 / N
+            T = self.T
+            W = self.d.isolation
+            if self._nfull >= N and W:
+                # the whole window on all lasers: the bias test of each measurement (it tells a
+                # lateral laser from a yaw laser and from the encoders; b_f from b_r it cannot)
+                a0, a1, a2, a3, a4, a5 = rs
+                for j in range(6):
+                    k = 6 * j
+                    w = W[k] * a0 + W[k + 1] * a1 + W[k + 2] * a2 + W[k + 3] * a3 + W[k + 4] * a4 + W[k + 5] * a5
+                    T[j] = w * w * invN
+            else:                                # a laser out: each measurement's own statistic
+                inv = self._inv[s]                   # (normalised by this set's variances)
+                for j in range(6):
+                    z = rs[j] * inv[j]
+                    T[j] = z * z * invN
+
+    def _publish(self, ok_f: bool, ok_r: bool) -> None:
+        """Write each carrier's view (its own laser's statistic as its lateral one; the window
+        means only once the window is full, where the supervisor reads them)."""
+        x, T, nu, d, k = self.x, self.T, self.nu, self.d, self.outage
+        full = self._n == self._N
+        sig = d.sigma_y[self.set]
+        f, r = self.front, self.rear
+        f.y, f.psi, f.rate, r.y, r.psi, r.rate = x
+        f.nu_lat = nu[0] if ok_f else math.nan
+        r.nu_lat = nu[1] if ok_r else math.nan
+        f.nu_psi, r.nu_psi, f.nu_dw, r.nu_dw = nu[2], nu[3], nu[4], nu[5]
+        f.T_lat, r.T_lat, f.T_psi, r.T_psi, f.T_dw, r.T_dw = T
+        f.lat_used = 1.0 if ok_f else 0.0
+        r.lat_used = 1.0 if ok_r else 0.0
+        f.outage = r.outage = k
+        tf, tr = sig
+        f.sigma_y = tf[k] if k < len(tf) else tf[-1]
+        r.sigma_y = tr[k] if k < len(tr) else tr[-1]
+        if full:
+            rs, invN = self._rsum, 1.0 / self._N
+            f.window_full = r.window_full = True
+            f.mean_lat, r.mean_lat = rs[0] * invN, rs[1] * invN     # the window means (m, rad/s)
+            f.mean_dw, r.mean_dw = rs[4] * invN, rs[5] * invN
+        else:
+            f.window_full = r.window_full = False
+
+
+def make_observers(designs) -> dict:
+    """The lanes' observers from their designs (carrier -> ObserverDesign or JointCarrier): an
+    :class:`Observer` per carrier design, one :class:`JointObserver` shared by the carriers of a
+    joint design (each lane gets its :class:`CarrierView`)."""
+    out, joints = {}, {}
+    for carrier, d in (designs or {}).items():
+        if isinstance(d, JointCarrier):
+            j = joints.get(id(d.joint))
+            if j is None:
+                j = joints[id(d.joint)] = JointObserver(d.joint)
+            out[carrier] = j.view(carrier)
+        elif isinstance(d, ObserverDesign):
+            out[carrier] = Observer(d)
+        else:
+            out[carrier] = d                   # already built
+    return out

@@ -142,6 +142,10 @@ def test_log_plot_draws_the_estimate_the_truth_and_the_degraded_interval(dropout
         assert gid in lines, gid
     assert np.allclose(lines["y_hat:rear"].get_ydata(), run.columns["rear_obs_y_hat"] * 1e3)
     assert np.allclose(lines["y_true:rear"].get_ydata(), truth["y_r"] * 1e3)
+    bands = [b for a in fig.axes for b in a.collections if b.get_gid() == "sigma_y:rear"]   # ±σ_y on the error panel
+    assert len(bands) == 1
+    top = max(p.vertices[:, 1].max() for p in bands[0].get_paths())
+    assert top == pytest.approx(np.nanmax(run.columns["rear_obs_sigma_y"]) * 1e3)
     spans = [p for a in fig.axes for p in a.patches if p.get_gid() == "degraded:rear"]
     assert len(spans) == len(fig.axes)
     (iv,) = runlog.degraded_intervals(run)

@@ -239,7 +239,8 @@ def observed(run: RunLog) -> list[str]:
 def observer(run: RunLog, truth: Optional[dict] = None, title: str = ""):
     """The observer of every observed carrier (docs/observer.md): the measured y, the estimate
     ŷ and — when the log has the dry run's simulated truth — the true y; the estimate's error
-    against the truth (else against the measurement); the innovation statistics with the
+    against the truth (else against the measurement) with the ±σ_y band the observer reports;
+    the innovation statistics with the
     threshold ``limits.innovation_chi2``. The DEGRADED intervals are shaded on every panel."""
     plt = pyplot()
     c, t = run.columns, run.t_rel
@@ -262,6 +263,10 @@ def observer(run: RunLog, truth: Optional[dict] = None, title: str = ""):
         elif cc["y"] in c:
             ax[1].plot(t, (y_hat - c[cc["y"]]) * 1e3, color=col, lw=0.8, label=f"ŷ − y measured {k}",
                        gid=f"err:{k}")
+        sig = c.get(f"{k}_obs_sigma_y")          # ±σ_y of ŷ's error the observer reports (its outage table)
+        if sig is not None:
+            ax[1].fill_between(t, -sig * 1e3, sig * 1e3, color=col, alpha=0.15, lw=0, label=f"±σ_y {k}",
+                               gid=f"sigma_y:{k}")
         for m, ls in (("lat", "-"), ("psi", "--"), ("dw", ":")):
             name = f"{k}_obs_T_{m}"
             if name in c:

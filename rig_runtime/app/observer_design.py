@@ -254,11 +254,23 @@ def _ft_sensors(cfg: RigConfig, wheels: tuple[str, str]) -> tuple[str, ...]:
     return found if all(found) else ()
 
 
-def designs(cfg: RigConfig) -> dict[str, ObserverDesign]:
+def joint_applies(cfg: RigConfig) -> bool:
+    """Both carriers on the rollers and controlled: one filter for the running gear."""
+    return cfg.plant.front_contact and cfg.plant.rear_contact and set(cfg.controlled) == {"front", "rear"}
+
+
+def designs(cfg: RigConfig) -> dict:
     """A design per controlled carrier when the config has an ``observer:`` section (else
-    none): with a speed schedule the carrier's speed table, else the single design at plant.v."""
+    none): both carriers on the rollers and controlled — the running gear's joint filter
+    (each carrier a ``JointCarrier`` of one design; with a speed schedule its table);
+    otherwise per carrier, with a schedule the carrier's speed table, else the single design
+    at plant.v."""
     if cfg.observer is None:
         return {}
+    if joint_applies(cfg):
+        from ..observer import JointCarrier
+        j = joint_speed_table(cfg) if cfg.controller.schedule is not None else joint_design(cfg)
+        return {c: JointCarrier(c, j) for c in ("front", "rear")}
     if cfg.controller.schedule is not None:
         return {c: speed_table(cfg, c) for c in cfg.controlled}
     return {c: design(cfg, c) for c in cfg.controlled}
@@ -267,3 +279,197 @@ def designs(cfg: RigConfig) -> dict[str, ObserverDesign]:
 def steady_std(d: ObserverDesign) -> dict[str, float]:
     """The steady-state standard deviations of the innovations (for docs and tests)."""
     return {m: math.sqrt(s) for m, s in zip(("lat", "psi", "dw"), d.S_full)}
+
+
+# ---------------------------------------------------------------------- the running gear's filter
+#: the joint filter's state (both carriers) and measurements, in matrix order
+JOINT_STATE = ("y_f", "psi_f", "rate_f", "y_r", "psi_r", "rate_r")
+
+
+def laser_rows(g: Geometry) -> tuple[tuple[float, float], tuple[float, float]]:
+    """∂(b_f − b0)/∂(y_f, y_r) and ∂(b_r − b0)/∂(y_f, y_r) of the Sec. 2 geometry, small angle:
+    b_f − b0 = y_m + (l_L/2) tan ψ_m, b_r − b0 = y_m − (l_L/2) tan ψ_m, y_m = (y_f + y_r)/2,
+    sin ψ_m = (y_f − y_r)/(2 l0) — one lateral laser measures a combination of y_f and y_r."""
+    k = g.l_L / (4.0 * g.l0)
+    return (0.5 + k, 0.5 - k), (0.5 - k, 0.5 + k)
+
+
+def joint_model(pf: Plant, pr: Plant, D_f: float, D_r: float, v: float) -> tuple[np.ndarray, np.ndarray]:
+    """A (6×6) and the input matrix for (u_f, u_r, F_f, F_r, 1) of both carriers in one state
+    (``JOINT_STATE``): each carrier's (2a)/(2b) and (6) as :func:`_model` writes them, the other
+    carrier's y no longer a known input but a state (the coupling ∓a_c y_other)."""
+    A = np.zeros((6, 6))
+    Bc = np.zeros((6, 5))
+    for i, (carrier, p, D) in enumerate((("front", pf, D_f), ("rear", pr, D_r))):
+        Ai, Bi = _model(p, carrier, D, v)
+        s, o = 3 * i, 3 * (1 - i)
+        A[s:s + 3, s:s + 3] = Ai
+        A[s:s + 3, o] = Bi[:, 1]               # the other carrier's y
+        Bc[s:s + 3, i] = Bi[:, 0]              # u of this carrier
+        Bc[s:s + 3, 2 + i] = Bi[:, 2]          # F_y of this carrier
+        Bc[s:s + 3, 4] = Bi[:, 3]              # offsets
+    return A, Bc
+
+
+def _joint_C(g: Geometry, dw_f, dw_r) -> np.ndarray:
+    """Rows (b_f, b_r, ψ_f, ψ_r, Δω_f, Δω_r) over ``JOINT_STATE`` (the lasers less b0)."""
+    (ff, fr), (rf, rr) = laser_rows(g)
+    return np.array([[ff, 0, 0, fr, 0, 0], [rf, 0, 0, rr, 0, 0], [0, 1, 0, 0, 0, 0], [0, 0, 0, 0, 1, 0],
+                     [dw_f[0], 0, dw_f[1], 0, 0, 0], [0, 0, 0, dw_r[0], 0, dw_r[1]]], dtype=float)
+
+
+def joint_design(cfg: RigConfig, ocfg: ObserverConfig | None = None, v: float | None = None):
+    """The running gear's filter at speed ``v`` (None: plant.v; docs/observer.md, "One filter
+    for the running gear"). Memoised like :func:`design`."""
+    o = ocfg if ocfg is not None else (cfg.observer or ObserverConfig())
+    pf, pr = cfg.plant.carrier("front"), cfg.plant.carrier("rear")
+    return _joint(pf, pr, cfg.geometry, o, cfg.controller.h, cfg.degraded.max_s, cfg.limits.innovation_window,
+                  _ft_sensors(cfg, CARRIER_WHEELS["front"]), _ft_sensors(cfg, CARRIER_WHEELS["rear"]),
+                  pr.v if v is None else float(v))
+
+
+@functools.lru_cache(maxsize=DESIGN_CACHE_SIZE)
+def _joint(pf: Plant, pr: Plant, g: Geometry, o: ObserverConfig, h: float, outage_max_s: float, window: int,
+           ft_f: tuple[str, ...], ft_r: tuple[str, ...], v: float):
+    from ..observer import JOINT_SETS, CarrierPart, JointDesign
+    D_f = o.D if o.D is not None else pf.D_min
+    D_r = o.D if o.D is not None else pr.D_min
+    A, Bc = joint_model(pf, pr, D_f, D_r, v)
+    q = [o.q_y ** 2, 0.0, o.q_psi_acc ** 2]
+    Ad, Bd, Qd = discretise(A, Bc, np.diag(q + q), h)
+    _zero_outside_blocks(Ad, Bd)
+    dwf, dwr = dw_row_at(pf, v), dw_row_at(pr, v)
+    C = _joint_C(g, dwf, dwr)
+    n = o.noise
+    R = np.diag([n.lateral_laser_m ** 2] * 2 + [2.0 * n.yaw_laser_m ** 2 / g.d0 ** 2] * 2
+                + [2.0 * n.encoder_rad_s ** 2] * 2)
+    n_max = int(math.ceil(outage_max_s / h)) + 1
+    gains, variances, sigmas = [], [], []
+    P_full = K_full = None
+    for used in JOINT_SETS:
+        idx = list(used)
+        K, S, P = steady_state(Ad, C[idx], Qd, R[np.ix_(idx, idx)])
+        Kp = np.zeros((6, 6))
+        Kp[:, idx] = K                              # padded: an unused measurement's column is 0
+        Sp = np.ones(6)
+        Sp[idx] = np.diag(S)
+        gains.append(tuple(float(x) for x in Kp.ravel()))
+        variances.append(tuple(float(x) for x in Sp))
+        if P_full is None:
+            P_full, K_full = P, K
+            glr = _isolation_weights(Ad, C, K, S)
+            Pp = (np.eye(6) - K @ C[idx]) @ P
+            sigmas.append(((math.sqrt(Pp[0, 0]),), (math.sqrt(Pp[3, 3]),)))
+        else:
+            sigmas.append(_outage_sigmas(Ad, Qd, P_full, K_full, C, K, C[idx], R[np.ix_(idx, idx)], n_max))
+    (ff, fr), (rf, rr) = laser_rows(g)
+    parts = []
+    for carrier, p, dw, ft in (("front", pf, dwf, ft_f), ("rear", pr, dwr, ft_r)):
+        L, W = _weights(g, carrier)
+        left, right = CARRIER_WHEELS[carrier]
+        parts.append(CarrierPart(carrier=carrier, lateral_lasers=L, lateral_weights=W,
+                                 yaw_lasers=(f"s_{left}", f"s_{right}"), encoders=(left, right),
+                                 ft_sensors=ft, dw_row=dw))
+    flat = lambda M: tuple(float(x) for x in np.asarray(M).ravel())     # noqa: E731
+    return JointDesign(A=flat(Ad), Bu=flat(Bd[:, 0:2]), BF=flat(Bd[:, 2:4]), c=flat(Bd[:, 4]),
+                       laser_rows=((ff, fr), (rf, rr)), b0=g.b0, K=tuple(gains), S=tuple(variances),
+                       sigma_y=tuple(sigmas), window=window, front=parts[0], rear=parts[1], v=v,
+                       isolation=flat(glr))
+
+
+def _isolation_weights(Ad: np.ndarray, C: np.ndarray, K: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """The generalised likelihood ratio test of a bias on one measurement (rows: b_f, b_r, ψ_f,
+    ψ_r, Δω_f, Δω_r): a constant bias β on measurement j leaves the steady-state filter's
+    innovations at β g_j, g_j = (I − C (I − A(I − K C))⁻¹ A K) e_j (the predictor error settles at
+    −(I − A(I − KC))⁻¹ A K e_j β); row j of the result, w_j = S⁻¹ g_j / √(g_jᵀ S⁻¹ g_j), makes
+    (w_j · Σν)²/N over a window of N cycles χ²(1) without a bias and N (β √(g_jᵀ S⁻¹ g_j))² with
+    one — the statistic that names the measurement whose bias explains the innovations best."""
+    n = Ad.shape[0]
+    G = np.eye(C.shape[0]) - C @ np.linalg.solve(np.eye(n) - Ad @ (np.eye(n) - K @ C), Ad @ K)
+    Si = np.linalg.inv(S)
+    W = Si @ G
+    norm = np.sqrt(np.einsum("ij,ij->j", G, W))
+    return (W / norm[None, :]).T
+
+
+#: the entries of the held model the yaw rows may have (each carrier's ψ, ψ̇ and its own u and
+#: offsets): (6) does not see y, so the rest is zero exactly; the cycle's step uses this structure
+_YAW_ROWS = {1: (1, 2), 2: (1, 2), 4: (4, 5), 5: (4, 5)}
+_YAW_INPUTS = {1: (0, 4), 2: (0, 4), 4: (1, 4), 5: (1, 4)}
+
+
+def _zero_outside_blocks(Ad: np.ndarray, Bd: np.ndarray) -> None:
+    """Set the yaw rows' structural zeros of the held model to 0 (the matrix exponential leaves
+    them at rounding level at most; beyond 1e-12 of the row it is a modelling error: raised)."""
+    for i, cols in _YAW_ROWS.items():
+        for M, keep in ((Ad, cols), (Bd, _YAW_INPUTS[i])):
+            rest = [j for j in range(M.shape[1]) if j not in keep]
+            if np.max(np.abs(M[i, rest])) > 1e-12 * max(1.0, np.max(np.abs(M[i]))):
+                raise ValueError(f"joint model: the yaw row {i} depends on more than its own carrier")
+            M[i, rest] = 0.0
+
+
+def _outage_sigmas(Ad, Qd, P_full, K_full, C, K_nl, C_nl, R_nl, n_max: int,
+                   rtol: float = 1e-7) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The outage tables of y_f and y_r (states 0 and 3) of the joint filter: the recursion of
+    :func:`outage_sigma_y` in closed form by Φ's eigenvectors, evaluated in blocks of k that
+    double until both have converged (the table stops where the slower one has; the loop of
+    :func:`outage_sigma_y`, per state, where Φ is not safely diagonalisable)."""
+    n = Ad.shape[0]
+    I = np.eye(n)
+    P0 = (I - K_full @ C) @ P_full
+    M = I - K_nl @ C_nl
+    Phi, W = M @ Ad, M @ Qd @ M.T + K_nl @ R_nl @ K_nl.T
+    lam, V = np.linalg.eig(Phi)
+    if not np.all(np.abs(lam) < 1.0) or np.linalg.cond(V) > 1e8:
+        return tuple(_outage_sigma_loop(Ad, Qd, P_full, K_full, C, K_nl, C_nl, R_nl, n_max, i) for i in (0, 3))
+    from scipy.linalg import solve_discrete_lyapunov
+    P_inf = solve_discrete_lyapunov(Phi, W)
+    Vi = np.linalg.inv(V)
+    G = Vi @ (P0 - P_inf) @ Vi.T
+    rows = V[[0, 3]]                                          # 2 × n
+    m = 1024
+    while True:
+        m = min(m, n_max + 1)
+        Lk = np.exp(np.arange(m)[:, None] * np.log(lam.astype(complex))[None, :])   # λᵏ, m × n
+        out, done = [], True
+        for r, i in zip(rows, (0, 3)):
+            a = Lk * r[None, :]
+            s2 = P_inf[i, i] + np.einsum("kj,kj->k", a @ G, a).real
+            sig = np.sqrt(np.maximum(s2, 0.0))
+            step = np.abs(np.diff(sig)) <= rtol * sig[1:]
+            # converged: the step below rtol from some k on, to the end of the block
+            conv = np.nonzero(~step)[0]
+            last = int(conv[-1]) + 2 if conv.size else 1
+            done = done and (last < m or m == n_max + 1)
+            out.append((sig, last))
+        if done:
+            cut = min(max(last for _, last in out) + 1, m)
+            return tuple(tuple(sig[:cut].tolist()) for sig, _ in out)
+        m *= 2
+
+
+def _outage_sigma_loop(Ad, Qd, P_full, K_full, C, K_nl, C_nl, R_nl, n_max, i) -> tuple[float, ...]:
+    """:func:`outage_sigma_y` for state ``i`` (its first state made ``i``)."""
+    perm = [i] + [j for j in range(Ad.shape[0]) if j != i]
+    Pm = np.eye(Ad.shape[0])[perm]
+    return outage_sigma_y(Pm @ Ad @ Pm.T, Pm @ Qd @ Pm.T, Pm @ P_full @ Pm.T, Pm @ K_full, C @ Pm.T,
+                          Pm @ K_nl, C_nl @ Pm.T, R_nl, n_max)
+
+
+def joint_speed_table(cfg: RigConfig, ocfg: ObserverConfig | None = None):
+    """The joint design over the schedule's speed grid (as :func:`speed_table`), returned as
+    the design at v_d carrying the table."""
+    from ..observer import SpeedTable
+    sch = cfg.controller.schedule
+    v_d = sch.v_design if sch.v_design is not None else cfg.plant.v
+    ref = abs(v_d)
+    lr = math.log(SPEED_RATIO)
+    k_lo = math.floor(math.log(SPEED_FLOOR * sch.v_min / ref) / lr)
+    k_hi = math.ceil(math.log(max(abs(sch.v_range[0]), abs(sch.v_range[1])) / ref) / lr)
+    speeds = [ref * SPEED_RATIO ** k for k in range(k_lo, k_hi + 1)]
+    fw = tuple(joint_design(cfg, ocfg, v) for v in speeds)
+    bw = tuple(joint_design(cfg, ocfg, -v) for v in speeds)
+    base = (fw if v_d > 0 else bw)[-k_lo]
+    table = SpeedTable(v_ref=ref, ratio=SPEED_RATIO, k_lo=k_lo, k_hi=k_hi, forward=fw, backward=bw)
+    return dataclasses.replace(base, table=table)
