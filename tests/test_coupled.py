@@ -231,3 +231,17 @@ def test_tune_json_on_the_vehicle(veh_path):
     assert d["coupled_setup"]["held_band"] == [-0.2, 0.2]
     text = _rig("tune", "--config", str(veh_path)).stdout
     assert "coupled loop of the vehicle" in text and "least-damped pole" in text and "held" in text
+
+
+def test_step_response_of_the_decoupled_law_holds_the_other_carrier():
+    """The linear sampled loop of configs/vehicle.yaml (law decoupled) from its description: a
+    unit step on the front reaches 1 and the held rear stays within 10 % of it; the per-carrier
+    PI-PD with the same cascade gains (law pipd) lets the rear move by a third of it or more."""
+    vcfg = config.load(config.CONFIG_DIR / "vehicle.yaml")
+    D = coupled.d_min(vcfg, ("front", "rear"))
+    r = coupled.step_response(vcfg, 1.0, D, ("front",), 15.0)
+    assert abs(r.y["front"][-1] - 1.0) < 0.02
+    assert np.max(np.abs(r.y["rear"])) < 0.1
+    assert np.max(np.abs(r.u["front"])) * 3e-3 < 3.0            # a 3 mm step under 3 A
+    pipd = dataclasses.replace(vcfg, controller=dataclasses.replace(vcfg.controller, law="pipd"))
+    assert np.max(np.abs(coupled.step_response(pipd, 1.0, D, ("front",), 15.0).y["rear"])) > 0.3
