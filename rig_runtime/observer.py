@@ -38,6 +38,12 @@ measured speed — a reference swap, nothing allocated, nothing interpolated (ea
 is one consistent Riccati solution: model, gains, innovation variances and outage table
 belong together; docs/observer.md, "vehicle").
 
+The running gear (both carriers controlled, docs/observer.md "One filter for the running
+gear"): :class:`JointObserver` holds both carriers and their coupling in one 6-state filter,
+each lateral laser a measurement of its own (one laser measures a combination of y_f and
+y_r), a precomputed gain set per lost laser; each lane holds a :class:`CarrierView` of it that
+reads like an :class:`Observer`; its health statistics are the bias test of each measurement.
+
 Outage: the gains are steady-state, so the error covariance of ŷ while no lateral laser is
 used grows deterministically with the cycles since the last lateral update (from the full
 filter's steady state towards the yaw-and-Δω filter's); the design tabulates that growth
