@@ -164,3 +164,13 @@ def test_the_doubling_riccati_solution_is_scipys(vcfg, v):
         K2, S2, P2 = od.steady_state_sda(Ad, C[i], Qd, R[np.ix_(i, i)])
         assert np.allclose(K2, K1, rtol=1e-8, atol=1e-10 * np.max(np.abs(K1)))
         assert np.allclose(P2, P1, rtol=1e-8, atol=1e-10 * np.max(np.abs(P1)))
+
+
+def test_both_carriers_finding_the_lasers_name_each_laser_once():
+    """On the vehicle both carriers' lateral statistics cross together (b_f and b_r alike): the
+    second finding isolates the same lasers in the other order; the interval names each once."""
+    from rig_runtime.safety.reconfig import Reconfiguration
+    r = Reconfiguration("DEGRADED", {"b_f": ["front", "rear"], "b_r": ["front", "rear"]}, device_key="laser")
+    r.isolate(1.0, ("b_f", "b_r"), "innovation", readmit=False)
+    r.isolate(1.0, ("b_r", "b_f"), "innovation", readmit=False)
+    assert [e["laser"] for e in r.log] == ["b_f/b_r", "b_f/b_r"]
