@@ -36,12 +36,12 @@ from .reconfig_analysis import table as outage_table
 from .mailbox import Command
 from .observer import LOG_FIELDS as OBSERVER_FIELDS
 from .observer import ObserverDesign
-
-_JOINT_LASERS, _B_F, _B_R = ("b_f", "b_r"), ("b_f",), ("b_r",)     # the joint filter's lateral lasers
 from .safety import Channel, State, Supervisor
 from .speed import SpeedEstimate
 from .speed import columns as speed_columns
 from .stats import CycleStats
+
+_JOINT_LASERS, _B_F, _B_R = ("b_f", "b_r"), ("b_f",), ("b_r",)     # the joint filter's lateral lasers
 
 
 @dataclass
@@ -382,6 +382,7 @@ class ControlLoop:
             self._mark_degraded(lane)
 
     def _mark_degraded(self, lane) -> None:
+        """A DEGRADED carrier's lane runs on its observer's ŷ (and its log says so)."""
         o = lane.observer
         if lane.carrier in self.supervisor.degraded_since:      # DEGRADED: the lane runs on ŷ
             lane.y = o.y

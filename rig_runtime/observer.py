@@ -38,6 +38,12 @@ measured speed — a reference swap, nothing allocated, nothing interpolated (ea
 is one consistent Riccati solution: model, gains, innovation variances and outage table
 belong together; docs/observer.md, "vehicle").
 
+The running gear (both carriers controlled, docs/observer.md "One filter for the running
+gear"): :class:`JointObserver` holds both carriers and their coupling in one 6-state filter,
+each lateral laser a measurement of its own (one laser measures a combination of y_f and
+y_r), a precomputed gain set per lost laser; each lane holds a :class:`CarrierView` of it that
+reads like an :class:`Observer`; its health statistics are the bias test of each measurement.
+
 Outage: the gains are steady-state, so the error covariance of ŷ while no lateral laser is
 used grows deterministically with the cycles since the last lateral update (from the full
 filter's steady state towards the yaw-and-Δω filter's); the design tabulates that growth
@@ -523,10 +529,14 @@ class JointObserver:
                 # the whole window on all lasers: the bias test of each measurement (it tells a
                 # lateral laser from a yaw laser and from the encoders; b_f from b_r it cannot)
                 a0, a1, a2, a3, a4, a5 = rs
-                for j in range(6):
-                    k = 6 * j
-                    w = W[k] * a0 + W[k + 1] * a1 + W[k + 2] * a2 + W[k + 3] * a3 + W[k + 4] * a4 + W[k + 5] * a5
-                    T[j] = w * w * invN
+                w0 = W[0] * a0 + W[1] * a1 + W[2] * a2 + W[3] * a3 + W[4] * a4 + W[5] * a5
+                w1 = W[6] * a0 + W[7] * a1 + W[8] * a2 + W[9] * a3 + W[10] * a4 + W[11] * a5
+                w2 = W[12] * a0 + W[13] * a1 + W[14] * a2 + W[15] * a3 + W[16] * a4 + W[17] * a5
+                w3 = W[18] * a0 + W[19] * a1 + W[20] * a2 + W[21] * a3 + W[22] * a4 + W[23] * a5
+                w4 = W[24] * a0 + W[25] * a1 + W[26] * a2 + W[27] * a3 + W[28] * a4 + W[29] * a5
+                w5 = W[30] * a0 + W[31] * a1 + W[32] * a2 + W[33] * a3 + W[34] * a4 + W[35] * a5
+                T[0], T[1], T[2] = w0 * w0 * invN, w1 * w1 * invN, w2 * w2 * invN
+                T[3], T[4], T[5] = w3 * w3 * invN, w4 * w4 * invN, w5 * w5 * invN
             else:                                # a laser out: each measurement's own statistic
                 inv = self._inv[s]                   # (normalised by this set's variances)
                 for j in range(6):

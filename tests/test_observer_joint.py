@@ -144,3 +144,33 @@ def test_the_views_publish_the_carriers_statistics(joint):
     assert f.window_full and r.window_full
     assert (f.T_lat, r.T_lat, f.T_psi, r.T_psi, f.T_dw, r.T_dw) == tuple(o.T)
     assert f.log_values()[0] == o.x[0] and r.log_values()[0] == o.x[3]
+
+
+@pytest.mark.parametrize("v", [1.0, -0.3, 0.093])
+def test_the_doubling_riccati_solution_is_scipys(vcfg, v):
+    """The joint design solves its Riccati equations by doubling (faster); the same gains and
+    covariances as scipy's solver, for every measurement set."""
+    pf, pr = vcfg.plant.carrier("front"), vcfg.plant.carrier("rear")
+    o, g = vcfg.observer, vcfg.geometry
+    Ac, Bc = od.joint_model(pf, pr, pf.D_min, pr.D_min, v)
+    q = [o.q_y ** 2, 0.0, o.q_psi_acc ** 2]
+    Ad, _, Qd = od.discretise(Ac, Bc, np.diag(q + q), vcfg.controller.h)
+    C = od._joint_C(g, od.dw_row_at(pf, v), od.dw_row_at(pr, v))
+    n = o.noise
+    R = np.diag([n.lateral_laser_m ** 2] * 2 + [2 * n.yaw_laser_m ** 2 / g.d0 ** 2] * 2 + [2 * n.encoder_rad_s ** 2] * 2)
+    for used in JOINT_SETS:
+        i = list(used)
+        K1, S1, P1 = od.steady_state(Ad, C[i], Qd, R[np.ix_(i, i)])
+        K2, S2, P2 = od.steady_state_sda(Ad, C[i], Qd, R[np.ix_(i, i)])
+        assert np.allclose(K2, K1, rtol=1e-8, atol=1e-10 * np.max(np.abs(K1)))
+        assert np.allclose(P2, P1, rtol=1e-8, atol=1e-10 * np.max(np.abs(P1)))
+
+
+def test_both_carriers_finding_the_lasers_name_each_laser_once():
+    """On the vehicle both carriers' lateral statistics cross together (b_f and b_r alike): the
+    second finding isolates the same lasers in the other order; the interval names each once."""
+    from rig_runtime.safety.reconfig import Reconfiguration
+    r = Reconfiguration("DEGRADED", {"b_f": ["front", "rear"], "b_r": ["front", "rear"]}, device_key="laser")
+    r.isolate(1.0, ("b_f", "b_r"), "innovation", readmit=False)
+    r.isolate(1.0, ("b_r", "b_f"), "innovation", readmit=False)
+    assert [e["laser"] for e in r.log] == ["b_f/b_r", "b_f/b_r"]

@@ -11,7 +11,8 @@ uses, and the growth of ŷ's error covariance while no lateral laser is used (an
 fixed yaw-and-Δω gains run from the full filter's steady state). With a speed schedule
 (``controller.schedule``) the design is repeated over a grid of speeds (:func:`speed_table`;
 the lane picks the nearest grid point of v̂ each cycle); without one it is the single design at
-``plant.v``. The result is plain floats (:class:`rig_runtime.observer.ObserverDesign`): the cycle's
+``plant.v``. With both carriers controlled, one joint design for the running gear instead
+(:func:`joint_design`, :func:`joint_speed_table`). The result is plain floats (:class:`rig_runtime.observer.ObserverDesign`): the cycle's
 module imports neither this module nor numpy/scipy.
 """
 
@@ -104,6 +105,38 @@ def steady_state(Ad: np.ndarray, C: np.ndarray, Qd: np.ndarray, R: np.ndarray) -
     S = C @ P @ C.T + R * s2
     K = P @ C.T @ np.linalg.inv(S)
     return K, S / s2, P / s2
+
+
+def steady_state_sda(Ad: np.ndarray, C: np.ndarray, Qd: np.ndarray, R: np.ndarray,
+                     tol: float = 1e-13, max_iter: int = 60) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`steady_state` by the structure-preserving doubling algorithm (Chu et al. 2004:
+    the Riccati equation's stabilising solution as the limit of H_k, quadratically; a few dozen
+    6×6 products instead of scipy's generalised Schur form — the joint filter's four gain sets
+    over 42 speeds are most of its design time). Falls back to :func:`steady_state` when it
+    does not converge or the result does not satisfy the equation."""
+    s2 = _SCALE ** 2
+    Rs, Qs = R * s2, Qd * s2
+    n = Ad.shape[0]
+    I = np.eye(n)
+    A, G, H = Ad.T.copy(), C.T @ np.linalg.solve(Rs, C), Qs.copy()
+    for _ in range(max_iter):
+        W = I + G @ H
+        WA = np.linalg.solve(W, A)
+        WG = np.linalg.solve(W, G)
+        H_next = H + A.T @ H @ WA
+        G = G + A @ WG @ A.T
+        A = A @ WA
+        done = np.max(np.abs(H_next - H)) <= tol * max(1.0, np.max(np.abs(H_next)))
+        H = H_next
+        if done:
+            P = 0.5 * (H + H.T)
+            S = C @ P @ C.T + Rs
+            res = Ad @ P @ Ad.T - Ad @ P @ C.T @ np.linalg.solve(S, C @ P @ Ad.T) + Qs - P
+            if np.max(np.abs(res)) <= 1e-9 * max(1.0, np.max(np.abs(P))):
+                K = P @ C.T @ np.linalg.inv(S)
+                return K, S / s2, P / s2
+            break
+    return steady_state(Ad, C, Qd, R)
 
 
 def steady_gain(Ad: np.ndarray, C: np.ndarray, Qd: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -348,7 +381,7 @@ def _joint(pf: Plant, pr: Plant, g: Geometry, o: ObserverConfig, h: float, outag
     P_full = K_full = None
     for used in JOINT_SETS:
         idx = list(used)
-        K, S, P = steady_state(Ad, C[idx], Qd, R[np.ix_(idx, idx)])
+        K, S, P = steady_state_sda(Ad, C[idx], Qd, R[np.ix_(idx, idx)])
         Kp = np.zeros((6, 6))
         Kp[:, idx] = K                              # padded: an unused measurement's column is 0
         Sp = np.ones(6)

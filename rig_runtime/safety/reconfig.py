@@ -64,8 +64,9 @@ class Reconfiguration:
                                  "t_end": None, "end": "", **(extra or {})})
             else:                   # a further loss in the carrier's open interval: named there too
                 for e in self.log:
-                    if e["carrier"] == car and e["t_end"] is None and name not in e[self.device_key].split("/"):
-                        e[self.device_key] += "/" + name
+                    if e["carrier"] == car and e["t_end"] is None:
+                        named = e[self.device_key].split("/")
+                        e[self.device_key] = "/".join(named + [d for d in devices if d not in named])
         return carriers
 
     def isolated_any(self, devices: Sequence[str]) -> bool:
