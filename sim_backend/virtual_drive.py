@@ -200,13 +200,20 @@ class VirtualDrive:
 
     def current_A(self) -> float:
         """Current the power stage applies now."""
+        p = self._applied_permille()
+        return p * self.rated_A / 1000.0 if p else 0.0
+
+    def _applied_permille(self) -> int:
+        """Torque (per mille of rated) the power stage applies now: the clipped target while
+        OPERATION ENABLED in CST with the node operational and the motor there, else 0 —
+        what :meth:`current_A` and :meth:`torque_actual` both report, decided once."""
         if self._cfg_dirty:
             self._load_config()
         if self.state != OPERATION_ENABLED or self.node.nmt._state != NMT_OPERATIONAL or self.mode != MODE_CST:
-            return 0.0
+            return 0
         if self.faults and "motor_outage" in self.faults:
-            return 0.0
-        return self._effective_permille() * self.rated_A / 1000.0
+            return 0
+        return self._effective_permille()
 
     def _effective_permille(self) -> int:
         m = self.max_permille
@@ -222,7 +229,8 @@ class VirtualDrive:
         return sw
 
     def torque_actual(self) -> int:
-        return self._effective_permille() if self.current_A() != 0.0 else 0
+        p = self._applied_permille()
+        return p if p * self.rated_A / 1000.0 != 0.0 else 0
 
     # ------------------------------------------------------------------ object dictionary hooks
     def _on_od_read(self, index: int, subindex: int, od) -> int | None:
