@@ -106,6 +106,7 @@ class DriveReadings:
 
 # --------------------------------------------------------------------------- driver
 _TPDO, _HEARTBEAT, _EMCY = 1, 2, 3
+_FRESH, _INVALID = Freshness.FRESH, Freshness.INVALID
 _MAX_FRAMES_PER_POLL = 2000       # bound on one drain (a flooding bus must not stall the loop)
 
 
@@ -678,36 +679,47 @@ class DriveBus(Driver):
     # ------------------------------------------------------------------ health
     def _classify(self, d: _Node, now: float) -> tuple[Freshness, str]:
         """INVALID for what the drive says about itself, every cause spelled out; else FRESH,
-        with a note of what was observed (no TPDO yet, a garbled latest TPDO)."""
-        invalid: list[str] = []
-        if d.emcy_code:
-            invalid.append(f"EMCY 0x{d.emcy_code:04X} {emcy_text(d.emcy_code)} (register 0x{d.emcy_reg:02X})")
-        if d.state in FAULT_STATES:
-            invalid.append(f"drive in {d.state}")
+        with a note of what was observed (no TPDO yet, a garbled latest TPDO). Each
+        observation is looked at once; the text is built only when there is one to report
+        (the nominal cycle builds none)."""
+        emcy = d.emcy_code
+        fault_state = d.state in FAULT_STATES
         # The heartbeat is CANopen's error control (CiA 301 heartbeat consumer): a producer
         # silent past its consumer time *is* the protocol's "node lost" event, with the time
         # configured per drive (heartbeat_ms x heartbeat_timeout_factor, the same time the
         # drives use for the runtime) — not a freshness rule of this runtime's, so it stays here.
         hb_age = now - (d.hb_t if d.hb_t is not None else self._t_ref)
-        if hb_age > d.hb_timeout_s:
-            invalid.append(f"heartbeat missing for {hb_age * 1e3:.0f} ms")
+        hb_missing = hb_age > d.hb_timeout_s
+        if hb_missing:
             if not d.hb_lost:
                 d.hb_lost = True
                 d.timeouts += 1
         else:
             d.hb_lost = False
-            if d.nmt is not None and d.nmt != NMT_OPERATIONAL:
-                invalid.append(f"NMT state {NMT_STATE_NAMES.get(d.nmt, hex(d.nmt))}")
+        nmt = d.nmt
+        nmt_off = not hb_missing and nmt is not None and nmt != NMT_OPERATIONAL
+        no_tpdo = d.tpdo_t is None
+        if not (emcy or fault_state or hb_missing or nmt_off or d.saturated or no_tpdo or d.bad_dlc):
+            return _FRESH, ""
+        invalid: list[str] = []
+        if emcy:
+            invalid.append(f"EMCY 0x{emcy:04X} {emcy_text(emcy)} (register 0x{d.emcy_reg:02X})")
+        if fault_state:
+            invalid.append(f"drive in {d.state}")
+        if hb_missing:
+            invalid.append(f"heartbeat missing for {hb_age * 1e3:.0f} ms")
+        if nmt_off:
+            invalid.append(f"NMT state {NMT_STATE_NAMES.get(nmt, hex(nmt))}")
         if d.saturated:
             invalid.append("velocity at the INT32 limit (saturated, not a measurement)")
         notes: list[str] = []
-        if d.tpdo_t is None:
+        if no_tpdo:
             notes.append("no TPDO received yet")
         if d.bad_dlc:
             notes.append(f"garbled TPDO discarded (DLC {d.bad_dlc} != 8, {d.bad_frames} since open)")
         if invalid:
-            return Freshness.INVALID, "; ".join(invalid + notes)
-        return Freshness.FRESH, "; ".join(notes)
+            return _INVALID, "; ".join(invalid + notes)
+        return _FRESH, "; ".join(notes)
 
     def _readings(self, now: float) -> DriveReadings:
         wheels: dict[str, WheelReading] = {}
@@ -725,7 +737,7 @@ class DriveBus(Driver):
             wheels[d.wheel] = WheelReading(d.wheel, d.node_id, d.omega, d.current, sw if sw > 0 else 0,
                                            d.state, d.nmt, nan if t is None else t, d.health,
                                            d.unanswered)
-            if enabled and (state is Freshness.INVALID or d.state != OPERATION_ENABLED):
+            if enabled and (state is _INVALID or d.state != OPERATION_ENABLED):
                 enabled = False
         self._enabled = enabled
         if is_open:

@@ -168,7 +168,7 @@ class LaserDriver(Driver):
             return self._classify(0)
         self._counters["bytes"] += len(data)
         decoded = self._last = self._decoder.decode(data)
-        return self._classify(self._take(decoded, now) if len(decoded) else 0)
+        return self._classify(self._take(decoded, now) if decoded.count else 0)
 
     @property
     def last_values(self) -> list[int]:
@@ -180,12 +180,12 @@ class LaserDriver(Driver):
         last = decoded.last()
         self._raw_x = last
         if decoded.all_distances():             # the usual case
-            n_valid = len(decoded)
+            n_valid = decoded.count
             valid = decoded.values() if self._average else None
         else:
             valid = [x for x in decoded.values() if x <= MAX_DISTANCE_X]
             n_valid = len(valid)
-            n_err = len(decoded) - n_valid
+            n_err = decoded.count - n_valid
             self._errors += n_err
             self._counters["error_frames"] += n_err
         self._counters["values"] += n_valid

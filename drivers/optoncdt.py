@@ -168,16 +168,18 @@ class FrameDecoder:
 
 class Decoded:
     """The values of one :meth:`FrameDecoder.decode`: whole clean frames kept as bytes and
-    decoded on demand, or the list a resynchronising decode made."""
+    decoded on demand, or the list a resynchronising decode made. ``count``: how many
+    values (known when decoded; ``len()`` says the same)."""
 
-    __slots__ = ("_buf", "_list")
+    __slots__ = ("_buf", "_list", "count")
 
     def __init__(self, buf: bytes, values: list[int] | None) -> None:
         self._buf = buf
         self._list = values
+        self.count = len(values) if values is not None else len(buf) // 3
 
     def __len__(self) -> int:
-        return len(self._list) if self._list is not None else len(self._buf) // 3
+        return self.count
 
     def values(self) -> list[int]:
         if self._list is None:

@@ -22,6 +22,7 @@ from .safety import Channel, Converters, Sample
 FT_COMPONENTS = ("fx", "fy", "fz", "mx", "my", "mz")
 FT_RANGE = (300.0, 30.0)    # FT 300 class: ±300 N, ±30 N m (rated range)
 _NO_WRENCH = (math.nan,) * len(FT_COMPONENTS)
+_INVALID = Freshness.INVALID
 
 
 class Reading(NamedTuple):
@@ -182,17 +183,21 @@ class RigDevices:
         rd = self.drives.poll(now)
         ok, cause = True, ""
         lost, off = [], []          # per wheel: each INVALID drive's cause, each power stage not enabled
+        torque = []                 # per wheel: (wheel, its drive's reported current)
         for w, r in rd.wheels.items():
             v = values[w] = r.omega
-            samples[w] = Sample(value=v, t=r.t, health=r.health, unanswered=r.syncs_unanswered)
-            if r.health.state is Freshness.INVALID:
-                lost.append((w, f"drive {r.wheel} (node {r.node_id}): {r.health.cause}"))
+            h = r.health
+            samples[w] = Sample(value=v, t=r.t, health=h, unanswered=r.syncs_unanswered)
+            torque.append((w, r.current_A))
+            if h.state is _INVALID:
+                lost.append((w, f"drive {r.wheel} (node {r.node_id}): {h.cause}"))
                 if ok:
                     ok, cause = False, lost[-1][1]
-            if not r.enabled or r.health.state is Freshness.INVALID:     # as the driver's `enabled`
+                off.append(w)
+            elif not r.enabled:                 # as the driver's `enabled`
                 off.append(w)
         bus = rd.bus
-        bus_ok = bus.state is not Freshness.INVALID
+        bus_ok = bus.state is not _INVALID
         if ok and not bus_ok:
             ok, cause = False, f"CAN bus: {bus.cause}"
         if self.ft is not None:
@@ -220,7 +225,7 @@ class RigDevices:
             samples[role] = Sample(value=v, t=r.t, health=r.health)
         conv = Converters(ok=ok, cause=cause, enabled=rd.enabled, bus_error_t=rd.bus_error_t, bus_cause=bus.cause,
                           drives=tuple(lost), not_enabled=tuple(off), bus_ok=bus_ok,
-                          torque=tuple((w, r.current_A) for w, r in rd.wheels.items()))
+                          torque=tuple(torque))
         return Reading(t=now, samples=samples, values=values, wrench=self._wrench, converters=conv)
 
     def write(self, currents: Mapping[str, float], now: float) -> None:

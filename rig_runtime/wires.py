@@ -70,16 +70,18 @@ class BytePipe:
         if self.closed:
             return 0
         buf = self.buf
+        n = len(data)
         room = self.capacity - len(buf)
-        if len(data) > room:
+        if n > room:
             data = data[:max(room, 0)]
-        if data:
+            n = len(data)
+        if n:
             buf += data
             if self._waiting:
                 self._wake()
             if self.on_data is not None:
                 self.on_data()
-        return len(data)
+        return n
 
     def read(self, n: int = -1) -> bytes:
         """Up to ``n`` unread bytes (all with ``n`` < 0), never waiting."""

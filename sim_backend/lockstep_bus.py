@@ -69,6 +69,17 @@ class LockstepBus(can.BusABC):
         msg.channel = self._channel
         self._deliver(msg)
 
+    def send_many_owned(self, msgs: "list[can.Message]") -> None:
+        """Send several messages in order, each as by :meth:`send_owned` (one time stamp for
+        the batch, as :meth:`send_many`): the caller must never touch them again."""
+        if not self._open:
+            raise can.CanOperationError("lockstep bus is shut down")
+        deliver, ch, now = self._deliver, self._channel, _now()
+        for msg in msgs:
+            msg.timestamp = now
+            msg.channel = ch
+            deliver(msg)
+
     def _deliver(self, msg: can.Message) -> None:
         own = self._own
         for bus in self._peers:

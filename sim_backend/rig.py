@@ -94,6 +94,8 @@ class SimulatedRig:
         self._events = self._schedule()
         self._active_faults: set[int] = set()
         self._stalls_done: set[int] = set()
+        # the scenario's stall faults (index, fault), picked out once: advance looks at them each cycle
+        self._stalls = [(i, f) for i, f in enumerate(scenario.faults) if f.kind == "stall"] if scenario is not None else []
         self._next_ft = 0.0
         self._closers: list[Callable[[], None]] = []
         try:
@@ -327,12 +329,12 @@ class SimulatedRig:
     def _stall_s(self, t: float) -> float:
         """How long the runtime is starved at its release ``t``: the scenario's ``stall``
         faults whose time has come, each once."""
-        if self.scenario is None or not self.scenario_started:
+        if not self._stalls or not self.scenario_started:
             return 0.0
         tau = t - self.t_run0
         d = 0.0
-        for i, f in enumerate(self.scenario.faults):
-            if f.kind == "stall" and i not in self._stalls_done and tau >= f.t:
+        for i, f in self._stalls:
+            if i not in self._stalls_done and tau >= f.t:
                 self._stalls_done.add(i)
                 d += f.duration_s
         return d

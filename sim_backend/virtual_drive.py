@@ -200,13 +200,20 @@ class VirtualDrive:
 
     def current_A(self) -> float:
         """Current the power stage applies now."""
+        p = self._applied_permille()
+        return p * self.rated_A / 1000.0 if p else 0.0
+
+    def _applied_permille(self) -> int:
+        """Torque (per mille of rated) the power stage applies now: the clipped target while
+        OPERATION ENABLED in CST with the node operational and the motor there, else 0 —
+        what :meth:`current_A` and :meth:`torque_actual` both report, decided once."""
         if self._cfg_dirty:
             self._load_config()
         if self.state != OPERATION_ENABLED or self.node.nmt._state != NMT_OPERATIONAL or self.mode != MODE_CST:
-            return 0.0
+            return 0
         if self.faults and "motor_outage" in self.faults:
-            return 0.0
-        return self._effective_permille() * self.rated_A / 1000.0
+            return 0
+        return self._effective_permille()
 
     def _effective_permille(self) -> int:
         m = self.max_permille
@@ -222,7 +229,8 @@ class VirtualDrive:
         return sw
 
     def torque_actual(self) -> int:
-        return self._effective_permille() if self.current_A() != 0.0 else 0
+        p = self._applied_permille()
+        return p if p * self.rated_A / 1000.0 != 0.0 else 0
 
     # ------------------------------------------------------------------ object dictionary hooks
     def _on_od_read(self, index: int, subindex: int, od) -> int | None:
@@ -493,6 +501,7 @@ class VirtualDriveSet:
         self._outbox: list[can.Message] | None = None    # hold(): frames kept until release()
         # a LockstepBus takes our fresh messages without copying them
         self._send = getattr(bus, "send_owned", None) or bus.send
+        self._send_many = getattr(bus, "send_many_owned", None)      # a batch of fresh frames, given up
         path = Path(eds_path) if eds_path is not None else resolve_config_path(cfg.eds)
         self._network = _SimNetwork(self, bus)
         self._by_sdo_tx: dict[int, VirtualDrive] = {}
@@ -535,7 +544,10 @@ class VirtualDriveSet:
     def operation_enabled(self) -> bool:
         """Whether every drive's power stage is in OPERATION ENABLED (the simulators start
         scenario time the first time it is: the runtime enables the drives at its ARM)."""
-        return all(d.state == OPERATION_ENABLED for d in self._drive_list)
+        for d in self._drive_list:
+            if d.state != OPERATION_ENABLED:
+                return False
+        return True
 
     def status(self) -> dict[str, dict[str, Any]]:
         """Per wheel, JSON-ready (``rig sim``'s status): applied current, 402 and NMT state,
@@ -642,13 +654,22 @@ class VirtualDriveSet:
     def release(self) -> None:
         """Send the frames kept since ``hold()``, in order, and send directly again."""
         box, self._outbox = self._outbox, None
-        if box:
-            send = self._send
-            for msg in box:
-                try:
-                    send(msg)
-                except can.CanError:
-                    self.tx_errors += 1
+        if not box:
+            return
+        send_many = self._send_many
+        if send_many is not None:           # the lockstep bus: the whole outbox in one call
+            try:
+                send_many(box)
+                return
+            except can.CanError:
+                self.tx_errors += len(box)
+                return
+        send = self._send
+        for msg in box:
+            try:
+                send(msg)
+            except can.CanError:
+                self.tx_errors += 1
 
     def _route_table(self) -> dict[int, tuple[int, VirtualDrive]]:
         """COB-ID -> (kind, drive) for the frames a single drive consumes."""

@@ -217,6 +217,19 @@ def test_lockstep_bus_send_owned_and_filters(pair):
     assert got.arbitration_id == 0x701 and b.recv(0.0) is None
 
 
+def test_lockstep_bus_send_many_owned_hands_over_in_order(pair):
+    a, b = pair
+    msgs = [can.Message(arbitration_id=0x181 + i, data=bytes([i] * 8), is_extended_id=False) for i in range(4)]
+    a.send_many_owned(msgs)
+    got = [b.recv(0.0) for _ in range(4)]
+    assert all(g is m for g, m in zip(got, msgs))        # the same objects, not copies, in order
+    assert len({m.timestamp for m in got}) == 1 and got[0].timestamp > 0 and got[0].channel == "t-lockstep"
+    assert b.recv(0.0) is None and a.recv(0.0) is None  # not to the sender itself
+    a.shutdown()
+    with pytest.raises(can.CanOperationError):
+        a.send_many_owned([can.Message(arbitration_id=0x80, data=b"")])
+
+
 def test_lockstep_bus_blocking_recv_wakes_on_send(pair):
     a, b = pair
     out = []
