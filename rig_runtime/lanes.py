@@ -8,14 +8,13 @@ lane, never new indices.
 
 How a carrier's differential current u = i_left − i_right reaches its wheels is the
 allocation's (``rig_runtime.allocation``: ±u/2, or the remaining wheel alone after a drive
-loss); ``split`` and ``wheel_currents`` are re-exported from there.
+loss).
 """
 
 from __future__ import annotations
 
 from typing import Callable, Mapping, Optional
 
-from .allocation import split, wheel_currents  # noqa: F401 - the allocation's, re-exported
 from .config import RigConfig, Schedule
 from .control import make_controller
 from .geometry import Measurement

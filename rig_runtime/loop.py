@@ -31,7 +31,8 @@ from .control import PIPDInternals
 from .gains import TuningError, admissible
 from .geometry import Measurement, measure
 from .hardware import Hardware
-from .lanes import Lane, make_lanes, wheel_currents
+from .allocation import wheel_currents
+from .lanes import Lane, make_lanes
 from .reconfig_analysis import table as outage_table
 from .mailbox import Command
 from .observer import LOG_FIELDS as OBSERVER_FIELDS

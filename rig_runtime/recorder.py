@@ -277,6 +277,7 @@ class Recorder:
             _, device, message, cause = res
             raise DeviceInitError(device, message) from cause
         self._inline = res
+        self._inline_batch = max(1, self.buffer_cycles // 4)
         self._next_flush = time.monotonic() + self.flush_period
         self._prod = ring.Producer(self._mm, layout)
         self._refuse = False
@@ -301,6 +302,8 @@ class Recorder:
             return False
         try:
             if self._prod.append(row):      # type: ignore[union-attr]
+                if self._inline is not None and self._prod.pending >= self._inline_batch:   # type: ignore[union-attr]
+                    self._drain_inline()    # written as the sidecar would: a failing disk is seen while running
                 return True
             if self._inline is not None:
                 self._drain_inline()

@@ -9,8 +9,6 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from rig_runtime.allocation import allocate, authority, split, wheel_currents
-from rig_runtime.lanes import split as lanes_split
-from rig_runtime.lanes import wheel_currents as lanes_wheel_currents
 
 U = st.floats(-20.0, 20.0)
 
@@ -46,7 +44,3 @@ def test_wheel_currents_give_a_lost_wheel_zero_and_the_other_the_command():
     assert wheel_currents(lanes, out, lost={"fl"}, i_max=4.0) == {"fl": 0.0, "fr": -1.5, "rl": -0.5, "rr": 0.5}
     assert wheel_currents(lanes, out, lost={"rl", "rr"}) == {"fl": 0.75, "fr": -0.75, "rl": 0.0, "rr": 0.0}
     assert wheel_currents(lanes[1:], out) == {"fl": 0.0, "fr": 0.0, "rl": -0.5, "rr": 0.5}
-
-
-def test_lanes_keep_one_place():
-    assert lanes_split is split and lanes_wheel_currents is wheel_currents

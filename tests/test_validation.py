@@ -419,13 +419,36 @@ def test_no_room_for_the_recording_ring_is_one_line(tmp_path):
             "from rig_runtime.app.entry import main\n"
             "sys.argv = ['rig'] + sys.argv[1:]\n"
             "sys.exit(main())\n")
-    r = subprocess.run([sys.executable, "-c", note, "dry-run", "--log", str(tmp_path / "x.h5")], capture_output=True,
+    # a live output needs the recording sidecar (a lockstep run without one writes its log in-process)
+    r = subprocess.run([sys.executable, "-c", note, "dry-run", "--log", str(tmp_path / "x.h5"),
+                        "--telemetry", "udp://127.0.0.1:9"], capture_output=True,
                        text=True, cwd=tmp_path, timeout=60, preexec_fn=small_files)
     one_line_error(r, "recorder", "no shared memory for the recording ring")
     assert not (tmp_path / "x.h5").exists()
     rings = [p for p in made.read_text().split() if Path(p).name.startswith("rig-ring-")]
     assert rings                                    # the run tried to make its ring …
     assert not [p for p in rings if Path(p).exists()]       # … and left none behind
+
+
+def test_a_lockstep_log_the_disk_refuses_is_a_recorder_fault(tmp_path):
+    """A lockstep run writes its log in its own process: a write the disk refuses (here: a file
+    size limit) is the recorder's fault while the run goes on — FAULT, exit 3, the cause named —
+    not a crash, a traceback or a clean exit over a log that is not whole."""
+    import resource
+    import signal
+
+    def small_files():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)       # a write past the limit fails (EFBIG)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (256 * 1024, 256 * 1024))
+
+    r = subprocess.run(RIG + ["dry-run", "--log", str(tmp_path / "x.h5"), "--json"], capture_output=True, text=True,
+                       cwd=tmp_path, timeout=120, preexec_fn=small_files)
+    assert r.returncode == 3, (r.returncode, r.stdout[-2000:], r.stderr[-2000:])
+    assert "Traceback" not in r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["final_state"] == "FAULT" and not summary["recorder"]["healthy"]
+    assert [f["device"] for f in summary["faults"]] == ["recorder"] and "File too large" in summary["faults"][0]["message"]
+    assert summary["ended_by"].startswith("fault: recorder")
 
 
 def test_hold_on_fault_needs_a_ctl_socket(tmp_path):

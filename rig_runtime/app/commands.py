@@ -57,6 +57,9 @@ def _print_summary(summary: dict, as_json: bool) -> None:
               f"{d['carrier']} carrier on its remaining wheels until {_run_time(summary, d['t_end'])}: {d['end']}")
     if summary.get("arm_failed"):
         print(f"  {summary['arm_failed']}")
+    rec = summary.get("recorder")
+    if rec and not rec["healthy"] and not any(f["device"] == "recorder" for f in summary["faults"]):
+        print(f"  recorder: {rec['error']}")     # the log is not whole, though the run did not fault
     if summary.get("clock") == "lockstep":
         cycles = max(summary["cycles"], 1)
         print(f"timing: lockstep (simulated clock, no deadlines): {summary['wall_time_s'] * 1e3 / cycles:.3f} ms "

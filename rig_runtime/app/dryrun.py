@@ -83,7 +83,8 @@ def run_lockstep(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *
         summary["wall_us_per_cycle"] = summary["wall_time_s"] * 1e6 / max(summary["cycles"], 1)
     finally:
         sim.close()
-    if log_path is not None and Path(log_path).exists():
-        truth.write(Path(log_path))
-    summary["steps"] = steps_from_log(log_path, scenario, cfg.controller.h)
+    if summary["recorder"]["healthy"]:      # a log the recorder could not write is not read or added to
+        if log_path is not None and Path(log_path).exists():
+            truth.write(Path(log_path))
+        summary["steps"] = steps_from_log(log_path, scenario, cfg.controller.h)
     return summary, code

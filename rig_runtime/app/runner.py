@@ -27,7 +27,7 @@ from .. import __version__, analysis, schema
 from ..clock import Clock, helper_cpus
 from ..config import CARRIERS, RigConfig
 from ..errors import DeviceInitError
-from ..lanes import split
+from ..allocation import split
 from ..loop import ControlLoop, log_columns
 from ..recorder import Recorder
 from ..scenario import Reference, Scenario, open_loop_input
@@ -245,6 +245,8 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     elif stops.requested:
         summary["late_stop"] = stops.name           # came after the run had ended (a fault, or its end)
     code = EXIT_FAULT if result.final_state == "FAULT" else EXIT_OK
+    if rec is not None and not rec.healthy:
+        code = EXIT_FAULT           # the log is not whole (a write failed, at the end too): never a clean exit
     if result.arm_blockers:     # RUNNING once, then arming again after `rig ctl reset-fault` failed
         summary["arm_failed"] = "could not arm again after the fault reset: " + "; ".join(result.arm_blockers[:4])
         code = EXIT_FAULT

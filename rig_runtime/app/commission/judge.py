@@ -11,7 +11,8 @@ from typing import Mapping, Optional, Sequence
 
 from ...config import RigConfig
 from ...config import WHEELS
-from ...lanes import CARRIER_WHEELS, split
+from ...allocation import split
+from ...lanes import CARRIER_WHEELS
 from ...observer import dw_row
 
 # what the passive prompt asks for: the sign each laser's reading must move with
