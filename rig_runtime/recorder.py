@@ -25,9 +25,10 @@ records an event saying so and closes the log.
 
 ``writer="inline"`` (a lockstep run without live outputs, where time does not matter and a
 campaign worker runs many runs): no process is started; the same :class:`~rig_runtime.sidecar.Sidecar`
-writes the same ring into the same file from the loop's own process, when the ring is full
-and at ``close`` (it flushes then, at most every ``flush_s``). No interpreter start (0.5–1 s)
-and exit per run; the log is the same.
+writes the same ring into the same file from the loop's own process, every quarter ring (a
+disk that refuses a write is the recorder's fault while the run goes on, as with the sidecar)
+and at ``close`` (it flushes then, at most every ``flush_s``). No interpreter start and exit
+per run; the log is the same.
 
 File layout: see ``docs/log-format.md``.
 """
