@@ -21,7 +21,7 @@ def cfg():
 
 @pytest.fixture(scope="session")
 def shared_run(tmp_path_factory):
-    """``shared_run(scenario, seed=None, duration_s=None, on_lateral_loss=None)``: tests/e2e.py
+    """``shared_run(scenario, seed=None, duration_s=None, on_lateral_loss=None, on_drive_loss=None)``: tests/e2e.py
     ``run`` of a shipped scenario on the shipped configuration (``lateral_loss_config``), done once per session for each (scenario, seed,
     duration) and shared by the tests that only read it (test_faults_e2e.py's checks of each
     fault scenario; test_lifecycle_e2e.py compares a second run of the same scenario with it).
@@ -29,20 +29,23 @@ def shared_run(tmp_path_factory):
     from .e2e import run
     done: dict = {}
 
-    def get(scenario: str, seed=None, duration_s=None, on_lateral_loss=None):
-        key = (scenario, seed, duration_s, on_lateral_loss)
+    def get(scenario: str, seed=None, duration_s=None, on_lateral_loss=None, on_drive_loss=None):
+        key = (scenario, seed, duration_s, on_lateral_loss, on_drive_loss)
         if key not in done:
             done[key] = run(tmp_path_factory.mktemp(scenario), scenario, seed=seed, duration_s=duration_s,
-                            cfg=lateral_loss_config(on_lateral_loss))
+                            cfg=lateral_loss_config(on_lateral_loss, on_drive_loss))
         return done[key]
     return get
 
 
-def lateral_loss_config(on_lateral_loss=None):
-    """The shipped configuration, with ``degraded.on_lateral_loss`` set (None: as shipped;
-    "stop": a lost lateral laser is the channel rule's fault, as without an observer)."""
+def lateral_loss_config(on_lateral_loss=None, on_drive_loss=None):
+    """The shipped configuration, with ``degraded.on_lateral_loss`` and ``on_drive_loss`` set
+    (None: as shipped; "stop": a lost lateral laser or drive is the rule's fault, as without an
+    observer or reconfiguration)."""
     import dataclasses
     cfg = config.load()
-    if on_lateral_loss is None:
+    changes = {k: v for k, v in (("on_lateral_loss", on_lateral_loss), ("on_drive_loss", on_drive_loss))
+               if v is not None}
+    if not changes:
         return cfg
-    return dataclasses.replace(cfg, degraded=dataclasses.replace(cfg.degraded, on_lateral_loss=on_lateral_loss))
+    return dataclasses.replace(cfg, degraded=dataclasses.replace(cfg.degraded, **changes))

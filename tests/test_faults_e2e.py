@@ -1,7 +1,8 @@
 """Every fault scenario ends in FAULT with the right cause, zero current on the wire from
 the detecting cycle on, the cause in the log's event table, and a readable log — with
-``degraded.on_lateral_loss: stop`` (sim.yaml observes: a lost lateral laser is DEGRADED
-then, tests/test_observer_degraded_e2e.py). Each scenario is run once in the session
+``degraded.on_lateral_loss: stop`` and ``on_drive_loss: stop`` (sim.yaml observes and
+reallocates: a lost lateral laser is DEGRADED then, tests/test_observer_degraded_e2e.py, and a
+lost drive RECONFIGURED, the test at the end). Each scenario is run once in the session
 (conftest.py ``shared_run``): these tests only read the run, and test_lifecycle_e2e.py's
 determinism test compares its own second run with it."""
 
@@ -26,7 +27,7 @@ CASES = [
 
 @pytest.mark.parametrize("scenario, device, check", CASES, ids=[c[0] for c in CASES])
 def test_fault_scenarios(shared_run, scenario, device, check):
-    r = shared_run(scenario, on_lateral_loss="stop")
+    r = shared_run(scenario, on_lateral_loss="stop", on_drive_loss="stop")
     assert_safe_stop(r, device, check)
     if scenario == "fault-no_heartbeat":
         assert "rl" in r.fault["message"] and "heartbeat" in r.fault["message"].lower()
@@ -41,7 +42,7 @@ def test_fault_scenarios(shared_run, scenario, device, check):
 
 
 def test_dropout_detection_latency(shared_run, cfg):
-    r = shared_run("fault-dropout", on_lateral_loss="stop")
+    r = shared_run("fault-dropout", on_lateral_loss="stop", on_drive_loss="stop")
     t_inject = r.summary["run_started_t"] + 3.0
     bound = cfg.limits.stale_periods * cfg.controller.h
     latency_cycles = (r.fault["t"] - t_inject - bound) / cfg.controller.h

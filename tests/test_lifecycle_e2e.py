@@ -88,7 +88,7 @@ def test_lockstep_runs_are_deterministic_for_a_seed(tmp_path, shared_run):
     from rig_runtime.config import CONFIG_DIR
 
     from .conftest import lateral_loss_config
-    cfg = lateral_loss_config("stop")       # the variant test_faults_e2e.py's shared runs use
+    cfg = lateral_loss_config("stop", "stop")       # the variant test_faults_e2e.py's shared runs use
 
     def fresh(name: str, sc, duration, run_cfg=cfg):
         log = tmp_path / name
@@ -102,7 +102,7 @@ def test_lockstep_runs_are_deterministic_for_a_seed(tmp_path, shared_run):
             own_cfg = config.load(own)
             first, second = (fresh(f"{p.stem}-{i}.h5", sc, min(sc.duration_s, 6.0), own_cfg) for i in range(2))
         elif sc.duration_s <= 6.0:
-            shared = shared_run(p.stem, on_lateral_loss="stop")
+            shared = shared_run(p.stem, on_lateral_loss="stop", on_drive_loss="stop")
             first = shared.summary["seed"], shared.log_path
             second = fresh(f"{p.stem}.h5", sc, None)
         else:

@@ -82,7 +82,7 @@ def test_an_announced_outage_of_the_leading_carrier_runs_on_reconfigured(tmp_pat
 
 def test_the_paper_setup_reconfigures_onto_the_remaining_rear_wheel(tmp_path):
     cfg = config.load()
-    cfg = dataclasses.replace(cfg, degraded=dataclasses.replace(cfg.degraded, on_drive_loss="reallocate"))
+    assert cfg.degraded.on_drive_loss == "reallocate"          # as shipped (configs/sim.yaml)
     r = _outage_run(tmp_path, cfg, "single-step", "rl")
     _check_reconfigured(r, cfg, "rl", "rear")
     assert np.abs(r.col("y_r")).max() < cfg.limits.y_max / 2
@@ -140,3 +140,26 @@ def test_both_motors_of_a_carrier_lost_is_what_the_analysis_decides(tmp_path, ca
         y = np.abs(r.col(f"y_{c}")[k:]).max()
         print(f"{carrier} lost, v {v:+g}: max |y_{c}| after the outage {y * 1e3:.3f} mm")
         assert y < cfg.degraded.limits.y_max          # within the RECONFIGURED limit (the run went on)
+
+
+@pytest.mark.parametrize("scenario, wheel, t_lost", [("fault-no_heartbeat", "rl", 3.0), ("fault-two-wheels", "rr", 2.51)])
+def test_the_shipped_drive_fault_scenarios_reconfigure_on_the_shipped_sim_config(tmp_path, scenario, wheel, t_lost):
+    """configs/sim.yaml reallocates: a drive whose heartbeat stops is isolated once its
+    heartbeat is missing for the consumer's timeout, the rear carrier runs on its other wheel to
+    the end of the scenario, and the lost drive carries 0 A from that cycle (with
+    ``on_drive_loss: stop`` the same scenarios are the converter fault, tests/test_faults_e2e.py)."""
+    cfg = config.load()
+    r = run(tmp_path, scenario, cfg=cfg)
+    s = r.summary
+    assert s["final_state"] == "IDLE" and s["faults"] == [] and r.code == 0, s["faults"]
+    (e,) = s["reconfigured"]
+    assert (e["device"], e["carrier"], e["end"]) == (wheel, "rear", "IDLE") and e["check"] == "converter"
+    t, t_run = r.col("t"), r.col("t_run")
+    k = int(np.argmin(np.abs(t - e["t_start"])))
+    # the consumer's timeout after the drive's last heartbeat (at most one producer period before t_lost)
+    period = next(d.heartbeat_ms for d in cfg.devices.can.drives if d.wheel == wheel) / 1000
+    timeout = period * cfg.devices.can.heartbeat_timeout_factor
+    assert t_lost + timeout - period <= t_run[k] + 1e-9 <= t_lost + timeout + 2 * cfg.controller.h, t_run[k]
+    assert np.all(r.col(f"i_{wheel}")[k:] == 0.0) and np.any(r.col(f"i_{wheel}")[:k] != 0.0)
+    assert all(i == 0.0 for n, w, i in r.wire if w == wheel and n >= k + 1)
+    assert np.abs(r.col("y_r")).max() < cfg.limits.y_max / 2
