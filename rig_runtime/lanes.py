@@ -13,6 +13,7 @@ loss).
 
 from __future__ import annotations
 
+from functools import partial
 from operator import attrgetter
 from typing import Callable, Mapping, Optional, Sequence
 
@@ -31,7 +32,7 @@ class Lane:
 
     __slots__ = ("carrier", "wheels", "controller", "reference", "open_loop", "controlled",
                  "y", "psi", "dw", "y_ref", "u_cmd", "u", "observer", "lateral_lasers", "ft_sensors",
-                 "sched", "v_design", "signals", "_law_values")
+                 "sched", "v_design", "signals", "signal_values")
 
     def __init__(self, carrier: str, controller, reference: Callable[[float], float],
                  open_loop: Optional[Callable[[float], float]] = None,
@@ -53,9 +54,11 @@ class Lane:
         self.y_ref = 0.0
         self.u_cmd = 0.0                        # what the controller / input asked for
         self.u = 0.0                            # what the supervisor let through
-        # the law's signals (its declaration, ``law.signals``), resolved once to a getter of their values
+        # the law's signals (its declaration, ``law.signals``), resolved once: ``signal_values()`` gives
+        # them as the controller's last step left them (a controlled lane's first columns in the log row)
         self.signals = tuple(controller.law.signals) if controller is not None else ()
-        self._law_values = signal_getter(controller, self.signals) if controller is not None else None
+        self.signal_values: Callable[[], tuple[float, ...]] = \
+            partial(signal_getter(controller, self.signals), controller) if controller is not None else tuple
 
     def sense(self, m: Measurement) -> None:
         """This cycle's measurement of the carrier."""
@@ -87,11 +90,6 @@ class Lane:
                 c.resume()
         elif not c.held:
             c.hold(sch.hold_ramp_s)
-
-    def signal_values(self) -> tuple[float, ...]:
-        """The law's signals (``signals``, in that order) as its last step left them: a
-        controlled lane's first columns in the loop's log row."""
-        return self._law_values(self.controller)
 
     def log_values(self) -> tuple[float, float, float, float, float]:
         """``LANE_FIELDS`` of the loop's log (after the law's signals): u_cmd, u_lim, y_ref,
