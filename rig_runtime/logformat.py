@@ -37,6 +37,16 @@ MIN_FREE_BYTES = 32 * 2**20      # below this much free disk space the writer st
 LAW_SIGNALS_ATTR = "law_signals"
 
 
+#: how people read a signal of an SI unit (the panel, the figures): unit -> (display unit, scale)
+DISPLAY_UNITS = {"m": ("mm", 1e3), "rad": ("mrad", 1e3), "m s": ("mm s", 1e3), "rad s": ("mrad s", 1e3),
+                 "rad/s": ("mrad/s", 1e3), "A": ("A", 1.0)}
+
+
+def display_unit(unit: str) -> tuple[str, float]:
+    """(display unit, scale) of a value in SI ``unit`` (mm for m, mrad for rad; else as it is)."""
+    return DISPLAY_UNITS.get(unit, (unit, 1.0))
+
+
 def law_signals(attrs: Mapping[str, object]) -> dict[str, str]:
     """The law's signals a log's root attributes declare (``LAW_SIGNALS_ATTR``), name -> unit, in
     column order; ``{}`` for a log without them (written before they were declared) or with a

@@ -22,7 +22,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..logformat import law_signals
+from ..logformat import display_unit, law_signals
 from .plotting import pyplot
 from .runlog import CARRIER_COLUMNS, RunLog, degraded_intervals
 
@@ -292,11 +292,6 @@ def observer(run: RunLog, truth: Optional[dict] = None, title: str = ""):
     return fig
 
 
-#: SI unit of a law's signal -> (unit on the axis, scale)
-AXIS_UNIT = {"m": ("mm", 1e3), "rad": ("mrad", 1e3), "m s": ("mm s", 1e3), "rad s": ("mrad s", 1e3),
-             "rad/s": ("mrad/s", 1e3), "A": ("A", 1.0)}
-
-
 def law_columns(run: RunLog) -> dict[str, list[str]]:
     """The control law's signals the log has (``law_signals``, in the law's order): name ->
     the controlled carriers with its column ``{carrier}_{name}``; {} for a log without them."""
@@ -314,7 +309,7 @@ def law(run: RunLog, title: str = ""):
     fig, ax = plt.subplots(len(cols), 1, figsize=(9, 1.5 + 1.6 * len(cols)), sharex=True, squeeze=False)
     ax = list(ax[:, 0])
     for a, (n, carriers) in zip(ax, cols.items()):
-        unit, scale = AXIS_UNIT.get(units[n], (units[n], 1.0))
+        unit, scale = display_unit(units[n])
         for k in carriers:
             a.plot(t, c[f"{k}_{n}"] * scale, color=CARRIER_COLOR[k], lw=0.9, label=f"{n} {k}", gid=f"{n}:{k}")
         a.set_ylabel(f"{n} ({unit})" if unit else n)

@@ -29,7 +29,7 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
-from ..logformat import law_signals
+from ..logformat import display_unit, law_signals
 from ..safety import State
 
 MISSING = "-"
@@ -38,9 +38,6 @@ STATE_STYLE = {"IDLE": "dim", "ARMED": "yellow", "RUNNING": "bold green", "STOPP
 DEVICE_STYLE = {"fresh": "green", "stale": "yellow", "invalid": "bold red"}
 CARRIERS = ("front", "rear")
 MAX_EVENTS = 50
-#: SI unit of a law's signal -> (display unit, scale)
-DISPLAY_UNIT = {"m": ("mm", 1e3), "rad": ("mrad", 1e3), "m s": ("mm s", 1e3), "rad s": ("mrad s", 1e3),
-                "rad/s": ("mrad/s", 1e3), "A": ("A", 1.0)}
 MAX_FAULTS = 6
 
 
@@ -157,7 +154,7 @@ def _law(row, status, controlled, law: Mapping[str, str]) -> Table | None:
         return None
     t = Table(title="control law", title_justify="left", expand=False, box=None, pad_edge=False)
     t.add_column("carrier", justify="left")
-    shown = [(n, *DISPLAY_UNIT.get(u, (u, 1.0))) for n, u in law.items()]
+    shown = [(n, *display_unit(u)) for n, u in law.items()]
     for n, unit, _ in shown:
         t.add_column(f"{n} {unit}".rstrip(), justify="right")
     for c in carriers:
