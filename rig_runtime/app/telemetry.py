@@ -112,9 +112,10 @@ class RowSignals:
     important first): carriers, the measured speed, timing, currents, then each controlled
     carrier's law signals (``law``: the law's declared signal names, ``{carrier}_law``).
     ``base=False``: the law's groups alone, with ``timestamp`` only (the UDP output sends them
-    as a datagram of their own, so that they never crowd the health fields out). ``values(block)`` selects the needed columns of many rows with one
-    numpy take; ``message(v)`` builds the nested dict of one row from that selection by
-    position, never by looking a column up by name.
+    as a datagram of their own, so that they never crowd the health fields out).
+    ``values(block)`` selects the needed columns of many rows with one numpy take;
+    ``message(v)`` builds the nested dict of one row from that selection by position, never by
+    looking a column up by name.
     """
 
     def __init__(self, columns: Sequence[str], law: Sequence[str] = (), base: bool = True):
