@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Sequence
+from types import MappingProxyType
+from typing import Mapping, Sequence
 
 from .config import DECOUPLED_GAINS, PIPD_GAINS, DecoupledGains, PIPDGains
 from .config import Controller as ControllerConfig
@@ -131,6 +132,10 @@ class PIPDLaw:
 
     STATES = ("x_I", "e_y", "e_psi", "de_psi")      # after a step; e_y, e_psi: the previous samples
     SCHEDULED = ("K_P_y", "K_I_y")
+    #: the law's signals, by name (SI unit): each controlled carrier's log columns ``{carrier}_{name}``,
+    #: the live panel, telemetry and ``rig log plot`` show these (the runtime's record, PIPDInternals)
+    SIGNALS = MappingProxyType({"e_y": "m", "x_I": "m s", "psi_ref": "rad", "e_psi": "rad",
+                                "de_psi": "rad/s", "u_unsat": "A"})
 
     def __post_init__(self):
         den = 2.0 * self.T_f_psi + self.h
@@ -162,6 +167,11 @@ class PIPDLaw:
         e_psi = psi_ref - psi
         de = self.a * de_prev + self.b * (e_psi - e_psi_prev)
         return e_psi, de, self.K_P_psi * e_psi + self.K_D_psi * de
+
+    @property
+    def signals(self) -> Mapping[str, str]:
+        """The signals this law (with these gains) computes: ``SIGNALS``."""
+        return self.SIGNALS
 
     def discrete(self, g: float = 1.0) -> DiscreteLaw:
         """The linear law as the runtime steps it (:class:`DiscreteLaw`), at factor g."""
@@ -216,6 +226,15 @@ class DecoupledLaw(PIPDLaw):
     SCHEDULED = ("K_P_y", "K_I_y")
     INPUTS = LAW_INPUTS + ("y.front", "y.rear")
     STATES = PIPDLaw.STATES + ("x_I_psi", "d_y", "dd_y")
+    #: the PI-PD's signals plus w (the feed term ψ_ref is lowered by), w_cross (its cross-carrier
+    #: part K_x,y (d + T_x,y d̂')) and x_I_psi (the yaw integrator; only with K_I,ψ > 0)
+    SIGNALS = MappingProxyType({**PIPDLaw.SIGNALS, "w": "rad", "w_cross": "rad", "x_I_psi": "rad s"})
+
+    @property
+    def signals(self) -> Mapping[str, str]:
+        """``SIGNALS``; without x_I_psi when K_I,ψ = 0 (then no part of the law, as in :meth:`discrete`)."""
+        return self.SIGNALS if self.K_I_psi else MappingProxyType(
+            {n: u for n, u in self.SIGNALS.items() if n != "x_I_psi"})
 
     @classmethod
     def of(cls, gains: DecoupledGains, h: float) -> "DecoupledLaw":
@@ -268,6 +287,12 @@ class PLaw:
 
     K_P: float
     h: float
+
+    SIGNALS = MappingProxyType({"e_y": "m", "u_unsat": "A"})     # see PIPDLaw.SIGNALS
+
+    @property
+    def signals(self) -> Mapping[str, str]:
+        return self.SIGNALS
 
     def u(self, g, e):
         return self.K_P * g * e
@@ -540,6 +565,18 @@ class DecoupledController(PIPDController):
             self.x_I_psi -= self._dIp
             self._dIp = 0.0
         super().limit_feedback(u_applied)
+
+    # read-only accessors of the law's signals (DecoupledLaw.SIGNALS) that are not in the record ``st``
+    @property
+    def w(self) -> float:
+        """The feed term ψ_ref was lowered by in the last step (rad; in the hold ψ_ref ramps without it)."""
+        return self._w
+
+    @property
+    def w_cross(self) -> float:
+        """The feed term's cross-carrier part K_x,y (d + T_x,y d̂') of the last step (rad): the
+        law's feed at y_ref = 0 (its setpoint part vanishes), on the last step's d, d̂'."""
+        return self.law.feed(self.g, 0.0, self.d_y, self.dd_y)
 
     def set_gain(self, name: str, value: float) -> None:
         """As :meth:`PIPDController.set_gain`; a change of K_P_y, K_I_y, b_y or K_x_y keeps ψ_ref

@@ -13,10 +13,12 @@ loss).
 
 from __future__ import annotations
 
-from typing import Callable, Mapping, Optional
+from functools import partial
+from operator import attrgetter
+from typing import Callable, Mapping, Optional, Sequence
 
 from .config import RigConfig, Schedule
-from .control import make_controller
+from .control import law_of, make_controller
 from .geometry import Measurement
 from .observer import Observer, ObserverDesign, make_observers
 
@@ -30,7 +32,7 @@ class Lane:
 
     __slots__ = ("carrier", "wheels", "controller", "reference", "open_loop", "controlled",
                  "y", "psi", "dw", "y_ref", "u_cmd", "u", "observer", "lateral_lasers", "ft_sensors",
-                 "sched", "v_design")
+                 "sched", "v_design", "signals", "signal_values")
 
     def __init__(self, carrier: str, controller, reference: Callable[[float], float],
                  open_loop: Optional[Callable[[float], float]] = None,
@@ -52,6 +54,11 @@ class Lane:
         self.y_ref = 0.0
         self.u_cmd = 0.0                        # what the controller / input asked for
         self.u = 0.0                            # what the supervisor let through
+        # the law's signals (its declaration, ``law.signals``), resolved once: ``signal_values()`` gives
+        # them as the controller's last step left them (a controlled lane's first columns in the log row)
+        self.signals = tuple(controller.law.signals) if controller is not None else ()
+        self.signal_values: Callable[[], tuple[float, ...]] = \
+            partial(signal_getter(controller, self.signals), controller) if controller is not None else tuple
 
     def sense(self, m: Measurement) -> None:
         """This cycle's measurement of the carrier."""
@@ -85,8 +92,8 @@ class Lane:
             c.hold(sch.hold_ramp_s)
 
     def log_values(self) -> tuple[float, float, float, float, float]:
-        """``LANE_FIELDS`` of the loop's log: u_cmd, u_lim, y_ref, the schedule's gain factor
-        and whether the lateral loop holds (1.0/0.0)."""
+        """``LANE_FIELDS`` of the loop's log (after the law's signals): u_cmd, u_lim, y_ref,
+        the schedule's gain factor and whether the lateral loop holds (1.0/0.0)."""
         c = self.controller
         return (self.u_cmd, self.u, self.y_ref, c.g, 1.0 if c.held else 0.0)
 
@@ -128,6 +135,29 @@ class LateralPair:
     def y(self, carrier: str) -> float:
         lane = self._lanes.get(carrier)
         return lane.y if lane is not None else 0.0
+
+
+def law_signals(cfg: RigConfig) -> Mapping[str, str]:
+    """The configured law's signals by name (SI unit), as the law declares them
+    (``law.signals``, :mod:`rig_runtime.control`): every controlled carrier's lane logs them as
+    ``{carrier}_{name}`` (the same law on every carrier)."""
+    return law_of(cfg.controller).signals
+
+
+def signal_getter(controller, names: Sequence[str]) -> Callable[[object], tuple[float, ...]]:
+    """A getter of the signals ``names`` of ``controller``, resolved once: a signal is a field
+    of the controller's record of its last step (``controller.st``) or else a read-only
+    accessor of the controller by that name. Always a tuple (one per name)."""
+    paths = [f"st.{n}" if hasattr(controller.st, n) else n for n in names]
+    missing = [n for n, p in zip(names, paths) if not hasattr(controller, n) and not p.startswith("st.")]
+    if missing:
+        raise AttributeError(f"{type(controller).__name__} has no signal {', '.join(missing)}")
+    if len(paths) > 1:
+        return attrgetter(*paths)
+    if paths:
+        one = attrgetter(paths[0])
+        return lambda c: (one(c),)
+    return lambda c: ()
 
 
 def make_lanes(cfg: RigConfig, reference: Callable[[float], float] | Mapping[str, Callable[[float], float]],

@@ -32,6 +32,36 @@ RESERVED_ATTRS = frozenset({
 
 MIN_FREE_BYTES = 32 * 2**20      # below this much free disk space the writer stops cleanly
 
+#: root attribute written with the columns: the control law's signals ``{name: SI unit}`` (JSON
+#: text, in column order); each controlled carrier's columns ``{carrier}_{name}`` hold them
+LAW_SIGNALS_ATTR = "law_signals"
+
+
+#: how people read a signal of an SI unit (the panel, the figures): unit -> (display unit, scale)
+DISPLAY_UNITS = {"m": ("mm", 1e3), "rad": ("mrad", 1e3), "m s": ("mm s", 1e3), "rad s": ("mrad s", 1e3),
+                 "rad/s": ("mrad/s", 1e3), "A": ("A", 1.0)}
+
+
+def display_unit(unit: str) -> tuple[str, float]:
+    """(display unit, scale) of a value in SI ``unit`` (mm for m, mrad for rad; else as it is)."""
+    return DISPLAY_UNITS.get(unit, (unit, 1.0))
+
+
+def law_signals(attrs: Mapping[str, object]) -> dict[str, str]:
+    """The law's signals a log's root attributes declare (``LAW_SIGNALS_ATTR``), name -> unit, in
+    column order; ``{}`` for a log without them (written before they were declared) or with a
+    value that is not such a mapping."""
+    v = attrs.get(LAW_SIGNALS_ATTR) if isinstance(attrs, Mapping) else None
+    if isinstance(v, bytes):
+        v = v.decode("utf-8", "replace")
+    try:
+        d = json.loads(v) if isinstance(v, str) else None
+    except ValueError:
+        return {}
+    if not isinstance(d, dict):
+        return {}
+    return {str(k): str(u) for k, u in d.items() if isinstance(k, str) and k}
+
 
 def check_columns(columns: Sequence[str]) -> tuple[str, ...]:
     """The row's column names, validated (non-empty, unique, usable as dataset names)."""

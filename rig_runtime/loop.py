@@ -27,12 +27,11 @@ from typing import Callable, Mapping, Optional, Sequence
 
 from .clock import Clock, next_release
 from .config import WHEELS, RigConfig
-from .control import PIPDInternals
 from .gains import TuningError, admissible
 from .geometry import Measurement, measure
 from .hardware import Hardware
 from .allocation import wheel_currents
-from .lanes import Lane, make_lanes
+from .lanes import Lane, law_signals, make_lanes
 from .reconfig_analysis import table as outage_table
 from .mailbox import Command
 from .observer import LOG_FIELDS as OBSERVER_FIELDS
@@ -62,8 +61,7 @@ class RunResult:
 
 CYCLE_FIELDS = ("t", "t_run", "lateness", "work", "state", "y_ref")
 MEASUREMENT_FIELDS = Measurement._fields
-CONTROLLER_FIELDS = tuple(f for f in PIPDInternals.__dataclass_fields__ if f != "u")
-LANE_FIELDS = ("u_cmd", "u_lim", "y_ref", "g", "held")     # Lane.log_values
+LANE_FIELDS = ("u_cmd", "u_lim", "y_ref", "g", "held")     # Lane.log_values, after the law's signals
 LOGGED_KINDS = ("laser", "wheel")       # channels whose value and age are logged
 
 
@@ -84,8 +82,9 @@ def log_columns(cfg: RigConfig, channels: Sequence[Channel], extra_columns: Sequ
     cols += extra_columns
     cols += MEASUREMENT_FIELDS
     cols += speed_columns(cfg.plant)
+    lane_fields = (*law_signals(cfg), *LANE_FIELDS)     # the law's signals by name (lanes.law_signals)
     for carrier in cfg.controlled:
-        cols += (f"{carrier}_{f}" for f in CONTROLLER_FIELDS + LANE_FIELDS)
+        cols += (f"{carrier}_{f}" for f in lane_fields)
     cols += (f"i_{w}" for w in WHEELS)
     for carrier in cfg.controlled:
         if carrier in observed:
@@ -149,7 +148,6 @@ class ControlLoop:
         self._controlled = [l for l in self.lanes if l.controlled]
         self._cycle_fields = attrgetter(*CYCLE_FIELDS)
         self._logged = [c for c in self.channels if c.kind in LOGGED_KINDS]
-        self._controller_fields = attrgetter(*CONTROLLER_FIELDS)
         self._wheel_currents = itemgetter(*WHEELS)
         self._observers = [l.observer for l in self.lanes if l.observer is not None]
         # the running gear's joint filter (both carriers' lanes hold a view of it), else None
@@ -238,9 +236,8 @@ class ControlLoop:
         row += cy.wrench
         row += cy.m
         row += self.speed.log_values()
-        fields = self._controller_fields
-        for lane in self._controlled:           # CONTROLLER_FIELDS + LANE_FIELDS per controlled carrier
-            row += fields(lane.controller.st)
+        for lane in self._controlled:           # the law's signals + LANE_FIELDS per controlled carrier
+            row += lane.signal_values()
             row += lane.log_values()
         row += self._wheel_currents(cy.currents)
         for o in self._observers:

@@ -177,3 +177,32 @@ def test_without_the_sdk_a_config_error_says_how_to_install(monkeypatch, tmp_pat
         FoxgloveServer(LogInfo("run.h5", columns()))
     with pytest.raises(ConfigError, match=r"pip install 'rig-runtime\[foxglove\]'"):
         export_mcap(tmp_path / "run.h5", tmp_path / "run.mcap")
+
+
+@needs_sdk
+def test_export_mcap_has_the_law_signals_topic(tmp_path):
+    """The law's signals (the log's ``law_signals``) get a topic per controlled carrier,
+    ``/rig/<carrier>_law``, with the law's own names as fields."""
+    reader = pytest.importorskip("mcap.reader", reason="mcap reader not installed")
+    from rig_runtime.control import DecoupledLaw
+    from rig_runtime.logformat import LAW_SIGNALS_ATTR
+    law = {n: u for n, u in DecoupledLaw.SIGNALS.items() if n != "x_I_psi"}
+    cols = columns(controlled=("front", "rear")) + ("front_w", "front_w_cross", "rear_w", "rear_w_cross")
+    ix = {c: j for j, c in enumerate(cols)}
+    block = make_rows(cols, 20)
+    log = tmp_path / "run.h5"
+    write_log(log, cols, block, [(100.5, "state", "", "", math.nan, math.nan, "ARMED -> RUNNING")])
+    with h5py.File(log, "a") as f:
+        f.attrs[LAW_SIGNALS_ATTR] = json.dumps(law)
+    out = tmp_path / "run.mcap"
+    assert export_mcap(log, out) == 20
+    msgs: dict[str, list] = {}
+    with open(out, "rb") as fh:
+        for schema, channel, message in reader.make_reader(fh).iter_messages(log_time_order=True):
+            msgs.setdefault(channel.topic, []).append((schema, message))
+    for carrier in ("front", "rear"):
+        schema, message = msgs[f"/rig/{carrier}_law"][7]
+        assert schema.name == f"rig.{carrier.capitalize()}Law"
+        assert list(json.loads(schema.data)["properties"]) == ["timestamp", *law]
+        m = json.loads(message.data)
+        assert {n: m[n] for n in law} == {n: block[7, ix[f"{carrier}_{n}"]] for n in law}

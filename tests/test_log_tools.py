@@ -170,8 +170,10 @@ def test_plot_cli_and_report_write_the_same_figures(step_log, tmp_path, capsys):
     assert c == 0
     plotted = sorted(p.name for p in (tmp_path / "plots").iterdir())
     # observer.png: sim.yaml has an observer (tests/test_observer_degraded_e2e.py looks inside it)
-    assert plotted == ["forces.png", "observer.png", "response.png"] and \
-        out.split() == [str(tmp_path / "plots" / n) for n in ("response.png", "forces.png", "observer.png")]
+    # law.png: the PI-PD's signals as the law declares them (the log's law_signals)
+    assert plotted == ["forces.png", "law.png", "observer.png", "response.png"] and \
+        out.split() == [str(tmp_path / "plots" / n) for n in ("response.png", "forces.png", "observer.png",
+                                                               "law.png")]
     rep = write_report(log, tmp_path / "rep", load_scenario("single-step"), summary)
     assert sorted(p.name for p in rep) == plotted + ["summary.md"]
 

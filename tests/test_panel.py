@@ -134,3 +134,27 @@ def test_forced_panel_draws_the_latest_row():
     assert "elapsed 0:00.0" in expect
     shown = stream.getvalue()
     assert "RUNNING" in shown and "cycle work" in shown and "stale" in shown
+
+
+def test_law_signals_by_the_names_the_law_declares():
+    """The control law's table: one column per declared signal in display units, a row per
+    controlled carrier; LivePanel takes the declaration from the log's ``law_signals``."""
+    import json
+    from rig_runtime.control import DecoupledLaw
+    from rig_runtime.logformat import LAW_SIGNALS_ATTR
+    law = dict(DecoupledLaw.SIGNALS)
+    cols = columns(controlled=("front", "rear")) + tuple(f"{c}_{n}" for c in ("front", "rear")
+                                                         for n in ("w", "w_cross", "x_I_psi"))
+    row = row_dict(cols, front_w=0.0123, front_w_cross=-0.0045, rear_x_I_psi=2.5e-4, rear_u_unsat=0.75)
+    out = text_of(render(row, dict(STATUS, controlled=["front", "rear"]), (), law=law), width=200)
+    assert "control law" in out
+    for head in ("w mrad", "w_cross mrad", "x_I_psi mrad s", "u_unsat A", "de_psi mrad/s"):
+        assert head in out, head
+    law_lines = out[out.index("control law"):].splitlines()
+    front = next(ln for ln in law_lines if ln.strip().startswith("front"))
+    rear = next(ln for ln in law_lines if ln.strip().startswith("rear"))
+    assert "12.300" in front and "-4.500" in front
+    assert "0.250" in rear and "0.750" in rear
+    assert "control law" not in text_of(render(row, STATUS, ()))      # nothing declared: no table
+    panel = LivePanel(LogInfo("run.h5", cols, {LAW_SIGNALS_ATTR: json.dumps(law)}), stream=io.StringIO())
+    assert panel.law == law

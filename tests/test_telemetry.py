@@ -20,7 +20,8 @@ from rig_runtime.app.telemetry import MAX_DATAGRAM, RowSignals, UdpTelemetry, pa
 from rig_runtime.config import LASER_ROLES, WHEELS
 from rig_runtime.devices import FT_COMPONENTS
 from rig_runtime.errors import ConfigError
-from rig_runtime.loop import CONTROLLER_FIELDS, CYCLE_FIELDS, MEASUREMENT_FIELDS
+from rig_runtime.control import PIPDLaw
+from rig_runtime.loop import CYCLE_FIELDS, MEASUREMENT_FIELDS
 from rig_runtime.safety import State
 
 RECV_TIMEOUT_S = 2.0
@@ -45,7 +46,7 @@ def columns(controlled=("rear",), ft=("ft_rl", "ft_rr")) -> tuple[str, ...]:
     cols += [f"{n}_{c}" for n in ft for c in FT_COMPONENTS]
     cols += list(MEASUREMENT_FIELDS)
     for c in controlled:
-        cols += [f"{c}_{f}" for f in CONTROLLER_FIELDS] + [f"{c}_u_cmd", f"{c}_u_lim"]
+        cols += [f"{c}_{f}" for f in PIPDLaw.SIGNALS] + [f"{c}_u_cmd", f"{c}_u_lim"]
     cols += [f"i_{w}" for w in WHEELS]
     return tuple(cols)
 
@@ -317,11 +318,17 @@ def test_dry_run_streams_telemetry(tmp_path, receiver):
     cols = read_log(log)["columns"]
     row_of = {t: k for k, t in enumerate(cols["t"].tolist())}
     states = set()
+    law_rows = 0
     for d in raw:
         assert len(d) <= MAX_DATAGRAM
         msg = json.loads(d)
         assert isinstance(msg["timestamp"], float) and msg["timestamp"] in row_of, msg["timestamp"]
         k = row_of[msg["timestamp"]]
+        if "state" not in msg:          # the row's second datagram: the law's signals by the law's names
+            assert set(msg) == {"timestamp", "rear_law"} and set(msg["rear_law"]) == set(PIPDLaw.SIGNALS), msg
+            assert all(v == cols[f"rear_{n}"][k] for n, v in msg["rear_law"].items()), msg
+            law_rows += 1
+            continue
         assert msg["state"]["code"] == int(cols["state"][k]) == int(State[msg["state"]["name"]])
         for (group, name), column in FIELDS.items():
             v = cols[column][k]
@@ -331,5 +338,5 @@ def test_dry_run_streams_telemetry(tmp_path, receiver):
                 assert msg[group][name] == v, (group, name, k)
         states.add(msg["state"]["name"])
     lost = f"{len(raw)} of {len(cols['t'])} rows received (receive buffer {rcvbuf} bytes)"
-    assert "RUNNING" in states, lost
+    assert "RUNNING" in states and law_rows, lost
     assert any("devices" in json.loads(d) for d in raw), lost      # the status snapshots reached it

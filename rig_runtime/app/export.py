@@ -19,7 +19,7 @@ import h5py
 import numpy as np
 
 from ..errors import ConfigError, LogError
-from ..logformat import EVENT_FIELDS, EVENT_STR_FIELDS, LOG_FORMAT
+from ..logformat import EVENT_FIELDS, EVENT_STR_FIELDS, LAW_SIGNALS_ATTR, LOG_FORMAT, law_signals
 from ..safety import State
 
 _BLOCK = 65536          # rows read per block when exporting
@@ -180,9 +180,10 @@ def column_unit(name: str) -> str:
     return ""
 
 
-def column_header(name: str) -> str:
-    """``y_r`` -> ``y_r [m]``; a column without a unit keeps its bare name."""
-    u = column_unit(name)
+def column_header(name: str, unit: str | None = None) -> str:
+    """``y_r`` -> ``y_r [m]``; a column without a unit keeps its bare name. ``unit``: the unit
+    the log declares for it (a control law's signal), else the naming rules'."""
+    u = column_unit(name) if unit is None else unit
     return f"{name} [{u}]" if u else name
 
 
@@ -211,8 +212,10 @@ def to_csv(log_path: str | Path, out_path: str | Path, *, events: bool = True) -
         dsets = [f["cycles"][n] for n in names]
         rows = min((d.shape[0] for d in dsets), default=0)
         fmts = [state_name if n == "state" else _fmt for n in names]
+        law = law_signals({LAW_SIGNALS_ATTR: f.attrs[LAW_SIGNALS_ATTR]} if LAW_SIGNALS_ATTR in f.attrs else {})
+        units = {f"{c}_{n}": u for c in ("front", "rear") for n, u in law.items()}   # the law's own units
         with _Out(out) as fh:
-            fh.write(",".join(map(column_header, names)) + "\n")
+            fh.write(",".join(column_header(n, units.get(n)) for n in names) + "\n")
             for a in range(0, rows, _BLOCK):
                 b = min(a + _BLOCK, rows)
                 block = np.column_stack([d[a:b] for d in dsets]).tolist()

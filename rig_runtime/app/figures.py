@@ -10,7 +10,8 @@ limit, else noted in the corner), and every carrier in use (front blue, rear gre
 Artists that tests look for carry a ``gid``: ``state:<NAME>``, ``fault:<device>:<check>``,
 ``limit:+u_max`` … , ``y:<carrier>``, ``u:<carrier>``; the observer figure ``y_hat:<carrier>``,
 ``y_true:<carrier>`` (a dry run's simulated truth), ``err:<carrier>``, ``T_<m>:<carrier>`` and
-``degraded:<carrier>`` (the shaded DEGRADED intervals).
+``degraded:<carrier>`` (the shaded DEGRADED intervals); the control law's figure
+``<signal>:<carrier>`` (one panel per signal the law declares, the log's ``law_signals``).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..logformat import display_unit, law_signals
 from .plotting import pyplot
 from .runlog import CARRIER_COLUMNS, RunLog, degraded_intervals
 
@@ -290,10 +292,37 @@ def observer(run: RunLog, truth: Optional[dict] = None, title: str = ""):
     return fig
 
 
+def law_columns(run: RunLog) -> dict[str, list[str]]:
+    """The control law's signals the log has (``law_signals``, in the law's order): name ->
+    the controlled carriers with its column ``{carrier}_{name}``; {} for a log without them."""
+    out = {n: [k for k in run.controlled if f"{k}_{n}" in run.columns] for n in law_signals(run.attrs)}
+    return {n: ks for n, ks in out.items() if ks}
+
+
+def law(run: RunLog, title: str = ""):
+    """The control law's signals, one panel per signal the law declares (its unit on the axis,
+    mm/mrad for m/rad), every controlled carrier in its colour, with states and faults."""
+    plt = pyplot()
+    c, t = run.columns, run.t_rel
+    units = law_signals(run.attrs)
+    cols = law_columns(run)
+    fig, ax = plt.subplots(len(cols), 1, figsize=(9, 1.5 + 1.6 * len(cols)), sharex=True, squeeze=False)
+    ax = list(ax[:, 0])
+    for a, (n, carriers) in zip(ax, cols.items()):
+        unit, scale = display_unit(units[n])
+        for k in carriers:
+            a.plot(t, c[f"{k}_{n}"] * scale, color=CARRIER_COLOR[k], lw=0.9, label=f"{n} {k}", gid=f"{n}:{k}")
+        a.set_ylabel(f"{n} ({unit})" if unit else n)
+    law_name = run.config.get("controller", {}).get("law", "")
+    _time_panels(fig, ax, run, title or f"{run.path.name}: the control law's signals ({law_name})", ncol=2)
+    return fig
+
+
 def log_figures(run: RunLog, open_loop_carrier: Optional[str] = None, title: str = "") -> dict:
     """The figures of one run, by file stem: ``response`` always, ``forces`` when the log has
     F/T data of a carrier in use, ``psi_over_u`` for an open-loop carrier, ``observer`` when
-    the log has an observer's columns (with the simulated truth when it has that)."""
+    the log has an observer's columns (with the simulated truth when it has that), ``law``
+    when it has the control law's signals (:func:`law`)."""
     from .runlog import truth
     figs = {"response": response(run, title)}
     if has_forces(run):
@@ -302,6 +331,8 @@ def log_figures(run: RunLog, open_loop_carrier: Optional[str] = None, title: str
         figs["psi_over_u"] = psi_over_u(run, open_loop_carrier)
     if observed(run):
         figs["observer"] = observer(run, truth(run))
+    if law_columns(run):
+        figs["law"] = law(run)
     return figs
 
 

@@ -13,6 +13,8 @@ telemetry, ``rig_runtime.app.telemetry.RowSignals``, so both views show the same
     /rig/rear       same
     /rig/timing     lateness, work (s)
     /rig/currents   fl, fr, rl, rr (A)
+    /rig/front_law  the control law's signals by the names it declares (e_y, psi_ref, …; w, w_cross
+    /rig/rear_law   with law decoupled), controlled carriers only
     /rig/health     health, devices, counters             each status snapshot (~5 Hz; live only)
     /rig/events     foxglove.Log: state changes, faults, operator actions
 
@@ -30,6 +32,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from ..errors import ConfigError
+from ..logformat import law_signals
 from .telemetry import EveryNth, RowSignals, status_parts
 
 INSTALL_HINT = "the foxglove extra: pip install 'rig-runtime[foxglove]'"
@@ -70,7 +73,7 @@ def schemas(signals: RowSignals) -> dict[str, dict[str, Any]]:
     """The JSON Schema of each JSON topic (the key is the topic without ``/rig/``)."""
     out = {"state": _schema("rig.State", {"t_run": _NUMBER, "code": _COUNT, "name": {"type": "string"}})}
     for g in signals.groups:
-        out[g.key] = _schema(f"rig.{g.key.capitalize()}", {f: _NUMBER for f in g.fields})
+        out[g.key] = _schema("rig." + "".join(p.capitalize() for p in g.key.split("_")), {f: _NUMBER for f in g.fields})
     device = {"type": "object", "properties": {"state": _COUNT, "bad_frames": _COUNT, "timeouts": _COUNT,
                                                "errors": _COUNT}}
     out["health"] = _schema("rig.Health", {
@@ -90,9 +93,9 @@ class Topics:
     """The channels of one Foxglove context (a live server or an MCAP file) and the rule that
     turns rows, status snapshots and events into their messages: written once for both."""
 
-    def __init__(self, fg, context, columns: Sequence[str]):
+    def __init__(self, fg, context, columns: Sequence[str], law: Sequence[str] = ()):
         self.fg = fg
-        self.signals = RowSignals(columns)
+        self.signals = RowSignals(columns, law)
         self.channels = {key: fg.Channel(TOPIC + key, schema=s, context=context)
                          for key, s in schemas(self.signals).items()}
         self.events = fg.channels.LogChannel(TOPIC + "events", context=context)
@@ -156,7 +159,7 @@ class FoxgloveServer:
         if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port < 65536:
             raise ConfigError(None, "--foxglove", "a port 1-65535", port)
         self.context = fg.Context()
-        self.topics = Topics(fg, self.context, info.columns)
+        self.topics = Topics(fg, self.context, info.columns, tuple(law_signals(info.attrs)))
         try:
             self.server = fg.start_server(name="rig-runtime", host=host, port=port, context=self.context)
         except Exception as e:  # noqa: BLE001 - the SDK raises its own types (address in use, bad host)
@@ -196,7 +199,7 @@ def export_mcap(log_path: str | Path, out_path: str | Path) -> int:
 
     block = np.column_stack(list(cols.values())) if cols else np.empty((0, 0))
     ctx = fg.Context()
-    topics = Topics(fg, ctx, list(cols))
+    topics = Topics(fg, ctx, list(cols), tuple(law_signals(log["attrs"])))
     try:
         writer = fg.open_mcap(os.fspath(out), context=ctx)
     except Exception as e:  # noqa: BLE001 - the SDK's own error types

@@ -39,16 +39,24 @@ def _out_dir(path: str) -> Path:
 
 # ---------------------------------------------------------------------------------------- info
 @_action("info", "rows, duration, final state, faults in run time, DEGRADED intervals, scenario, config source, "
-                 "step metrics",
+                 "step metrics, the control law's signals",
          _a("log", help="HDF5 log written by rig run / rig dry-run"),
          _a("--json", action="store_true", help="print one JSON object"))
 def log_info(args: argparse.Namespace) -> int:
+    from ..logformat import law_signals
     from . import runlog
-    d = runlog.info(runlog.load(args.log))
+    run = runlog.load(args.log)
+    d = runlog.info(run)
+    d["law_signals"] = law_signals(run.attrs)      # name -> SI unit; columns <carrier>_<name>
     if args.json:
         print(json.dumps(clean(d)))
     else:
-        print("\n".join(runlog.format_info(d)))
+        lines = runlog.format_info(d)
+        if d["law_signals"]:
+            law = run.config.get("controller", {}).get("law", "")
+            lines.append(f"control law {law}: signals (columns <carrier>_<name>): "
+                         + ", ".join(f"{n} [{u}]" for n, u in d["law_signals"].items()))
+        print("\n".join(lines))
     return EXIT_OK
 
 
@@ -62,7 +70,7 @@ def open_loop_carrier(run) -> str | None:
 
 @_action("plot", "PNG figures of a log (Figs. 15-18 style, the same as --report): y, psi, dw, u with states, "
                  "faults and limits; F/T forces and moments; the observer's ŷ against y and the simulated truth "
-                 "(a dry run's), DEGRADED shaded",
+                 "(a dry run's), DEGRADED shaded; the control law's signals by name (law.png)",
          _a("log", help="HDF5 log"),
          _a("--out", metavar="DIR", help="directory for the PNGs (default: LOG without .h5, plus '-plots')"))
 def log_plot(args: argparse.Namespace) -> int:

@@ -3,7 +3,8 @@
 A sidecar output (``rig_runtime.app.panel:LivePanel``, constructed in the recording sidecar
 as ``LivePanel(info, stream=None, force=False, refresh_per_second=2)``). It shows the state
 with elapsed and remaining time (and DEGRADED: the carriers running on the observer's ŷ,
-and why — the latest DEGRADED event), the reference and y/ŷ/ψ/u of each controlled carrier, each
+and why — the latest DEGRADED event), the reference and y/ŷ/ψ/u of each controlled carrier,
+the control law's signals by the names the law declares (the log's ``law_signals``), each
 device's health and counters, the faults with their cause, and the timing monitor (cycle
 work and wake-up lateness last/p50/p99/max, deadline misses, skipped/overrun periods).
 
@@ -28,6 +29,7 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
+from ..logformat import display_unit, law_signals
 from ..safety import State
 
 MISSING = "-"
@@ -141,6 +143,22 @@ def _carriers(row, status, controlled) -> Table:
                   _fmt(row.get(f"{c}_u_cmd"), 1.0, 3), _fmt(row.get(f"{c}_u_lim"), 1.0, 3),
                   _fmt(row.get(f"{c}_g"), 1.0, 2),
                   MISSING if held is None else Text("HELD", "bold yellow") if held else "on", on)
+    return t
+
+
+def _law(row, status, controlled, law: Mapping[str, str]) -> Table | None:
+    """The control law's signals (``law``: name -> SI unit, as the law declares them), one row
+    per controlled carrier that has their columns; None without any."""
+    carriers = [c for c in _controlled(row, status, controlled) if any(f"{c}_{n}" in row for n in law)]
+    if not law or not carriers:
+        return None
+    t = Table(title="control law", title_justify="left", expand=False, box=None, pad_edge=False)
+    t.add_column("carrier", justify="left")
+    shown = [(n, *display_unit(u)) for n, u in law.items()]
+    for n, unit, _ in shown:
+        t.add_column(f"{n} {unit}".rstrip(), justify="right")
+    for c in carriers:
+        t.add_row(c, *(_fmt(row.get(f"{c}_{n}"), scale, 3) for n, _, scale in shown))
     return t
 
 
@@ -264,14 +282,19 @@ def _counters(status) -> Table | None:
 
 
 def render(row: Mapping[str, float] | None, status: Mapping | None, events: Sequence[tuple] = (), *,
-           controlled: Sequence[str] | None = None, duration_s: float | None = None) -> Group:
+           controlled: Sequence[str] | None = None, duration_s: float | None = None,
+           law: Mapping[str, str] | None = None) -> Group:
     """The panel for the latest ``row`` (column -> value), ``status`` snapshot and recent
-    ``events`` (the log's event tuples). Anything missing shows as ``-``. (One frame costs
+    ``events`` (the log's event tuples); ``law``: the control law's signals (name -> SI unit,
+    the log's ``law_signals``). Anything missing shows as ``-``. (One frame costs
     a few ms of the sidecar's CPU, hence the modest default refresh rate of LivePanel.)"""
     row = row or {}
     status = status if isinstance(status, Mapping) else {}
-    parts: list[Any] = [_header(row, status, duration_s), Text(""), _carriers(row, status, controlled), Text(""),
-                        _devices(status)]
+    parts: list[Any] = [_header(row, status, duration_s), Text(""), _carriers(row, status, controlled)]
+    signals = _law(row, status, controlled, law or {})
+    if signals is not None:
+        parts += [Text(""), signals]
+    parts += [Text(""), _devices(status)]
     counters = _counters(status)
     if counters is not None:
         parts += [Text(""), counters]
@@ -293,6 +316,7 @@ class LivePanel:
         self.columns = tuple(info.columns)
         attrs = info.attrs if isinstance(info.attrs, Mapping) else {}
         self.duration_s = _num(attrs.get("duration_s"))
+        self.law = law_signals(attrs)
         self.stream = sys.stderr if stream is None else stream   # stdout stays for results (--json)
         isatty = getattr(self.stream, "isatty", None)
         self.enabled = bool(force) or bool(isatty and isatty())
@@ -311,7 +335,7 @@ class LivePanel:
         replaced objects)."""
         row = self._row
         values = {} if row is None else dict(zip(self.columns, row.tolist()))
-        return render(values, self._status, self._events, duration_s=self.duration_s)
+        return render(values, self._status, self._events, duration_s=self.duration_s, law=self.law)
 
     def rows(self, block) -> None:
         if self.enabled and len(block):

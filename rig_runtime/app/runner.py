@@ -28,6 +28,8 @@ from ..clock import Clock, helper_cpus
 from ..config import CARRIERS, RigConfig
 from ..errors import DeviceInitError
 from ..allocation import split
+from ..lanes import law_signals
+from ..logformat import LAW_SIGNALS_ATTR
 from ..loop import ControlLoop, log_columns
 from ..recorder import Recorder
 from ..scenario import Reference, Scenario, open_loop_input
@@ -82,6 +84,7 @@ def open_recorder(cfg: RigConfig, devices, log_path: Path, attrs: dict, *, obser
     lockstep run (``when_full="wait"``) without live outputs writes its log in this process
     (``writer="inline"``: no interpreter started per run; the same writer and file)."""
     writer = "inline" if when_full == "wait" and not outputs else "sidecar"
+    attrs = {**attrs, LAW_SIGNALS_ATTR: dict(law_signals(cfg))}    # what the law's columns are (the viewers read it)
     rec = Recorder(log_path, log_columns(cfg, devices.channels(), devices.extra_columns, list(observed)),
                    attrs=attrs, buffer_cycles=cfg.recorder.buffer_cycles, flush_s=cfg.recorder.flush_s,
                    outputs=outputs, when_full=when_full, cpus=helper_cpus(cfg.realtime), writer=writer)

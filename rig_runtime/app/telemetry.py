@@ -15,6 +15,11 @@ datagram of at most ``MAX_DATAGRAM`` bytes::
      "health": {"deadline_misses": 0, "skipped_periods": 0, "recorder_healthy": 1},
      "devices": {"b_f": {"state": 0, "bad_frames": 0, "timeouts": 0, "errors": 0}, ...}}
 
+``<carrier>_law`` holds the control law's signals by the names the law declares (the log's
+``law_signals`` attribute, :func:`rig_runtime.logformat.law_signals`; its columns
+``<carrier>_<name>``), so a new law's signals appear without a change here. They travel in a
+second datagram per row, ``{"timestamp": ..., "front_law": {...}, "rear_law": {...}}`` (same
+timestamp: PlotJuggler joins them), so the first keeps its room for the health fields.
 SI units throughout (m, rad, rad/s, A, s). Values that are NaN in the row are left out of
 the datagram (JSON has no NaN; PlotJuggler shows a gap). The field set is fixed when the
 output is built: ``RowSignals`` maps the log's columns to the nested fields once (a column
@@ -41,6 +46,7 @@ import numpy as np
 
 from ..config import WHEELS
 from ..errors import ConfigError
+from ..logformat import law_signals
 from ..safety import State
 
 MAX_DATAGRAM = 2048            # bytes; PlotJuggler's UDP server reads datagrams up to this size
@@ -103,12 +109,16 @@ class RowSignals:
     """Which log columns feed which nested field, built once from the column list.
 
     ``t``, ``t_run`` and ``state`` come first, then the groups in priority order (the most
-    important first): carriers, the measured speed, timing, currents. ``values(block)`` selects the needed columns of many rows with one
-    numpy take; ``message(v)`` builds the nested dict of one row from that selection by
-    position, never by looking a column up by name.
+    important first): carriers, the measured speed, timing, currents, then each controlled
+    carrier's law signals (``law``: the law's declared signal names, ``{carrier}_law``).
+    ``base=False``: the law's groups alone, with ``timestamp`` only (the UDP output sends them
+    as a datagram of their own, so that they never crowd the health fields out).
+    ``values(block)`` selects the needed columns of many rows with one numpy take;
+    ``message(v)`` builds the nested dict of one row from that selection by position, never by
+    looking a column up by name.
     """
 
-    def __init__(self, columns: Sequence[str]):
+    def __init__(self, columns: Sequence[str], law: Sequence[str] = (), base: bool = True):
         pos = {c: i for i, c in enumerate(columns)}
         if "t" not in pos:
             raise ConfigError(None, "columns", "a row layout with a 't' column", tuple(columns)[:4])
@@ -119,7 +129,7 @@ class RowSignals:
             if have:
                 groups.append(Group(key, tuple(f for f, _ in have), tuple(i for _, i in have)))
 
-        for carrier, s in CARRIERS:
+        for carrier, s in CARRIERS if base else ():
             pairs = [("y", f"y_{s}"), ("psi", f"psi_a{s}"), ("dpsi", f"{carrier}_de_psi"),
                      ("delta_omega", f"dw_{s}")]
             if f"{carrier}_u_cmd" in pos:          # a controlled carrier: its reference and u
@@ -129,13 +139,17 @@ class RowSignals:
             # an observed carrier: the estimate and DEGRADED (1: the lane runs on y_hat)
             pairs += [("y_hat", f"{carrier}_obs_y_hat"), ("degraded", f"{carrier}_obs_degraded")]
             group(carrier, pairs)
-        group("speed", [("v", "v_meas"), ("front", "front_v"), ("rear", "rear_v")])     # measured, m/s
-        group("timing", [("lateness", "lateness"), ("work", "work")])
-        group("currents", [(w, f"i_{w}") for w in WHEELS])
+        if base:
+            group("speed", [("v", "v_meas"), ("front", "front_v"), ("rear", "rear_v")])     # measured, m/s
+            group("timing", [("lateness", "lateness"), ("work", "work")])
+            group("currents", [(w, f"i_{w}") for w in WHEELS])
+        for carrier, _ in CARRIERS:
+            if f"{carrier}_u_cmd" in pos:          # a controlled carrier: its law's signals by name
+                group(f"{carrier}_law", [(n, f"{carrier}_{n}") for n in law])
         self.groups: tuple[Group, ...] = tuple(groups)
         self._t = self.t_index = pos["t"]
-        self._t_run = pos.get("t_run", -1)
-        self._state = pos.get("state", -1)
+        self._t_run = pos.get("t_run", -1) if base else -1
+        self._state = pos.get("state", -1) if base else -1
         # one flat index array: t, t_run, state, then every group's fields in order
         flat = [self._t, max(self._t_run, self._t), max(self._state, self._t)]
         self._slices: list[tuple[str, tuple[str, ...], int, int]] = []
@@ -244,15 +258,18 @@ class UdpTelemetry:
         family, _, _, _, addr = min(found, key=lambda a: a[0] != socket.AF_INET)
         self.addr = addr
         self.signals = RowSignals(info.columns)
+        self.law = RowSignals(info.columns, tuple(law_signals(info.attrs)), base=False)   # its own datagram
         self.dropped_fields: list[str] = []
-        while len(self._encode(self.signals.worst_case())) > MAX_DATAGRAM:
-            last = self.signals.groups[-1].key     # lowest priority first
-            self.signals.drop(last)
-            self.dropped_fields.append(last)
+        for sig in (self.signals, self.law):
+            while sig.groups and len(self._encode(sig.worst_case())) > MAX_DATAGRAM:
+                last = sig.groups[-1].key     # lowest priority first
+                sig.drop(last)
+                self.dropped_fields.append(last)
         self._status_budget = MAX_DATAGRAM - len(self._encode(self.signals.worst_case())) - 1
         self._status_text = ""                     # ',"health":{...},"devices":{...}' or ""
         self.status_dropped = 0                    # snapshots that had to be shortened
         self.sent = 0
+        self.sent_law = 0                          # the law's datagrams (one per sent row)
         self.send_errors = 0
         self.last_error = ""
         self._sock = socket.socket(family, socket.SOCK_DGRAM)
@@ -281,13 +298,18 @@ class UdpTelemetry:
         if not len(block):
             return
         sock, addr = self._sock, self.addr
-        for v in self.signals.values(block):
+        law = self.law if self.law.groups else None
+        law_rows = law.values(block) if law is not None else ()
+        for i, v in enumerate(self.signals.values(block)):
             data = self.datagram(v)
             if data is None:
                 continue
             try:
                 sock.sendto(data, addr)
                 self.sent += 1
+                if law is not None:
+                    sock.sendto(self._encode(law.message(law_rows[i])), addr)
+                    self.sent_law += 1
             except OSError as e:
                 self.send_errors += 1
                 self.last_error = f"{type(e).__name__}: {e}"
