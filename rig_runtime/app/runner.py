@@ -33,10 +33,16 @@ from ..recorder import Recorder
 from ..scenario import Reference, Scenario, open_loop_input
 from . import preflight
 from .live import StatusPublisher
-from .observer_design import designs as observer_designs
 from .signals import StopSignals
 
 EXIT_OK, EXIT_CRASH, EXIT_SETUP, EXIT_FAULT = 0, 1, 2, 3
+
+
+def observer_designs(cfg: RigConfig) -> dict:
+    """The observers' designs (``observer_design.designs``; scipy's Riccati solver),
+    imported here, when a run is set up: the commands that start no run import no scipy."""
+    from .observer_design import designs
+    return designs(cfg)
 
 
 def default_log_path(prefix: str) -> Path:
