@@ -11,7 +11,6 @@ import of the driver: the simulator imports this module, not the driver.
 
 from __future__ import annotations
 
-import math
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -31,6 +30,7 @@ _SCALES = (FORCE_COUNTS_PER_N,) * 3 + (TORQUE_COUNTS_PER_NM,) * 3
 AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
 # per axis: the values an INT16 limit decodes to (lowest, highest), and how a value is shown
 _LIMITS = tuple((INT16_MIN / s, INT16_MAX / s) for s in _SCALES)
+(_F_LO, _F_HI), (_M_LO, _M_HI) = _LIMITS[0], _LIMITS[3]     # the forces' and the moments' limits
 _SHOW = ("{:+.2f} N",) * 3 + ("{:+.3f} N·m",) * 3
 _U16x6, _I16x6 = struct.Struct("=6H"), struct.Struct("=6h")   # two's complement by reinterpretation
 
@@ -55,6 +55,9 @@ class Wrench:
         at an INT16 limit (what a register of +32767 or −32768 decodes to, or beyond), e.g.
         ``"Fz saturated at +327.67 N (int16 limit)"``. Computed from the values, so it
         survives any hand-off that carries the six floats (the poll process's shared memory)."""
+        if (_F_LO < self.fx < _F_HI and _F_LO < self.fy < _F_HI and _F_LO < self.fz < _F_HI
+                and _M_LO < self.mx < _M_HI and _M_LO < self.my < _M_HI and _M_LO < self.mz < _M_HI):
+            return ""                   # every axis strictly inside (the sample of every cycle)
         out = [f"{a} saturated at {fmt.format(v)}"
                for a, v, (lo, hi), fmt in zip(AXES, self.as_tuple(), _LIMITS, _SHOW)
                if v >= hi or v <= lo]
@@ -78,18 +81,16 @@ def wrench_from_registers(regs: Sequence[int]) -> Wrench:
 def registers_from_wrench(w: Wrench) -> list[int]:
     """Encode a :class:`Wrench` as the six registers a sensor would hold (rounded to the
     nearest count, saturated at the INT16 range; NaN is refused)."""
-    return [_to_register(v, s) for v, s in zip(w.as_tuple(), _SCALES)]
-
-
-def _to_register(value: float, counts_per_unit: float) -> int:
-    """SI value -> unsigned 16-bit register (rounded, saturated at the INT16 range)."""
-    if math.isnan(value):
-        raise ValueError("NaN cannot be encoded as a register")
-    counts = value * counts_per_unit
-    if counts >= INT16_MAX:
-        n = INT16_MAX
-    elif counts <= INT16_MIN:
-        n = INT16_MIN
-    else:
-        n = round(counts)
-    return n & 0xFFFF
+    out = []
+    for value, counts_per_unit in zip((w.fx, w.fy, w.fz, w.mx, w.my, w.mz), _SCALES):
+        counts = value * counts_per_unit
+        if counts >= INT16_MAX:
+            n = INT16_MAX
+        elif counts <= INT16_MIN:
+            n = INT16_MIN
+        elif counts != counts:
+            raise ValueError("NaN cannot be encoded as a register")
+        else:
+            n = round(counts)
+        out.append(n & 0xFFFF)        # unsigned 16-bit register: two's complement
+    return out
