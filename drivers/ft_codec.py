@@ -11,7 +11,6 @@ import of the driver: the simulator imports this module, not the driver.
 
 from __future__ import annotations
 
-import math
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -78,18 +77,16 @@ def wrench_from_registers(regs: Sequence[int]) -> Wrench:
 def registers_from_wrench(w: Wrench) -> list[int]:
     """Encode a :class:`Wrench` as the six registers a sensor would hold (rounded to the
     nearest count, saturated at the INT16 range; NaN is refused)."""
-    return [_to_register(v, s) for v, s in zip(w.as_tuple(), _SCALES)]
-
-
-def _to_register(value: float, counts_per_unit: float) -> int:
-    """SI value -> unsigned 16-bit register (rounded, saturated at the INT16 range)."""
-    if math.isnan(value):
-        raise ValueError("NaN cannot be encoded as a register")
-    counts = value * counts_per_unit
-    if counts >= INT16_MAX:
-        n = INT16_MAX
-    elif counts <= INT16_MIN:
-        n = INT16_MIN
-    else:
-        n = round(counts)
-    return n & 0xFFFF
+    out = []
+    for value, counts_per_unit in zip((w.fx, w.fy, w.fz, w.mx, w.my, w.mz), _SCALES):
+        counts = value * counts_per_unit
+        if counts >= INT16_MAX:
+            n = INT16_MAX
+        elif counts <= INT16_MIN:
+            n = INT16_MIN
+        elif counts != counts:
+            raise ValueError("NaN cannot be encoded as a register")
+        else:
+            n = round(counts)
+        out.append(n & 0xFFFF)        # unsigned 16-bit register: two's complement
+    return out

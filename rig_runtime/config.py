@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import pickle
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -556,7 +557,26 @@ def _check_expansion(root: yaml.Node) -> None:
             stack.extend((c, False) for c in _node_children(node) if id(c) not in size)
 
 
+# Documents already composed and constructed in this process, by their text: a campaign or
+# synthesis worker reads the same hardware file and scenario run after run (composing a
+# config in pure-Python PyYAML is ~10 ms). The value is kept pickled, so every caller gets
+# a fresh copy it may change (``load_sections`` pops ``include``); bounded, oldest out.
+_PARSED: dict[str, bytes] = {}
+_PARSED_MAX = 64
+
+
 def _load_yaml_bounded(text: str) -> Any:
+    kept = _PARSED.get(text)
+    if kept is not None:
+        return pickle.loads(kept)
+    data = _compose_bounded(text)
+    if len(_PARSED) >= _PARSED_MAX:
+        del _PARSED[next(iter(_PARSED))]
+    _PARSED[text] = pickle.dumps(data, protocol=pickle.HIGHEST_PROTOCOL)
+    return data
+
+
+def _compose_bounded(text: str) -> Any:
     loader = _Loader(text)
     try:
         node = loader.get_single_node()

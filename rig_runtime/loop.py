@@ -32,7 +32,8 @@ from .geometry import Measurement, measure
 from .hardware import Hardware
 from .allocation import wheel_currents
 from .lanes import Lane, law_signals, make_lanes
-from .reconfig_analysis import table as outage_table
+from .memo import by_config
+from .reconfig_analysis import table as _outage_table
 from .mailbox import Command
 from .observer import LOG_FIELDS as OBSERVER_FIELDS
 from .observer import ObserverDesign
@@ -41,6 +42,7 @@ from .speed import SpeedEstimate
 from .speed import columns as speed_columns
 from .stats import CycleStats
 
+outage_table = by_config(_outage_table)     # reconfig_analysis.table, once per config in a process
 _JOINT_LASERS, _B_F, _B_R = ("b_f", "b_r"), ("b_f",), ("b_r",)     # the joint filter's lateral lasers
 
 

@@ -46,13 +46,13 @@ import time
 import tty
 from collections.abc import Mapping, Sequence
 from dataclasses import fields, replace
-from typing import Any, Optional
-
-from pymodbus.constants import ExcCodes
-from pymodbus.server import ModbusSerialServer
-from pymodbus.simulator import DataType, SimData, SimDevice
+from typing import TYPE_CHECKING, Any, Optional
 
 from rig_runtime import wires
+
+if TYPE_CHECKING:                   # pymodbus: imported where a serial (RTU) sensor or a fault needs it
+    from pymodbus.constants import ExcCodes
+    from pymodbus.server import ModbusSerialServer
 
 from drivers.ft_codec import DEFAULT_UNIT_ID, REG_COUNT, REG_START, Wrench, registers_from_wrench
 from drivers.ft_modbus import (
@@ -279,6 +279,8 @@ class VirtualFTServer:
         for name in self.names:
             if name not in self._rtu:
                 continue
+            from pymodbus.server import ModbusSerialServer
+            from pymodbus.simulator import DataType, SimData, SimDevice
             device = SimDevice(id=self.unit_id, action=self._make_action(name),
                                simdata=[SimData(REG_START, values=[0] * REG_COUNT,
                                                 datatype=DataType.REGISTERS, readonly=True)])
@@ -303,6 +305,7 @@ class VirtualFTServer:
             with self._lock:
                 fault = self._faults[name].get("out_of_range")
                 if fault is not None:
+                    from pymodbus.constants import ExcCodes
                     return ExcCodes(fault["code"])
                 registers[0:REG_COUNT] = self._registers_locked(name)
                 self._served[name] += 1
@@ -325,6 +328,7 @@ class VirtualFTServer:
 
 def _check_fault(kind: str, params: dict[str, Any]) -> dict[str, Any]:
     """Validate fault parameters; returns them with defaults filled in."""
+    from pymodbus.constants import ExcCodes
     allowed: dict[str, dict[str, Any]] = {
         "dropout": {}, "stuck": {},
         "corrupt": {"mode": "garble"},

@@ -64,6 +64,19 @@ def run_lockstep(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *
 
     ``prepare(sim, devices, clock)`` runs before the devices are configured (tests use it
     to tap the CAN wire or to wrap a device)."""
+    summary, code, _ = run_lockstep_read(cfg, scenario, log_path, seed=seed, duration_s=duration_s, prepare=prepare,
+                                         stops=stops, outputs=outputs, hold_on_fault=hold_on_fault)
+    return summary, code
+
+
+def run_lockstep_read(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *,
+                      seed: Optional[int] = None, duration_s: Optional[float] = None,
+                      prepare: Optional[Callable[[SimulatedRig, RigDevices, LockstepClock], None]] = None,
+                      stops: Optional[StopSignals] = None, outputs: Sequence[tuple[str, dict]] = (),
+                      hold_on_fault: bool = False) -> tuple[dict, int, Optional[dict]]:
+    """:func:`run_lockstep`, and the log as ``export.read_log`` reads it after the run (the
+    step metrics are computed from it; None if the recorder was not healthy): a caller that
+    needs more from the log (a campaign's metrics) does not read it a second time."""
     sim = SimulatedRig(cfg, scenario, seed=seed)
     truth = TruthRecorder(sim)
     try:
@@ -83,8 +96,12 @@ def run_lockstep(cfg: RigConfig, scenario: Optional[Scenario], log_path: Path, *
         summary["wall_us_per_cycle"] = summary["wall_time_s"] * 1e6 / max(summary["cycles"], 1)
     finally:
         sim.close()
+    read = None
     if summary["recorder"]["healthy"]:      # a log the recorder could not write is not read or added to
         if log_path is not None and Path(log_path).exists():
             truth.write(Path(log_path))
-        summary["steps"] = steps_from_log(log_path, scenario, cfg.controller.h)
-    return summary, code
+        if scenario is not None:
+            from .export import read_log
+            read = read_log(log_path)
+        summary["steps"] = steps_from_log(read, scenario, cfg.controller.h)
+    return summary, code, read

@@ -120,6 +120,19 @@ def _read_events(f: h5py.File) -> dict[str, np.ndarray]:
     return {k: a[:m] for k, a in events.items()}
 
 
+def _read_column(gid: h5py.h5g.GroupID, name: str) -> np.ndarray:
+    """One column as float64 (HDF5 converts what the file holds), read through the
+    low-level API: a third of the CPU of ``group[name][()]`` with ~100 columns a log."""
+    ds = h5py.h5d.open(gid, name.encode())
+    try:
+        out = np.empty(ds.shape, dtype=np.float64)
+        if out.size:
+            ds.read(h5py.h5s.ALL, h5py.h5s.ALL, out)
+        return out
+    finally:
+        ds.close()
+
+
 def read_log(path: str | Path) -> dict[str, Any]:
     """Read a whole log.
 
@@ -131,7 +144,8 @@ def read_log(path: str | Path) -> dict[str, Any]:
     """
     with _open(path) as f:
         names = _column_names(f)
-        cols = {n: f["cycles"][n][()].astype(np.float64, copy=False) for n in names}
+        gid = f["cycles"].id
+        cols = {n: _read_column(gid, n) for n in names}
         rows = min((len(a) for a in cols.values()), default=0)
         cols = {n: a[:rows] for n, a in cols.items()}
         events = _read_events(f)

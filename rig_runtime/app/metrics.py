@@ -92,7 +92,8 @@ def controlled_y(columns: dict, carrier: str = "rear") -> np.ndarray:
 
 
 def steps_from_log(log, scenario, h: float) -> list[dict]:
-    """``step_info`` for every reference step of ``scenario`` from a recorded run, per
+    """``step_info`` for every reference step of ``scenario`` from a recorded run (its path,
+    or what ``export.read_log`` returned for it), per
     controlled carrier (the log's ``controlled``) on that carrier's own reference
     (``scenario.reference_for``) and the y its lane controlled on (:func:`controlled_y`);
     each step names its ``carrier``. A window ends at the next change of any controlled
@@ -102,7 +103,7 @@ def steps_from_log(log, scenario, h: float) -> list[dict]:
     from .export import read_log
     if scenario is None:
         return []
-    log_d = read_log(log)
+    log_d = log if isinstance(log, dict) else read_log(log)     # a path, or the log as read_log read it
     d = log_d["columns"]
     carriers = log_d["attrs"].get("controlled") or ["rear"]
     if isinstance(carriers, str):

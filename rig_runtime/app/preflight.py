@@ -18,10 +18,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-from .. import analysis, ceilings, coupled
+from .. import ceilings, coupled
 from ..config import RigConfig
 from ..devices import require_complete
 from ..errors import ConfigError
+from ..memo import by_config
 from ..scenario import Scenario
 
 # what a fault injection can do to each kind of device (the simulated devices implement
@@ -206,6 +207,24 @@ class Plan:
                                  # "coupled" -> (v, |z|, speeds analysed, held band) of the largest |z|
 
 
+def _gate(cfg: RigConfig) -> bool:
+    from .. import analysis
+    analysis.stability_gate(cfg)        # raises UnstableLoopError: nothing is kept
+    return True
+
+
+def _sampled_loop(cfg: RigConfig, damping: float):
+    from .. import analysis
+    return analysis.sampled_loop(cfg, damping)
+
+
+# Pure functions of the config, once per config in a process (rig_runtime/memo.py): a run
+# passes the gate here and again in the runner; a warm worker runs the same config again.
+stability_gate = by_config(_gate)               # analysis.stability_gate
+coupled_analysis = by_config(coupled.analyse)
+sampled_loop = by_config(_sampled_loop)         # analysis.sampled_loop(cfg, D)
+
+
 def check_run(cfg: RigConfig, scenario: Optional[Scenario], duration_s: Optional[float], *,
               log: Optional[Path] = None, log_is_default: bool = False,
               report: Optional[str] = None) -> Plan:
@@ -216,7 +235,7 @@ def check_run(cfg: RigConfig, scenario: Optional[Scenario], duration_s: Optional
     if scenario is not None:
         validate_scenario(cfg, scenario)
     check_duration(duration_s)
-    analysis.stability_gate(cfg)
+    stability_gate(cfg)
     if log is not None:
         check_new_file(log, "--log", create_dir=log_is_default)
     if report is not None:
@@ -228,11 +247,11 @@ def check_run(cfg: RigConfig, scenario: Optional[Scenario], duration_s: Optional
     else:
         d, src = math.inf, "until SIGINT/SIGTERM"
     if coupled.applies(cfg):
-        r = coupled.analyse(cfg)
+        r = coupled_analysis(cfg)
         worst = max(r.points, key=lambda p: p.spectral_radius)
         slowest = {"coupled": (worst.v, worst.spectral_radius, len(r.points), r.band)}
     else:
-        slowest = {D: float(max(analysis.sampled_loop(cfg, D).real)) for D in (cfg.plant.D_min, cfg.plant.D_max)}
+        slowest = {D: float(max(sampled_loop(cfg, D).real)) for D in (cfg.plant.D_min, cfg.plant.D_max)}
     return Plan(cfg, scenario, d, src, Path(log) if log is not None else None, slowest)
 
 

@@ -23,7 +23,7 @@ import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
-from .. import __version__, analysis, schema
+from .. import __version__, schema
 from ..clock import Clock, helper_cpus
 from ..config import CARRIERS, RigConfig
 from ..errors import DeviceInitError
@@ -33,11 +33,18 @@ from ..logformat import LAW_SIGNALS_ATTR
 from ..loop import ControlLoop, log_columns
 from ..recorder import Recorder
 from ..scenario import Reference, Scenario, open_loop_input
+from . import preflight
 from .live import StatusPublisher
-from .observer_design import designs as observer_designs
 from .signals import StopSignals
 
 EXIT_OK, EXIT_CRASH, EXIT_SETUP, EXIT_FAULT = 0, 1, 2, 3
+
+
+def observer_designs(cfg: RigConfig) -> dict:
+    """The observers' designs (``observer_design.designs``; scipy's Riccati solver),
+    imported here, when a run is set up: the commands that start no run import no scipy."""
+    from .observer_design import designs
+    return designs(cfg)
 
 
 def default_log_path(prefix: str) -> Path:
@@ -109,7 +116,7 @@ def execute(cfg: RigConfig, devices, clock: Clock, *, scenario: Optional[Scenari
     again or a stop ends it. ``recorder_when_full="wait"``: a full recording ring is written
     out instead of dropping the row (lockstep runs only; without ``outputs`` the log is then
     written in this process, see :func:`open_recorder`)."""
-    analysis.stability_gate(cfg)        # also for callers that bypass the CLI's preflight
+    preflight.stability_gate(cfg)       # also for callers that bypass the CLI's preflight (once per config)
     # the Riccati design here, not in the loop's modules; a carrier per the set-up in rolling
     # contact only (a carrier the scenario lifts off the rollers has no (2b) and no (4))
     lifted = scenario.lifted_carrier if scenario else None

@@ -111,14 +111,15 @@ def _carrier(d: Mapping, carrier: str, run: np.ndarray, steps: list[dict]) -> di
 
 def metrics(summary: Mapping, log_path, settle_s: float = 0.0) -> dict[str, Optional[float]]:
     """The campaign metrics of one lockstep run: ``summary`` as :func:`run_lockstep` (and
-    ``rig dry-run --json``) returns it, ``log_path`` its HDF5 log. Each carrier metric per
+    ``rig dry-run --json``) returns it, ``log_path`` its HDF5 log (or the log as
+    ``export.read_log`` returned it: :func:`~rig_runtime.app.dryrun.run_lockstep_read`). Each carrier metric per
     controlled carrier (the log's ``controlled``; ``{carrier}_NAME``) on that carrier's own
     columns and reference, and the worst over them (``NAME``; ``max_abs_u_A``: the run's
     summary, the largest current any lane applied). ``settle_s``: the y, ψ, e and RMS metrics
     leave out the first seconds of RUNNING (the carrier settling from its rest state, which is
     not what a disturbance campaign asks about)."""
     from rig_runtime.app.export import read_log
-    log = read_log(log_path)
+    log = log_path if isinstance(log_path, dict) else read_log(log_path)
     d = log["columns"]
     carriers = log["attrs"].get("controlled") or ["rear"]
     carriers = [carriers] if isinstance(carriers, str) else [c for c in carriers if f"y_{c[0]}" in d]

@@ -63,7 +63,7 @@ def run_sample(job: Job) -> dict:
     from rig_runtime.app import preflight
     from rig_runtime.analysis import UnstableLoopError
     from rig_runtime.scenario import load_scenario
-    from ..dryrun import run_lockstep
+    from ..dryrun import run_lockstep_read
 
     _audit(job)
     quiet_device_libraries()
@@ -84,9 +84,9 @@ def run_sample(job: Job) -> dict:
         except UnstableLoopError as e:
             row.update(status="refused", why=str(e))
             return row
-        summary, code = run_lockstep(cfg, scenario, log, seed=job.seed, duration_s=job.duration_s)
+        summary, code, read = run_lockstep_read(cfg, scenario, log, seed=job.seed, duration_s=job.duration_s)
         from .outcome import metrics
-        values = metrics(summary, log, job.settle_s)
+        values = metrics(summary, read if read is not None else log, job.settle_s)     # the log read once
         passed, why = verdict(values, summary["final_state"], code, job.criteria, job.no_fault)
         row.update(values)
         row.update(status="pass" if passed else "fail", why=why, final_state=summary["final_state"], exit_code=code,
