@@ -189,3 +189,29 @@ def test_a_lost_scheduler_ends_the_synthesis_and_resume_completes_it(tmp_path, p
     starts = [int(l[0]) for l in started_lines(out)]
     assert set(starts) == set(range(4))
     assert all(starts.count(r["run_id"]) == 1 for r in before)    # a run with a row was not run again
+
+
+def test_a_candidate_that_breaks_a_linear_constraint_is_not_simulated(tmp_path):
+    """Cheap first: K_P_psi 80 (4 A per term > 2 A) is decided by the analysis; its lockstep run
+    gets a ``skipped`` row with the linear values and is not dispatched; within the checks it is."""
+    from rig_runtime.app.campaign import materialize
+    from rig_runtime.app.synthesis import optimize, store as sstore
+    from rig_runtime.app.synthesis.spec import load_spec
+    spec = load_spec(write_spec(tmp_path / "s.yaml", tunables={**SMALL["tunables"],
+                                                               "controller.pipd.K_P_psi": [25.0, 80.0]}))
+    out = tmp_path / "out"
+    store = sstore.create(spec, out)
+    try:
+        base = materialize.config_base(spec.config, {})
+        texts = {0: sstore.case_scenario(out, 0).read_text()}
+        seen = []
+        bad = optimize._jobs(spec, out, store, base, texts, 0, 0, {**PAPER, "controller.pipd.K_P_psi": 80.0})
+        good = optimize._jobs(spec, out, store, base, texts, 1, 0, dict(PAPER))
+        res = optimize.Outcome(finished=False)
+        kept = optimize._linear_first(spec, store, bad + good, seen.append, res)
+        assert [j.run_id for j in kept] == [good[0].run_id] and res.skipped == 1
+        assert seen[0]["status"] == "skipped" and "design_checks_failed = 2 > 0" in seen[0]["why"]
+        assert seen[0]["worst_case_input_per_term_A"] == 4.0
+        assert store.done_ids() == {bad[0].run_id}
+    finally:
+        store.close()

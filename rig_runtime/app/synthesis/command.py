@@ -101,7 +101,7 @@ def _execute(args, spec, out: Path, store) -> int:
         return 128 + (stops.signum or 0)
     best = result.best
     print(f"rig synthesize: {spec.name}: {len(result.candidates)} candidates, {n} runs ({result.evaluated} in "
-          f"{wall:.1f} s now); best feasible: {_describe(spec, best) if best else 'none'}; "
+          f"{wall:.1f} s now, {result.skipped} skipped on a linear constraint); best feasible: {_describe(spec, best) if best else 'none'}; "
           f"report: rig synthesize report {out}")
     return 0
 
