@@ -215,3 +215,19 @@ def test_a_candidate_that_breaks_a_linear_constraint_is_not_simulated(tmp_path):
         assert store.done_ids() == {bad[0].run_id}
     finally:
         store.close()
+
+
+@pytest.mark.parametrize("cmd", ["campaign", "synthesize"])
+def test_run_scaffolding_is_shared(tmp_path, capsys, cmd):
+    """`rig campaign run` and `rig synthesize run` (campaign.command.run_spec): --workers with
+    --scheduler, and a non-empty --out without --resume, are one line and exit 2 before anything runs."""
+    spec = (ROOT / "configs" / ("campaigns/vehicle-steps.yaml" if cmd == "campaign" else "synthesis/paper-pipd.yaml"))
+    code = main([cmd, "run", str(spec), "--out", str(tmp_path / "o"), "--workers", "1", "--scheduler", "tcp://x:1"])
+    err = capsys.readouterr().err
+    assert code == 2 and "either --workers (local cluster) or --scheduler, not both" in err
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "x").write_text("")
+    code = main([cmd, "run", str(spec), "--out", str(tmp_path / "full"), "--workers", "1"])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "a new or empty directory" in err
+    assert (f"continues a {'campaign' if cmd == 'campaign' else 'synthesis'}") in err
