@@ -181,10 +181,11 @@ class DecoupledGains(PIPDGains):
     K_x_y: float = check(nonneg, default=0.0)       # rad/m: ψ_ref − K_x,y (y_f − y_r) (1/(2 l0) cancels (2a)/(2b)'s coupling)
     K_I_psi: float = check(nonneg, default=0.0)     # A/(rad s): the yaw loop's integral term
     T_x_y: float = check(nonneg, default=0.0)       # s: the decoupling term's lead (on d/dt (y_f − y_r), filtered by T_f_psi)
+    K_t_y: float = check(nonneg, default=0.0)       # rad/m: the trailing carrier's ψ_ref + K_t,y |g| (y_f − y_r) (it follows the leader)
 
 
 PIPD_GAINS = ("K_P_y", "K_I_y", "K_P_psi", "K_D_psi", "T_f_psi")   # the PI-PD law's gains (PIPDGains)
-DECOUPLED_GAINS = PIPD_GAINS + ("b_y", "K_x_y", "K_I_psi", "T_x_y")                     # the decoupled law's (DecoupledGains)
+DECOUPLED_GAINS = PIPD_GAINS + ("b_y", "K_x_y", "K_I_psi", "T_x_y", "K_t_y")                   # the decoupled law's (DecoupledGains)
 P_GAINS = ("K_P",)                                                  # the P law's (Controller.K_P)
 TUNABLE_GAINS = DECOUPLED_GAINS + P_GAINS                           # what `rig ctl set` may change
 

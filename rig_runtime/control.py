@@ -200,7 +200,7 @@ class DecoupledLaw(PIPDLaw):
     :class:`PIPDLaw` per carrier, its yaw reference lowered by a feed term w read across the
     carriers, and an integral term on the yaw error:
 
-        ψ_ref = g K_P,y e_y + K_I,y x_I⁺ − w,   w = g K_P,y (1 − b_y) y_ref + K_x,y (d + T_x,y d̂')
+        ψ_ref = g K_P,y e_y + K_I,y x_I⁺ − w,   w = g K_P,y (1 − b_y) y_ref + K_x,y (d + T_x,y d̂') [− K_t,y |g| d]
         d = y_f − y_r,   d̂'⁺ = a d̂' + b (d − d_prev)  (the PD's Tustin differentiator, on d)
         u = K_P,ψ e_ψ + K_D,ψ ê_ψ⁺ + K_I,ψ x_Iψ⁺,   x_Iψ⁺ = x_Iψ + (h/2)(e_ψ + e_ψ,prev)
 
@@ -212,7 +212,14 @@ class DecoupledLaw(PIPDLaw):
       the term by the yaw loop's lag (ψ follows ψ_ref with ~0.2 s: (15)'s slow pole);
     * K_I,ψ: the yaw loop's own integrator, so that ψ reaches ψ_ref (the PD alone holds ψ at
       K K_P,ψ/(1 + K K_P,ψ) ≈ 0.2 of it, and the hysteresis of (6) moves that) — then
-      K_x,y = 1/(2 l0) decouples exactly and the outer loop is not left to fight the yaw's statics.
+      K_x,y = 1/(2 l0) decouples exactly and the outer loop is not left to fight the yaw's statics;
+    * K_t,y (the bracket: on the trailing carrier only — the rear where g > 0, the front where
+      g < 0, g's sign being the running direction): the trailing carrier follows the leading one.
+      The leading carrier's lateral mode is unstable open loop (ẏ = a (y_f − y_r), a > 0 for it);
+      where its own yaw is slow (D_max: ψ follows ψ_ref at ~0.1 1/s) only the trailing carrier's
+      yaw can hold y_f − y_r, and without this term no gains of the law keep the loop stable at
+      every D_min/D_max combination (docs/vehicle.md §5). Scaled by |g| like the outer PI: the
+      loop gain c̄_y v K_t,y |g| does not depend on the speed.
 
     With b_y = 1, K_x,y = 0 and K_I,ψ = 0 it is the PI-PD. It reads both carriers' y (inputs
     ``y.front``, ``y.rear``): in the runtime through the lanes' one cross-lane stage
@@ -222,6 +229,8 @@ class DecoupledLaw(PIPDLaw):
     K_x_y: float = 0.0
     K_I_psi: float = 0.0
     T_x_y: float = 0.0
+    K_t_y: float = 0.0
+    carrier: str | None = None     # "front"/"rear": which carrier's law (K_t,y acts on the trailing one)
 
     SCHEDULED = ("K_P_y", "K_I_y")
     INPUTS = LAW_INPUTS + ("y.front", "y.rear")
@@ -237,9 +246,14 @@ class DecoupledLaw(PIPDLaw):
             {n: u for n, u in self.SIGNALS.items() if n != "x_I_psi"})
 
     @classmethod
-    def of(cls, gains: DecoupledGains, h: float) -> "DecoupledLaw":
+    def of(cls, gains: DecoupledGains, h: float, carrier: str | None = None) -> "DecoupledLaw":
         return cls(gains.K_P_y, gains.K_I_y, gains.K_P_psi, gains.K_D_psi, gains.T_f_psi, h,
-                   b_y=gains.b_y, K_x_y=gains.K_x_y, K_I_psi=gains.K_I_psi, T_x_y=gains.T_x_y)
+                   b_y=gains.b_y, K_x_y=gains.K_x_y, K_I_psi=gains.K_I_psi, T_x_y=gains.T_x_y,
+                   K_t_y=gains.K_t_y, carrier=carrier)
+
+    def trailing(self, g) -> bool:
+        """Whether this carrier trails at the direction g's sign says (the rear where g > 0)."""
+        return self.carrier == ("rear" if g > 0 else "front")
 
     def cross(self, y_front, y_rear, d_prev, dd_prev):
         """The carriers' difference d = y_f − y_r and its filtered derivative's step: (d, d̂'⁺)."""
@@ -247,8 +261,9 @@ class DecoupledLaw(PIPDLaw):
         return d, self.a * dd_prev + self.b * (d - d_prev)
 
     def feed(self, g, y_ref, d, dd):
-        """w: what ψ_ref is lowered by (setpoint weight and decoupling)."""
-        return self.K_P_y * g * (1.0 - self.b_y) * y_ref + self.K_x_y * (d + self.T_x_y * dd)
+        """w: what ψ_ref is lowered by (setpoint weight, decoupling, the trailing carrier's following)."""
+        w = self.K_P_y * g * (1.0 - self.b_y) * y_ref + self.K_x_y * (d + self.T_x_y * dd)
+        return w - self.K_t_y * abs(g) * d if self.K_t_y and self.trailing(g) else w
 
     def inner_i(self, psi_ref, psi, e_psi_prev, de_prev, x_Ip_prev):
         """The inner PID's step: (e_ψ, ê_ψ⁺, the integration done, x_Iψ⁺, u)."""
@@ -310,7 +325,7 @@ def law_of(cfg: ControllerConfig, carrier: str | None = None) -> "PIPDLaw | PLaw
     if cfg.law == "p":
         return PLaw(cfg.K_P, cfg.h)
     if cfg.law == "decoupled":
-        return DecoupledLaw.of(cfg.decoupled, cfg.h)
+        return DecoupledLaw.of(cfg.decoupled, cfg.h, carrier)
     return PIPDLaw.of(cfg.gains(carrier) if carrier is not None else cfg.pipd, cfg.h)
 
 
@@ -513,9 +528,9 @@ class DecoupledController(PIPDController):
     law_name = "decoupled"
 
     def __init__(self, cfg: ControllerConfig, u_max: float, psi_ref_max: float | None = None,
-                 gains: DecoupledGains | None = None):
+                 gains: DecoupledGains | None = None, carrier: str | None = None):
         super().__init__(cfg, u_max, psi_ref_max, cfg.pipd)
-        self.law = DecoupledLaw.of(gains if gains is not None else cfg.decoupled, cfg.h)
+        self.law = DecoupledLaw.of(gains if gains is not None else cfg.decoupled, cfg.h, carrier)
         self.pair = None          # the cross-lane stage (lanes.LateralPair); None: the other carrier at 0
         self._fed = (0.0, 0.0, 0.0)   # y_ref, d, d̂' of the last feed term
         self.d_y = self.dd_y = 0.0    # the carriers' difference (last step) and its filtered derivative
@@ -579,7 +594,7 @@ class DecoupledController(PIPDController):
         return self.law.feed(self.g, 0.0, self.d_y, self.dd_y)
 
     def set_gain(self, name: str, value: float) -> None:
-        """As :meth:`PIPDController.set_gain`; a change of K_P_y, K_I_y, b_y or K_x_y keeps ψ_ref
+        """As :meth:`PIPDController.set_gain`; a change of K_P_y, K_I_y, b_y, K_x_y, T_x_y or K_t_y keeps ψ_ref
         (with the last step's feed term) continuous by re-seeding x_I."""
         if name not in self.GAIN_NAMES:
             raise ValueError(f"{name!r} is not a gain of the decoupled law ({', '.join(self.GAIN_NAMES)})")
@@ -588,7 +603,7 @@ class DecoupledController(PIPDController):
         st = self.st
         if name == "K_I_psi" and self._started and v:    # the integral term's share of u stays
             self.x_I_psi = old.K_I_psi * self.x_I_psi / v
-        if self._started and name in ("K_P_y", "K_I_y", "b_y", "K_x_y", "T_x_y") and old.K_I_y:
+        if self._started and name in ("K_P_y", "K_I_y", "b_y", "K_x_y", "T_x_y", "K_t_y") and old.K_I_y:
             psi_ref = old.psi_ref(self.g, st.e_y, st.x_I) - old.feed(self.g, *self._fed)
             self._w = new.feed(self.g, *self._fed)
             st.x_I = new.seed(self.g, st.e_y, psi_ref + self._w)
@@ -669,7 +684,7 @@ def make_controller(cfg: ControllerConfig, u_max: float, psi_ref_max: float | No
     if cfg.law == "p":
         return PController(cfg, u_max)
     if cfg.law == "decoupled":
-        return DecoupledController(cfg, u_max, psi_ref_max)
+        return DecoupledController(cfg, u_max, psi_ref_max, carrier=carrier)
     return PIPDController(cfg, u_max, psi_ref_max, cfg.gains(carrier) if carrier is not None else None)
 
 

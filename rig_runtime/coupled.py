@@ -310,6 +310,13 @@ class SpeedResult:
     spectral_radius: float           # sampled, max over damping_cases (what the gate judges)
     radius_D: dict                   # the damping case of that radius
     ungated_radius: Optional[float] = None   # sampled, max over the other D_min/D_max cases (reported)
+    rightmost: complex = complex(math.nan)   # continuous: the pole with the largest real part over every
+    rightmost_D: Optional[dict] = None       # D_min/D_max combination (reported), and its damping case
+
+    @property
+    def every_damping_radius(self) -> float:
+        """The sampled loop's largest |z| over every D_min/D_max combination (gated or not)."""
+        return max(self.spectral_radius, self.ungated_radius or 0.0)
 
     @property
     def stable(self) -> bool:
@@ -358,7 +365,14 @@ def at_speed(cfg: RigConfig, v: float, lay: Optional[Layout] = None) -> SpeedRes
         if r > worst:
             worst, worst_D = r, D
     other = [_radius(sampled_matrix(cfg, v, D, lay)) for D in all_damping_cases(cfg, lay.carriers) if D not in gated]
-    return SpeedResult(v, gain_factor(cfg, v), ev, worst, worst_D, max(other) if other else None)
+    right, right_D = complex(-math.inf), None
+    for D in all_damping_cases(cfg, lay.carriers):
+        with np.errstate(all="ignore"):
+            z = np.linalg.eigvals(continuous_matrix(cfg, v, D, lay))
+        z = complex(z[np.argmax(z.real)]) if len(z) else complex(-math.inf)
+        if not z.real <= right.real:                 # NaN (not computable) counts as the worst
+            right, right_D = z, D
+    return SpeedResult(v, gain_factor(cfg, v), ev, worst, worst_D, max(other) if other else None, right, right_D)
 
 
 def analyse(cfg: RigConfig) -> CoupledResult:
@@ -434,6 +448,8 @@ def to_json(r: CoupledResult) -> dict:
                     for p in r.points],
         "coupled_sampled": [{"v": p.v, "spectral_radius": p.spectral_radius, "stable": p.sampled_stable,
                              "D": p.radius_D, "ungated_spectral_radius": p.ungated_radius} for p in r.points],
+        "coupled_every_damping": [{"v": p.v, "rightmost": [p.rightmost.real, p.rightmost.imag], "D": p.rightmost_D,
+                                   "spectral_radius": p.every_damping_radius} for p in r.points],
         "coupled_setup": {"carriers_in_contact": list(r.carriers), "controlled": list(r.controlled),
                           "v_design": r.v_design, "held_band": list(r.band) if r.band else None},
     }

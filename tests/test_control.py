@@ -221,13 +221,14 @@ def _decoupled(cfg, **kw):
     import dataclasses
     from rig_runtime.config import DecoupledGains
     g = DecoupledGains(K_P_y=6.0, K_I_y=3.0, K_P_psi=40.0, K_D_psi=5.0, T_f_psi=0.034144, b_y=0.25, K_x_y=9.0,
-                       K_I_psi=60.0, T_x_y=0.1)
+                       K_I_psi=60.0, T_x_y=0.1, K_t_y=4.0)
     g = dataclasses.replace(g, **kw)
     return dataclasses.replace(cfg.controller, law="decoupled", decoupled=g), g
 
 
+@pytest.mark.parametrize("gf", [0.8, -0.8])
 @pytest.mark.parametrize("carrier", ["front", "rear"])
-def test_the_decoupled_description_is_the_law_the_runtime_steps(cfg, carrier):
+def test_the_decoupled_description_is_the_law_the_runtime_steps(cfg, carrier, gf):
     """Law decoupled: its DiscreteLaw (inputs y_ref, y, ψ, y.front, y.rear) stepped by its matrices
     gives the runtime controller's output, the other carrier's y read through the cross-lane stage."""
     from rig_runtime.control import DecoupledController, law_of
@@ -236,9 +237,9 @@ def test_the_decoupled_description_is_the_law_the_runtime_steps(cfg, carrier):
     assert isinstance(ctrl, DecoupledController)
     pair = _Pair()
     ctrl.couple(pair)
-    ctrl.set_gain_factor(0.8)
+    ctrl.set_gain_factor(gf)
     ctrl.start(0.0, 0.0, 0.0)
-    L = law_of(c, carrier).discrete(0.8)
+    L = law_of(c, carrier).discrete(gf)
     assert L.inputs == ("y_ref", "y", "psi", "y.front", "y.rear") and L.law == "decoupled"
     assert L.states == ("x_I", "e_y", "e_psi", "de_psi", "x_I_psi", "d_y", "dd_y")
     rng = np.random.default_rng(2)
@@ -256,7 +257,7 @@ def test_the_decoupled_description_is_the_law_the_runtime_steps(cfg, carrier):
 def test_decoupled_law_weights_the_setpoint_and_decouples(cfg):
     """A reference step moves ψ_ref by K_P,y b_y Δy_ref (not K_P,y Δy_ref); a difference
     y_f − y_r lowers ψ_ref by K_x,y (y_f − y_r)."""
-    c, g = _decoupled(cfg, T_x_y=0.0)
+    c, g = _decoupled(cfg, T_x_y=0.0, K_t_y=0.0)
     ctrl = make_controller(c, 1e9, None, "rear")
     pair = _Pair()
     ctrl.couple(pair)
@@ -272,8 +273,29 @@ def test_decoupled_law_weights_the_setpoint_and_decouples(cfg):
     assert c2.st.psi_ref == pytest.approx(-g.K_x_y * 2e-4, rel=1e-12)
 
 
+@pytest.mark.parametrize("gf, trailing", [(1.25, "rear"), (-1.25, "front")])
+def test_the_trailing_carrier_follows_the_leading_one(cfg, gf, trailing):
+    """K_t,y acts on the trailing carrier only (the rear where g > 0, the front where g < 0):
+    ψ_ref raised by K_t,y |g| (y_f − y_r); the leading carrier's ψ_ref has the decoupling alone."""
+    c, g = _decoupled(cfg, T_x_y=0.0, b_y=1.0, K_I_y=0.0)
+    pair = _Pair()
+    psi_ref = {}
+    for carrier in ("front", "rear"):
+        ctrl = make_controller(c, 1e9, None, carrier)
+        ctrl.couple(pair)
+        ctrl.set_gain_factor(gf)
+        pair.ys.update(front=0.0, rear=0.0)
+        ctrl.start(0.0, 0.0, 0.0)
+        pair.ys.update(front=2e-4, rear=0.0)
+        ctrl.step(0.0, 0.0, 0.0)
+        psi_ref[carrier] = ctrl.st.psi_ref
+    leading = "front" if trailing == "rear" else "rear"
+    assert psi_ref[leading] == pytest.approx(-g.K_x_y * 2e-4, rel=1e-12)
+    assert psi_ref[trailing] == pytest.approx((-g.K_x_y + g.K_t_y * abs(gf)) * 2e-4, rel=1e-12)
+
+
 @pytest.mark.parametrize("name,value", [("K_P_y", 4.0), ("K_I_y", 5.0), ("b_y", 0.6), ("K_x_y", 7.0),
-                                        ("K_I_psi", 30.0), ("T_x_y", 0.3)])
+                                        ("K_I_psi", 30.0), ("T_x_y", 0.3), ("K_t_y", 2.0)])
 def test_decoupled_gain_change_keeps_psi_ref(cfg, name, value):
     """`rig ctl set` on the outer gains, the setpoint weight or the decoupling gain: x_I is
     re-seeded so that ψ_ref (with the feed term) is what the last step made it."""

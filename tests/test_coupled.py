@@ -245,3 +245,22 @@ def test_step_response_of_the_decoupled_law_holds_the_other_carrier():
     assert np.max(np.abs(r.u["front"])) * 3e-3 < 3.0            # a 3 mm step under 3 A
     pipd = dataclasses.replace(vcfg, controller=dataclasses.replace(vcfg.controller, law="pipd"))
     assert np.max(np.abs(coupled.step_response(pipd, 1.0, D, ("front",), 15.0).y["rear"])) > 0.3
+
+
+def test_every_damping_combination_is_reported_and_the_trailing_term_makes_it_stable():
+    """rig tune's every-D report (coupled.SpeedResult.rightmost / every_damping_radius): the shipped
+    vehicle set is unstable with the leading carrier at D_max (docs/vehicle.md §3); gains of law
+    decoupled with the trailing carrier following (K_t_y, found by benchmarks/vehicle_law_reach.py
+    decoupled-t --radius-only) are stable at every combination, the same gains without it are not."""
+    vcfg = config.load(config.CONFIG_DIR / "vehicle.yaml")
+    p = coupled.at_speed(vcfg, 1.5)
+    assert p.sampled_stable and p.every_damping_radius > 1.0 and p.rightmost.real > 0
+    assert p.rightmost_D == {"front": vcfg.plant.carrier("front").D_max, "rear": vcfg.plant.carrier("rear").D_min}
+    g = dataclasses.replace(vcfg.controller.decoupled, K_P_y=0.405, K_I_y=0.00798, K_P_psi=29.05, K_D_psi=1.697,
+                            b_y=0.169, K_x_y=2.3985, T_x_y=0.6777, K_I_psi=0.0, K_t_y=12.5886)
+    following = dataclasses.replace(vcfg, controller=dataclasses.replace(vcfg.controller, decoupled=g))
+    res = coupled.analyse(following)
+    assert all(q.every_damping_radius < 1.0 and q.rightmost.real < 0 for q in res.points)
+    alone = dataclasses.replace(following, controller=dataclasses.replace(
+        following.controller, decoupled=dataclasses.replace(g, K_t_y=0.0)))
+    assert max(q.every_damping_radius for q in coupled.analyse(alone).points) > 1.0

@@ -136,7 +136,8 @@ def test_sigint_then_resume_evaluates_nothing_twice(small_run, tmp_path, procs):
                                 tmp_path))
     assert code == 0, err
     starts = [int(l[0]) for l in started_lines(out)]
-    assert sorted(starts) == list(range(8))                 # every run started exactly once
+    skipped = [r["run_id"] for r in rows(out, "SELECT run_id FROM results WHERE status = 'skipped'")]
+    assert sorted(starts + skipped) == list(range(8))       # every run started exactly once, or skipped (cheap first)
     # the same candidates and metrics as the run that was never interrupted
     keep = ("candidate", "x", "worst", "objectives", "violation", "feasible")
     again = [{k: c[k] for k in keep} for c in rows(out, "SELECT * FROM candidates ORDER BY candidate")]
@@ -187,5 +188,48 @@ def test_a_lost_scheduler_ends_the_synthesis_and_resume_completes_it(tmp_path, p
     assert code == 0, err
     assert [r["run_id"] for r in rows(out, "SELECT run_id FROM results ORDER BY run_id")] == list(range(4))
     starts = [int(l[0]) for l in started_lines(out)]
-    assert set(starts) == set(range(4))
-    assert all(starts.count(r["run_id"]) == 1 for r in before)    # a run with a row was not run again
+    skipped = {r["run_id"] for r in rows(out, "SELECT run_id FROM results WHERE status = 'skipped'")}
+    assert set(starts) | skipped == set(range(4)) and not set(starts) & skipped     # skipped: cheap first
+    assert all(starts.count(r["run_id"]) == 1 for r in before if r["run_id"] not in skipped)   # not run again
+
+
+def test_a_candidate_that_breaks_a_linear_constraint_is_not_simulated(tmp_path):
+    """Cheap first: K_P_psi 80 (4 A per term > 2 A) is decided by the analysis; its lockstep run
+    gets a ``skipped`` row with the linear values and is not dispatched; within the checks it is."""
+    from rig_runtime.app.campaign import materialize
+    from rig_runtime.app.synthesis import optimize, store as sstore
+    from rig_runtime.app.synthesis.spec import load_spec
+    spec = load_spec(write_spec(tmp_path / "s.yaml", tunables={**SMALL["tunables"],
+                                                               "controller.pipd.K_P_psi": [25.0, 80.0]}))
+    out = tmp_path / "out"
+    store = sstore.create(spec, out)
+    try:
+        base = materialize.config_base(spec.config, {})
+        texts = {0: sstore.case_scenario(out, 0).read_text()}
+        seen = []
+        bad = optimize._jobs(spec, out, store, base, texts, 0, 0, {**PAPER, "controller.pipd.K_P_psi": 80.0})
+        good = optimize._jobs(spec, out, store, base, texts, 1, 0, dict(PAPER))
+        res = optimize.Outcome(finished=False)
+        kept = optimize._linear_first(spec, store, bad + good, seen.append, res)
+        assert [j.run_id for j in kept] == [good[0].run_id] and res.skipped == 1
+        assert seen[0]["status"] == "skipped" and "design_checks_failed = 2 > 0" in seen[0]["why"]
+        assert seen[0]["worst_case_input_per_term_A"] == 4.0
+        assert store.done_ids() == {bad[0].run_id}
+    finally:
+        store.close()
+
+
+@pytest.mark.parametrize("cmd", ["campaign", "synthesize"])
+def test_run_scaffolding_is_shared(tmp_path, capsys, cmd):
+    """`rig campaign run` and `rig synthesize run` (campaign.command.run_spec): --workers with
+    --scheduler, and a non-empty --out without --resume, are one line and exit 2 before anything runs."""
+    spec = (ROOT / "configs" / ("campaigns/vehicle-steps.yaml" if cmd == "campaign" else "synthesis/paper-pipd.yaml"))
+    code = main([cmd, "run", str(spec), "--out", str(tmp_path / "o"), "--workers", "1", "--scheduler", "tcp://x:1"])
+    err = capsys.readouterr().err
+    assert code == 2 and "either --workers (local cluster) or --scheduler, not both" in err
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "x").write_text("")
+    code = main([cmd, "run", str(spec), "--out", str(tmp_path / "full"), "--workers", "1"])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "a new or empty directory" in err
+    assert (f"continues a {'campaign' if cmd == 'campaign' else 'synthesis'}") in err

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Callable
 
 from ...errors import ConfigError
 from ..command import Actions, command
@@ -51,19 +52,28 @@ def campaign_run(args: argparse.Namespace) -> int:
     except ImportError as e:
         raise ConfigError(None, "campaign", f"Dask distributed and SALib installed (pip install -e '.[campaign]'; {e})") \
             from None
+    return run_spec(args, "campaign", load_spec, lambda spec: Path("campaigns") / spec.name,
+                    prepare.reopen, prepare.create, _execute)
+
+
+def run_spec(args: argparse.Namespace, what: str, load_spec: Callable, default_out: Callable,
+             reopen: Callable, create: Callable, execute: Callable) -> int:
+    """What ``rig campaign run`` and ``rig synthesize run`` share: --workers or --scheduler (not
+    both), the spec loaded, the output directory new or empty — or, with --resume, the
+    store reopened — and the store closed however ``execute(args, spec, out, store)`` ends."""
     if args.workers and args.scheduler:
         raise ConfigError(None, "--workers", "either --workers (local cluster) or --scheduler, not both")
     spec = load_spec(args.spec)
-    out = Path(args.out) if args.out else Path("campaigns") / spec.name
+    out = Path(args.out) if args.out else default_out(spec)
     if args.resume:
-        store = prepare.reopen(spec, out)
+        store = reopen(spec, out)
     else:
         if out.exists() and any(out.iterdir()):
             raise ConfigError(None, "--out", "a new or empty directory (it holds files; --resume continues a "
-                              "campaign)", str(out))
-        store = prepare.create(spec, out)
+                              f"{what})", str(out))
+        store = create(spec, out)
     try:
-        return _execute(args, spec, out.resolve(), store)
+        return execute(args, spec, out.resolve(), store)
     finally:
         store.close()
 

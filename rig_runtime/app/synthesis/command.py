@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 from ...errors import ConfigError
-from ..campaign.command import _workers
+from ..campaign.command import _workers, run_spec
 from ..command import Actions, command
 
 ACTIONS = Actions("synthesize")
@@ -50,21 +50,8 @@ def synthesize_run(args: argparse.Namespace) -> int:
     from . import store as sstore
     from .spec import load_spec
     _requirements()
-    if args.workers and args.scheduler:
-        raise ConfigError(None, "--workers", "either --workers (local cluster) or --scheduler, not both")
-    spec = load_spec(args.spec)
-    out = Path(args.out) if args.out else Path("synthesis") / spec.name
-    if args.resume:
-        store = sstore.reopen(spec, out)
-    else:
-        if out.exists() and any(out.iterdir()):
-            raise ConfigError(None, "--out", "a new or empty directory (it holds files; --resume continues a "
-                              "synthesis)", str(out))
-        store = sstore.create(spec, out)
-    try:
-        return _execute(args, spec, out.resolve(), store)
-    finally:
-        store.close()
+    return run_spec(args, "synthesis", load_spec, lambda spec: Path("synthesis") / spec.name,
+                    sstore.reopen, sstore.create, _execute)
 
 
 def _execute(args, spec, out: Path, store) -> int:
@@ -101,7 +88,7 @@ def _execute(args, spec, out: Path, store) -> int:
         return 128 + (stops.signum or 0)
     best = result.best
     print(f"rig synthesize: {spec.name}: {len(result.candidates)} candidates, {n} runs ({result.evaluated} in "
-          f"{wall:.1f} s now); best feasible: {_describe(spec, best) if best else 'none'}; "
+          f"{wall:.1f} s now, {result.skipped} skipped on a linear constraint); best feasible: {_describe(spec, best) if best else 'none'}; "
           f"report: rig synthesize report {out}")
     return 0
 

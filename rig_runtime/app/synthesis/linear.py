@@ -12,6 +12,8 @@ import numpy as np
 LINEAR: dict[str, str] = {
     "spectral_radius": "largest |z| of the sampled closed loop as implemented, over the analysed speeds and every "
                        "D_min/D_max combination (< 1: stable)",
+    "max_pole_real_every_D_1_s": "largest real part of the continuous coupled loop's poles over the analysed speeds "
+                                 "and every D_min/D_max combination, 1/s (a vehicle config)",
     "max_pole_real_1_s": "largest real part of the continuous closed loop's poles, 1/s (the coupled loop over the "
                          "analysed speeds on a vehicle config; (19) on the paper's set-up)",
     "worst_case_input_per_term_A": "Sec. 5.2.3: the larger of K_P,psi psi_design and K_D,psi psi_rate_design, A",
@@ -34,7 +36,8 @@ def linear_criteria(cfg, names) -> dict[str, Optional[float]]:
         with np.errstate(all="ignore"):
             r = analysis.tune(cfg)
             vehicle = coupled.applies(cfg)
-            co = coupled.analyse(cfg) if {"spectral_radius", "max_pole_real_1_s"} & set(names) else None
+            co = (coupled.analyse(cfg) if {"spectral_radius", "max_pole_real_1_s", "max_pole_real_every_D_1_s"} & set(names)
+                  else None)
             for n in names:
                 if n in _CHECKS:
                     out[n] = float(r.checks[_CHECKS[n]]["value"])
@@ -42,6 +45,8 @@ def linear_criteria(cfg, names) -> dict[str, Optional[float]]:
                     out[n] = float(len(analysis.tune_failures(cfg, r)))
                 elif n == "spectral_radius":
                     out[n] = max(max(p.spectral_radius, p.ungated_radius or 0.0) for p in co.points)
+                elif n == "max_pole_real_every_D_1_s":
+                    out[n] = max(p.rightmost.real for p in co.points) if vehicle else None
                 elif n == "max_pole_real_1_s":
                     out[n] = (max(p.least_damped.real for p in co.points) if vehicle
                               else float(np.max(np.real(r.closed_loop))))

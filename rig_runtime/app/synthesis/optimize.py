@@ -3,6 +3,11 @@ Dask evaluates every (candidate, case) run that has no row yet (the campaign's d
 a window of the cluster's threads, a clean stop, a lost scheduler), the min-max verdict of
 each candidate is told back.
 
+Cheap first: a candidate's simulated runs are dispatched only if its configs meet every
+linear criterion with a demand (:func:`_linear_first`: the design checks and the stability
+at every damping case are decided by the analysis in a fraction of a second; a lockstep run
+takes tens of seconds).
+
 Resumable: the algorithm is seeded from the spec, so replaying it from the start with the
 stored results (told back as they were) proposes the same candidates again — each proposal
 is compared with the one recorded (:func:`.store.propose`) — and only runs without a row are
@@ -10,7 +15,7 @@ dispatched. Nothing is evaluated twice."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -33,6 +38,7 @@ class Outcome:
     finished: bool                          # every generation evaluated (False: stopped)
     best: Optional[dict] = None             # the best feasible candidate so far
     evaluated: int = 0                      # runs dispatched in this invocation
+    skipped: int = 0                        # simulated runs not dispatched: a hard linear constraint failed
     candidates: list = field(default_factory=list)
 
 
@@ -94,6 +100,7 @@ def run(spec, out: Path, store, client, *, stop_requested: Callable[[], bool],
             jobs += _jobs(spec, out, store, base, texts, k, gen, dict(zip(names, x)))
         done = store.done_ids()
         todo = [j for j in jobs if j.run_id not in done]
+        todo = _linear_first(spec, store, todo, on_row, outcome)
         if todo:
             def row_in(job, row):
                 store.add_result(row, None)
@@ -124,6 +131,51 @@ def run(spec, out: Path, store, client, *, stop_requested: Callable[[], bool],
         gen += 1
     outcome.finished = True
     return outcome
+
+
+def hard_linear(spec) -> tuple:
+    """The linear criteria with a demand: constraints the analysis decides without a run."""
+    return tuple(c for c in spec.criteria if c.linear and c.demand is not None)
+
+
+def linear_refusal(spec, values: dict) -> Optional[str]:
+    """Why a config's linear criteria (``values``) break a hard constraint, or None."""
+    for c in hard_linear(spec):
+        v = values.get(c.name)
+        if v is None or not v <= c.demand:
+            return f"linear constraint {c.name} = {'undefined' if v is None else f'{v:.6g}'} > {c.demand:g}"
+    return None
+
+
+def _linear_first(spec, store, todo: list, on_row, outcome: Outcome) -> list:
+    """Cheap first: the linear criteria of each simulated run's config, here, before any
+    lockstep run; a run whose config breaks a hard linear constraint (a design check, the
+    stability at every damping case) gets its row now — status ``skipped``, the linear values,
+    no metrics (undefined: the candidate is infeasible) — and is not dispatched. One analysis
+    per distinct config (the cases of a candidate differ mostly in scenario and seed)."""
+    if not hard_linear(spec):
+        return todo
+    from .task import evaluate
+    cache: dict[str, dict] = {}
+    keep = []
+    for job in todo:
+        if not job.simulate:
+            keep.append(job)
+            continue
+        text = job.run.config_text
+        if text not in cache:
+            lin = evaluate(replace(job, simulate=False))
+            cache[text] = {n: lin.get(n) for n in spec.linear_names} if lin.get("status") != "error" else None
+        values = cache[text]
+        why = "linear criteria not computable" if values is None else linear_refusal(spec, values)
+        if why is None:
+            keep.append(job)
+            continue
+        row = {"run_id": job.run_id, "status": "skipped", "why": why, "error": "", "faults": "[]", **(values or {})}
+        store.add_result(row, None)
+        outcome.skipped += 1
+        on_row(row)
+    return keep
 
 
 def _better(spec, a, b) -> bool:
