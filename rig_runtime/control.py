@@ -236,7 +236,7 @@ class DecoupledLaw(PIPDLaw):
     INPUTS = LAW_INPUTS + ("y.front", "y.rear")
     STATES = PIPDLaw.STATES + ("x_I_psi", "d_y", "dd_y")
     #: the PI-PD's signals plus w (the feed term ψ_ref is lowered by), w_cross (its cross-carrier
-    #: part K_x,y (d + T_x,y d̂')) and x_I_psi (the yaw integrator; only with K_I,ψ > 0)
+    #: part K_x,y (d + T_x,y d̂') − K_t,y |g| d on the trailing carrier) and x_I_psi (the yaw integrator; only with K_I,ψ > 0)
     SIGNALS = MappingProxyType({**PIPDLaw.SIGNALS, "w": "rad", "w_cross": "rad", "x_I_psi": "rad s"})
 
     @property
@@ -589,8 +589,9 @@ class DecoupledController(PIPDController):
 
     @property
     def w_cross(self) -> float:
-        """The feed term's cross-carrier part K_x,y (d + T_x,y d̂') of the last step (rad): the
-        law's feed at y_ref = 0 (its setpoint part vanishes), on the last step's d, d̂'."""
+        """The feed term's cross-carrier part of the last step (rad): K_x,y (d + T_x,y d̂'), and
+        − K_t,y |g| d on the trailing carrier; the law's feed at y_ref = 0 (its setpoint part
+        vanishes), on the last step's d, d̂'."""
         return self.law.feed(self.g, 0.0, self.d_y, self.dd_y)
 
     def set_gain(self, name: str, value: float) -> None:

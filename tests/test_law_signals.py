@@ -121,9 +121,13 @@ def test_vehicle_log_has_the_law_signals_with_the_values_the_law_computed(vcfg, 
     dd = np.zeros_like(d)
     for n in range(1, len(d)):
         dd[n] = law.a * dd[n - 1] + law.b * (d[n] - d[n - 1])
-    cross = law.K_x_y * (d + law.T_x_y * dd)
-    assert np.max(np.abs(cross)) > 1e-3                     # the term acts (mrad), not a column of zeros
+    decouple = law.K_x_y * (d + law.T_x_y * dd)
+    assert np.max(np.abs(decouple)) > 1e-3                  # the term acts (mrad), not a column of zeros
     for k in ("front", "rear"):
+        # the trailing carrier (the rear at v > 0) also follows the leading one: − K_t,y |g| d
+        trails = np.array([DecoupledLaw.of(vcfg.controller.decoupled, vcfg.controller.h, carrier=k).trailing(g)
+                           for g in c[f"{k}_g"][i]])
+        cross = decouple - np.where(trails, law.K_t_y * np.abs(c[f"{k}_g"][i]) * d, 0.0)
         np.testing.assert_allclose(c[f"{k}_w_cross"][i], cross, rtol=0, atol=1e-12)
         w = law.K_P_y * c[f"{k}_g"][i] * (1.0 - law.b_y) * c[f"{k}_y_ref"][i] + cross
         np.testing.assert_allclose(c[f"{k}_w"][i], w, rtol=0, atol=1e-12)
