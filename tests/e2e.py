@@ -130,6 +130,7 @@ REALTIME_TOLERANCE = {
     "limits.stale_periods": _PERIODS,               # an input may be up to 60 periods old
     "devices.can.watchdog_ms": int(REALTIME_STALL_S * 1000),   # the drives' RPDO watchdog
     "devices.can.heartbeat_timeout_factor": 5.0,    # consumers: 100 ms x 5 = the 500 ms ceiling
+    "degraded.torque_hold_s": REALTIME_STALL_S,     # a drive's torque answer may be as late as its other inputs
 }
 
 

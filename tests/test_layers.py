@@ -18,6 +18,7 @@ module level or inside a function; the registry's ``importlib`` strings are not 
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -40,6 +41,18 @@ def _modules() -> dict[str, Path]:
             name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
             out[name] = p
     return out
+
+
+def _tree(path: Path) -> ast.Module:
+    """The module's syntax tree, parsed once per file version (every test here reads the
+    whole tree of modules, some of them several times; nothing changes a tree)."""
+    st = path.stat()
+    return _parsed(path, st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=None)
+def _parsed(path: Path, mtime_ns: int, size: int) -> ast.Module:
+    return ast.parse(path.read_text(), str(path))
 
 
 def _import_nodes(tree: ast.Module, toplevel: bool) -> list[ast.Import | ast.ImportFrom]:
@@ -69,7 +82,7 @@ def _imports(name: str, path: Path, known: set[str], *, toplevel: bool = False,
     is_pkg = path.name == "__init__.py"
     base = name.split(".") if is_pkg else name.split(".")[:-1]
     found = set()
-    for node in _import_nodes(ast.parse(path.read_text(), str(path)), toplevel):
+    for node in _import_nodes(_tree(path), toplevel):
         if external:
             if isinstance(node, ast.Import):
                 found |= {a.name.split(".")[0] for a in node.names}

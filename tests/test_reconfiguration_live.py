@@ -12,12 +12,14 @@ import time
 
 import pytest
 
+from rig_runtime.config import Degraded
 from sim_backend.launcher import start_sim_process
 
 from .e2e import REALTIME_CEILINGS, REALTIME_TOLERANCE, config_with, realtime_sim_config
 from .test_sim_process import SIM_RT_ARGS, rig_run_cmd
 
 T_OUT = 3.0
+TORQUE_HOLD_S = Degraded().torque_hold_s
 
 
 def _sim_and_config(tmp_path):
@@ -27,7 +29,9 @@ def _sim_and_config(tmp_path):
     sp = start_sim_process(config=realtime_sim_config(tmp_path), scenario=scen, extra_args=SIM_RT_ARGS,
                            workdir=tmp_path / "sim")
     run_cfg = config_with(sp.config_path, tmp_path / "run.yaml",
-                          {**REALTIME_TOLERANCE, "degraded.on_drive_loss": "reallocate"}, ceilings=REALTIME_CEILINGS)
+                          {**REALTIME_TOLERANCE, "degraded.on_drive_loss": "reallocate",
+                           # the detection this test times: the shipped hold, not the stall allowance
+                           "degraded.torque_hold_s": TORQUE_HOLD_S}, ceilings=REALTIME_CEILINGS)
     return sp, run_cfg
 
 

@@ -58,9 +58,23 @@ def _run(tmp_path, name: str, wires: str, duration_s: float, prepare=None) -> tu
     return summary, read_log(log)
 
 
+@pytest.fixture(scope="module")
+def memory_run(tmp_path_factory):
+    """``memory_run(name)``: ``_run`` of a case over memory wires for its CASES duration, made
+    once per module and shared by the tests that only read it (the equivalence test and the
+    check that the cut durations reach the fault)."""
+    done: dict = {}
+
+    def get(name: str) -> tuple[dict, dict]:
+        if name not in done:
+            done[name] = _run(tmp_path_factory.mktemp("memory"), name, "memory", CASES[name])
+        return done[name]
+    return get
+
+
 @pytest.mark.parametrize("name", sorted(CASES))
-def test_memory_and_kernel_wires_give_the_same_log(tmp_path, name):
-    s_mem, mem = _run(tmp_path, name, "memory", CASES[name])
+def test_memory_and_kernel_wires_give_the_same_log(tmp_path, name, memory_run):
+    s_mem, mem = memory_run(name)
     s_ker, ker = _run(tmp_path, name, "kernel", CASES[name])
     assert mem["rows"] == ker["rows"] > 0
     assert list(mem["columns"]) == list(ker["columns"])
@@ -78,12 +92,13 @@ def test_memory_and_kernel_wires_give_the_same_log(tmp_path, name):
     assert s_mem["faults"] == s_ker["faults"]
 
 
-def test_the_scenarios_reach_their_fault_and_step(tmp_path):
+def test_the_scenarios_reach_their_fault_and_step(memory_run):
     """The cut durations still contain what each scenario is about: fault-corrupt trips the
-    corrupt check, degraded-dropout goes DEGRADED (memory wires)."""
-    _, log = _run(tmp_path, "fault-corrupt", "memory", CASES["fault-corrupt"])
+    corrupt check, degraded-dropout goes DEGRADED (memory wires: the runs the equivalence
+    test compared)."""
+    _, log = memory_run("fault-corrupt")
     assert "corrupt" in set(log["events"]["check"])
-    _, log = _run(tmp_path, "degraded-dropout", "memory", CASES["degraded-dropout"])
+    _, log = memory_run("degraded-dropout")
     kinds = set(log["events"]["kind"]) | set(log["events"]["message"])
     assert any("DEGRADED" in str(k) or "degraded" in str(k) for k in kinds)
 

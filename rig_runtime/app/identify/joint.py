@@ -25,6 +25,7 @@ STEP_FINE_S = 1.0     # after every input change of a steps record: every sample
 STEP_EVERY = 10       # then every 10th
 SINE_EVERY_S = 0.25
 SKIP_S = 20.0         # residuals start here (initial hysteresis state unknown)
+_MEMO = 64            # residuals of one record kept by their parameters (a Jacobian needs 10 per record)
 
 
 def _steps_grid(e: Experiment):
@@ -53,14 +54,30 @@ def refine(P: PlantParams, steps_exps: list[Experiment], sine_exps: list[Experim
     data = [(e, *_steps_grid(e), 0) for e in steps_exps] + [(e, *_sine_grid(e), 1) for e in sine_exps]
     bw = P.bouc_wen
 
+    # A record's residual depends on the common parameters and its own kind's offset only:
+    # the Jacobian column of psi_off_steps leaves the sines' residuals as they were at x, that
+    # of psi_off the steps' ones. Those are taken from the evaluation at x (the same numbers).
+    memo: dict = {}
+
     def res(x):
         K, a, s, d, dmin, dmax, lc, off_st, off_sn = x
-        base = yaw_params(P, K=K, D_min=dmin, D_max=max(dmax, dmin), c_udot_max=float(np.exp(lc)),
-                          bouc_wen=bouc_wen(a, 0.5 * (s + d), 0.5 * (s - d)))
+        xb = np.asarray(x, float)
+        common = xb[:7].tobytes()           # by their bits: -0.0 and 0.0 are not taken for one another
+        base = None
         out = []
-        for e, ii, ok, kind in data:
-            Pp = yaw_params(base, psi_off=off_sn if kind else off_st)
-            out.append((e.psi[ii] - _sim(Pp, e, ii))[ok])
+        for i, (e, ii, ok, kind) in enumerate(data):
+            key = (i, common, xb[8 if kind else 7].tobytes())
+            r = memo.get(key)
+            if r is None:
+                if base is None:
+                    base = yaw_params(P, K=K, D_min=dmin, D_max=max(dmax, dmin), c_udot_max=float(np.exp(lc)),
+                                      bouc_wen=bouc_wen(a, 0.5 * (s + d), 0.5 * (s - d)))
+                Pp = yaw_params(base, psi_off=off_sn if kind else off_st)
+                r = (e.psi[ii] - _sim(Pp, e, ii))[ok]
+                if len(memo) >= _MEMO:
+                    memo.pop(next(iter(memo)))
+                memo[key] = r
+            out.append(r)
         return np.concatenate(out)
     x0 = [P.K, bw.a, bw.beta + bw.gamma, bw.beta - bw.gamma, P.D_min, P.D_max, np.log(P.c_udot_max),
           psi_off_steps, P.psi_off]
