@@ -390,6 +390,10 @@ JOINT_LEAD = (("front", "lat"), ("rear", "lat"), ("front", "psi"), ("rear", "psi
 #: p = 0.003 per window without a fault; far below any innovation_chi2 that makes sense): the
 #: drift test costs ~10 µs, the bias test ~2, and it only has to name what is found
 DRIFT_GATE = 9.0
+#: cycles past the gate the same fault must explain the innovations best before the views name it (a drift's
+#: onset inside the window fits neither hypothesis well: a lateral laser's looked like a yaw pair's
+#: for ~0.1 s; b_f and b_r count as one — a lateral finding isolates both)
+LEAD_CONFIRM = 40
 
 
 @dataclass(frozen=True)
@@ -522,6 +526,8 @@ class JointObserver:
         self._rsum = [0.0] * 6
         self._rsum1 = [0.0] * 6                  # Σ k ν_k over the window (k = 0 oldest … N−1)
         self.lead = -1                           # the measurement the drift/bias test names (-1: none)
+        self._lead_key = -1                      # its group (both lateral lasers: 0) and for how long
+        self._lead_n = 0
         self._nfull = 0                          # cycles of the window on all lasers
         self._i = self._n = 0
         self.T = [0.0] * 6
@@ -562,7 +568,8 @@ class JointObserver:
                 r[k] = 0.0
         for k in range(6):
             self._rsum[k] = self._rsum1[k] = self.T[k] = 0.0
-        self.lead = -1
+        self.lead = self._lead_key = -1
+        self._lead_n = 0
         self._nfull = 0
         self._i = self._n = 0
         self.outage = 0
@@ -679,16 +686,26 @@ class JointObserver:
                 T[0], T[1], T[2] = w0 * w0 * invN, w1 * w1 * invN, w2 * w2 * invN
                 T[3], T[4], T[5] = w3 * w3 * invN, w4 * w4 * invN, w5 * w5 * invN
                 mx = max(T)
+                j = T.index(mx)
                 if mx > DRIFT_GATE and self.d.drift:
                     self._drift_test(T)
                     mx = max(T)
-                self.lead = T.index(mx)
+                    j = T.index(mx)
+                    key = 0 if j < 2 else j        # counted only past the gate, where something is found
+                    if key == self._lead_key:
+                        self._lead_n += 1
+                    else:
+                        self._lead_key, self._lead_n = key, 1
+                else:
+                    self._lead_key, self._lead_n = -1, 0
+                self.lead = j
             else:                                # a laser out: each measurement's own statistic
                 inv = self._inv[s]                   # (normalised by this set's variances)
                 for j in range(6):
                     z = rs[j] * inv[j]
                     T[j] = z * z * invN
-                self.lead = -1
+                self.lead = self._lead_key = -1
+                self._lead_n = 0
 
     def _drift_test(self, T: list) -> None:
         """The drift test of every measurement (``JointDesign.drift``) into ``T``: a bias that
@@ -721,6 +738,8 @@ class JointObserver:
         j = self.lead
         if j < 0:
             f.lead = r.lead = None
+        elif self._lead_n < LEAD_CONFIRM:
+            f.lead = r.lead = ""                  # not yet confirmed: no carrier's rule names it
         else:
             car, kind = JOINT_LEAD[j]
             f.lead, r.lead = (kind, "") if car == "front" else ("", kind)

@@ -82,14 +82,17 @@ def test_every_gain_set_is_a_stable_filter_and_ignores_the_lost_laser(joint, vcf
 def test_a_single_lost_laser_keeps_sigma_far_below_the_bound(vcfg, v):
     """The finding that keeps the vehicle running: with one lateral laser lost the joint
     filter's σ_y levels off at a few µm (both carriers, both directions) — the per-carrier
-    filter's leading carrier passed 0.1 mm within 0.1 s."""
+    filters' leading carrier, which drops both lasers, levels off 5× higher (near the bound
+    with q_psi_acc 0.2; it passed 0.1 mm within 0.1 s at 0.5, before the hysteresis was in the model)."""
     j = od.joint_design(vcfg, v=v)
     bound = vcfg.degraded.sigma_y_max
+    worst = 0.0
     for s in (1, 2):
         for tab in j.sigma_y[s]:
             assert max(tab) < 0.2 * bound
+            worst = max(worst, max(tab))
     per_carrier = [od.design(vcfg, c, v=v).sigma_y_outage for c in ("front", "rear")]
-    assert max(max(t) for t in per_carrier) > bound
+    assert max(max(t) for t in per_carrier) > 5 * worst
 
 
 def test_the_step_estimates_both_carriers_from_one_laser(joint, vcfg):
