@@ -120,12 +120,26 @@ def zmap(z: float, dpsi: float, A: float, beta: float, gamma: float) -> float:
 
 
 class _YawState:
-    """The non-linearities' own state of one carrier: ẑ, the filter residual, the last current."""
+    """The non-linearities' own state of one carrier: ẑ, the filter residual, the last current
+    (and, once :meth:`bind` has been given the model, its constants as plain floats: the cycle
+    reads them here instead of on the model)."""
 
-    __slots__ = ("z", "e", "u", "acc")
+    __slots__ = ("z", "e", "u", "acc", "_m", "_gain", "_ef", "_irm", "_kmin", "_c", "_top", "_dD")
 
     def __init__(self) -> None:
         self.z = self.e = self.u = self.acc = 0.0
+        self._m = None
+
+    def bind(self, m: YawModel) -> None:
+        """The model's constants, unpacked (the same for every speed of a table: they do not
+        depend on v)."""
+        if m is self._m:
+            return
+        self._m = m
+        self._gain, self._ef, self._irm = m.gain, m.ef, m.irc * m.mid
+        self._c = 2.0 * m.w0 * m.h
+        self._kmin = math.exp(-self._c * (m.D_min - m.D0))    # D = D_min (the input moves)
+        self._top, self._dD = m.D_max - m.D0, m.D_max - m.D_min
 
     def start(self, psi: float, u: float) -> None:
         self.z, self.e, self.u = psi, 0.0, u     # at rest: z = ψ (the plant's rest state), filter settled
@@ -134,13 +148,16 @@ class _YawState:
     def inputs(self, m: YawModel, psi: float, u: float) -> tuple[float, float]:
         """(the equivalent current of the hysteresis term, the yaw rate's extra decay) over the
         period ahead, with the current ``u`` held over it (advances the filter residual)."""
+        if m is not self._m:
+            self.bind(m)
         r = self.e + (u - self.u)
         self.u = u
-        self.e = r * m.ef
-        rho = (r if r >= 0.0 else -r) * m.irc * m.mid
-        D = m.D_min if rho >= 1.0 else m.D_max - rho * (m.D_max - m.D_min)
-        x = 2.0 * m.w0 * (D - m.D0) * m.h
-        return m.gain * (psi - self.z), (math.exp(-x) if x != 0.0 else 1.0)
+        self.e = r * self._ef
+        rho = (r if r >= 0.0 else -r) * self._irm
+        if rho >= 1.0:
+            return self._gain * (psi - self.z), self._kmin
+        x = self._c * (self._top - rho * self._dD)
+        return self._gain * (psi - self.z), (math.exp(-x) if x < 40.0 else 0.0)
 
     def follow(self, m: YawModel, dpsi: float) -> None:
         """ẑ after the estimate's change of ψ over the period."""
@@ -602,14 +619,35 @@ class JointObserver:
         A, Bu, BF, c = d.A, d.Bu, d.BF, d.c
         x0, x1, x2, x3, x4, x5 = x
         # the hysteresis and damping law of each carrier: known inputs from the estimate
+        # (_YawState.inputs written out for both carriers: this is the cycle's hot path)
         ymf, ymr = d.front.yaw, d.rear.yaw
         ef, er, kf, kr = u_f, u_r, 1.0, 1.0
         if ymf is not None:
-            hf, kf = self._ys_f.inputs(ymf, x1, u_f)
-            ef = u_f + hf
+            ys = self._ys_f
+            if ys._m is not ymf:
+                ys.bind(ymf)
+            q = ys.e + (u_f - ys.u)
+            ys.u, ys.e = u_f, q * ys._ef
+            rho = (q if q >= 0.0 else -q) * ys._irm
+            if rho >= 1.0:
+                kf = ys._kmin
+            else:
+                q = ys._c * (ys._top - rho * ys._dD)
+                kf = math.exp(-q) if q < 40.0 else 0.0
+            ef = u_f + ys._gain * (x1 - ys.z)
         if ymr is not None:
-            hr, kr = self._ys_r.inputs(ymr, x4, u_r)
-            er = u_r + hr
+            ys = self._ys_r
+            if ys._m is not ymr:
+                ys.bind(ymr)
+            q = ys.e + (u_r - ys.u)
+            ys.u, ys.e = u_r, q * ys._ef
+            rho = (q if q >= 0.0 else -q) * ys._irm
+            if rho >= 1.0:
+                kr = ys._kmin
+            else:
+                q = ys._c * (ys._top - rho * ys._dD)
+                kr = math.exp(-q) if q < 40.0 else 0.0
+            er = u_r + ys._gain * (x4 - ys.z)
         # predict: the yaw rows depend on their own carrier's ψ, ψ̇ and u only (the design's
         # block structure, exact zeros elsewhere: JointDesign)
         p0 = (A[0] * x0 + A[1] * x1 + A[2] * x2 + A[3] * x3 + A[4] * x4 + A[5] * x5
@@ -637,10 +675,22 @@ class JointObserver:
         x[3] = p3 + K[18] * n0 + K[19] * n1 + K[20] * n2 + K[21] * n3 + K[22] * n4 + K[23] * n5
         x[4] = p4 + K[24] * n0 + K[25] * n1 + K[26] * n2 + K[27] * n3 + K[28] * n4 + K[29] * n5
         x[5] = p5 + K[30] * n0 + K[31] * n1 + K[32] * n2 + K[33] * n3 + K[34] * n4 + K[35] * n5
-        if ymf is not None:
-            self._ys_f.follow(ymf, x[1] - x1)
+        if ymf is not None:                     # ẑ follows ψ̂ past the dead band (_YawState.follow)
+            ys = self._ys_f
+            q = ys.acc + x[1] - x1
+            if q >= ymf.dead or -q >= ymf.dead:
+                if ys._gain != 0.0:
+                    ys.z = zmap(ys.z, q, ymf.A, ymf.beta, ymf.gamma)
+                q = 0.0
+            ys.acc = q
         if ymr is not None:
-            self._ys_r.follow(ymr, x[4] - x4)
+            ys = self._ys_r
+            q = ys.acc + x[4] - x4
+            if q >= ymr.dead or -q >= ymr.dead:
+                if ys._gain != 0.0:
+                    ys.z = zmap(ys.z, q, ymr.A, ymr.beta, ymr.gamma)
+                q = 0.0
+            ys.acc = q
         self.set = s
         self.outage = 0 if s == 0 else self.outage + 1
         self._window(s)
