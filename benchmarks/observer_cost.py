@@ -5,11 +5,15 @@ repeated timings per call, µs. Then the vehicle's running-gear filter (``JointO
 both carriers, vehicle.yaml's speed table) with its per-laser fitness checks, the innovation
 rule on both carriers' views and their log rows: the observer's cost per cycle on the vehicle.
 
-    python benchmarks/observer_cost.py
+    python benchmarks/observer_cost.py [--linear]
+
+``--linear``: the vehicle's filter without the hysteresis and damping law in its model
+(``observer.yaw_model: false``), for the comparison.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import statistics
@@ -53,6 +57,9 @@ def main() -> None:
     assert math.isfinite(o.y)
 
     vcfg = config.load(config.resolve_config_path("vehicle.yaml"))
+    if "--linear" in sys.argv:              # the hysteresis and damping law left out (observer.yaw_model off)
+        vcfg = dataclasses.replace(vcfg, observer=dataclasses.replace(vcfg.observer, yaw_model=False))
+    print(f"\nvehicle.yaml, observer.yaw_model {vcfg.observer.yaw_model}")
     j = JointObserver(joint_speed_table(vcfg))
     j.select(1.0)
     args = (0.071, 0.0705, True, True, 1e-3, 1e-3, 0.01, 0.01, 0.1, 0.1, 1.0, 1.0)

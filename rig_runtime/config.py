@@ -313,6 +313,7 @@ class Observer:
     q_y: float = check(positive, default=1.0e-5)            # lateral velocity noise density (unmodelled forces), m/s per √Hz
     q_psi_acc: float = check(positive, default=2.0)         # yaw acceleration noise (hysteresis, damping), rad/s² per √Hz
     D: Optional[float] = check(positive, default=None)      # damping of (6) in the model (None: plant.D_min)
+    yaw_model: bool = True   # the plant's hysteresis (9) and damping law (7) as a known nonlinear input (docs/observer.md)
 
 
 @dataclass(frozen=True, kw_only=True)

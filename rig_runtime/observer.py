@@ -63,6 +63,113 @@ LOG_FIELDS = ("y_hat", "psi_hat", "psi_rate_hat", "nu_lat", "nu_psi", "nu_dw",
 
 
 @dataclass(frozen=True)
+class YawModel:
+    """The plant's yaw non-linearities of Sec. 4.3.3–4.3.4 (sim_backend/plant.py: (7) and (9)),
+    which the linear model (6) leaves out, as plain numbers for a known nonlinear input computed
+    from the estimate (docs/observer.md, "The hysteresis and the damping in the model"):
+
+    - hysteresis: the restoring term of (9) is ω0²(a ψ + (1 − a) z), (6) has ω0² ψ; the
+      difference ω0²(1 − a)(ψ − z) enters as the equivalent current ``gain``·(ψ̂ − ẑ),
+      ``gain`` = (1 − a)/K, with ẑ the Bouc-Wen state driven by ψ̂ (n = 1, the exact map);
+      ``gain`` 0: no hysteresis. ẑ moves only once ψ̂ has moved by ``dead`` since its last
+      move (4 σ of the yaw measurement): the map's unloading branch is 70× steeper than ψ at a
+      saturated z, so every reversal of ψ̂'s measurement jitter would ratchet ẑ towards 0 —
+      the plant's ψ does not jitter;
+    - damping law (7): D from the input's filter residual (udot = residual/τ), exactly as the
+      plant computes it from the same held current; the damping beyond the model's ``D0``
+      decays the predicted yaw rate by exp(−2ω0 (D − D0) h) (split off the linear step: D
+      reaches 100, 2ω0·100·h = 19 — an explicit input would not be stable)."""
+
+    gain: float          # (1 − a)/K, A/rad
+    A: float
+    beta: float
+    gamma: float
+    w0: float            # ω0, rad/s
+    D0: float            # the damping of the linear model
+    D_min: float
+    D_max: float
+    irc: float           # 1/(τ c_udot_max): |residual| → ρ = |udot|/c_udot_max
+    ef: float            # exp(−h/τ): the filter residual's decay over a period
+    mid: float           # exp(−h/(2τ)): ρ at mid-period
+    h: float
+    dead: float = 0.0    # rad: ψ̂'s motion that moves ẑ (its jitter does not)
+
+
+def zmap(z: float, dpsi: float, A: float, beta: float, gamma: float) -> float:
+    """The Bouc-Wen state (9) (n = 1) after a monotone change ``dpsi`` of ψ: dz/dψ = A − κ z,
+    κ = β sign(dψ) + γ sign(z), exact, through at most one zero crossing of z (the plant's map,
+    sim_backend/plant.py, written again for the estimate: the core does not import the
+    simulator)."""
+    if dpsi == 0.0:
+        return z
+    s = 1.0 if dpsi > 0.0 else -1.0
+    for _ in range(2):
+        sig = 1.0 if z > 0.0 else (-1.0 if z < 0.0 else (s if A >= 0.0 else -s))
+        kap = beta * s + gamma * sig
+        slope = A - kap * z
+        kd = kap * dpsi
+        zn = z - slope * math.expm1(-kd) / kap if kd != 0.0 else z + slope * dpsi
+        if z == 0.0 or zn * z >= 0.0:
+            return zn
+        d = math.log1p(-kap * z / A) / kap if (kap != 0.0 and A != 0.0) else -z / slope
+        dpsi -= d
+        z = 0.0
+        if dpsi * s <= 0.0:
+            return 0.0
+    return z
+
+
+class _YawState:
+    """The non-linearities' own state of one carrier: ẑ, the filter residual, the last current
+    (and, once :meth:`bind` has been given the model, its constants as plain floats: the cycle
+    reads them here instead of on the model)."""
+
+    __slots__ = ("z", "e", "u", "acc", "_m", "_gain", "_ef", "_irm", "_kmin", "_c", "_top", "_dD")
+
+    def __init__(self) -> None:
+        self.z = self.e = self.u = self.acc = 0.0
+        self._m = None
+
+    def bind(self, m: YawModel) -> None:
+        """The model's constants, unpacked (the same for every speed of a table: they do not
+        depend on v)."""
+        if m is self._m:
+            return
+        self._m = m
+        self._gain, self._ef, self._irm = m.gain, m.ef, m.irc * m.mid
+        self._c = 2.0 * m.w0 * m.h
+        self._kmin = math.exp(-self._c * (m.D_min - m.D0))    # D = D_min (the input moves)
+        self._top, self._dD = m.D_max - m.D0, m.D_max - m.D_min
+
+    def start(self, psi: float, u: float) -> None:
+        self.z, self.e, self.u = psi, 0.0, u     # at rest: z = ψ (the plant's rest state), filter settled
+        self.acc = 0.0
+
+    def inputs(self, m: YawModel, psi: float, u: float) -> tuple[float, float]:
+        """(the equivalent current of the hysteresis term, the yaw rate's extra decay) over the
+        period ahead, with the current ``u`` held over it (advances the filter residual)."""
+        if m is not self._m:
+            self.bind(m)
+        r = self.e + (u - self.u)
+        self.u = u
+        self.e = r * self._ef
+        rho = (r if r >= 0.0 else -r) * self._irm
+        if rho >= 1.0:
+            return self._gain * (psi - self.z), self._kmin
+        x = self._c * (self._top - rho * self._dD)
+        return self._gain * (psi - self.z), (math.exp(-x) if x < 40.0 else 0.0)
+
+    def follow(self, m: YawModel, dpsi: float) -> None:
+        """ẑ after the estimate's change of ψ over the period."""
+        if m.gain != 0.0:
+            a = self.acc + dpsi
+            if a >= m.dead or -a >= m.dead:
+                self.z = zmap(self.z, a, m.A, m.beta, m.gamma)
+                a = 0.0
+            self.acc = a
+
+
+@dataclass(frozen=True)
 class ObserverDesign:
     """A carrier's filter as plain numbers (row-major tuples), made at configure time.
 
@@ -97,6 +204,7 @@ class ObserverDesign:
     sigma_y_outage: tuple[float, ...] = ()
     v: float = math.nan                       # the speed the design is for (m/s)
     table: Optional["SpeedTable"] = None      # designs over the schedule's speeds (None: this one only)
+    yaw: Optional[YawModel] = None            # the hysteresis and damping law as a known input (None: not modelled)
 
     @property
     def channels(self) -> tuple[str, ...]:
@@ -125,7 +233,7 @@ class Observer:
     __slots__ = ("d", "carrier", "started", "y", "psi", "rate", "nu_lat", "nu_psi", "nu_dw",
                  "T_lat", "T_psi", "T_dw", "lat_used", "_ring", "_sum", "_i", "_n", "_N",
                  "_is", "_is_nl", "mean_lat", "mean_dw", "degraded", "outage", "sigma_y", "_sig",
-                 "_fw", "_bw", "_lref", "_ilr", "_klo", "_khi")
+                 "_fw", "_bw", "_lref", "_ilr", "_klo", "_khi", "_ys", "lead")
 
     def __init__(self, design: ObserverDesign):
         self.d = design
@@ -147,6 +255,8 @@ class Observer:
         self._i = 0
         self._n = 0                              # samples in the window so far (up to N)
         self._is, self._is_nl = _inverse_stds(design)
+        self._ys = _YawState()
+        self.lead = None                        # the rules judge in their order (JointObserver's views decide)
         # the speed table, ready to swap in: (design, 1/√S_full, 1/√S_nolat, σ table) per grid point
         t = design.table
         self._fw = self._bw = None
@@ -192,12 +302,17 @@ class Observer:
             self.y = y_meas if lat_ok else 0.0
             self.psi = psi_meas
             self.rate = 0.0
+            self._ys.start(psi_meas, u_held)
             return
         A, B, E, F, c = d.A, d.B, d.E, d.F, d.c
         y, p, r = self.y, self.psi, self.rate
-        yp = A[0] * y + A[1] * p + A[2] * r + B[0] * u_held + E[0] * y_other + F[0] * f_lat + c[0]
-        pp = A[3] * y + A[4] * p + A[5] * r + B[1] * u_held + E[1] * y_other + F[1] * f_lat + c[1]
-        rp = A[6] * y + A[7] * p + A[8] * r + B[2] * u_held + E[2] * y_other + F[2] * f_lat + c[2]
+        ym, ue, decay = d.yaw, u_held, 1.0
+        if ym is not None:                      # the hysteresis and damping law: a known input
+            dh, decay = self._ys.inputs(ym, p, u_held)
+            ue = u_held + dh
+        yp = A[0] * y + A[1] * p + A[2] * r + B[0] * ue + E[0] * y_other + F[0] * f_lat + c[0]
+        pp = A[3] * y + A[4] * p + A[5] * r + B[1] * ue + E[1] * y_other + F[1] * f_lat + c[1]
+        rp = (A[6] * y + A[7] * p + A[8] * r + B[2] * ue + E[2] * y_other + F[2] * f_lat + c[2]) * decay
         gy, gr, gu = d.dw_row
         n_psi = psi_meas - pp
         n_dw = dw_meas - (gy * yp + gr * rp + gu * u_held)
@@ -225,6 +340,8 @@ class Observer:
             z_lat = 0.0                         # not in the update: no evidence this cycle
             z_psi, z_dw = n_psi * inv[0], n_dw * inv[1]
             self.outage += 1
+        if ym is not None:
+            self._ys.follow(ym, self.psi - p)
         sig = self._sig
         if sig:
             k = self.outage
@@ -284,6 +401,16 @@ def dw_row(cfg) -> tuple[float, float, float]:
 JOINT_MEASUREMENTS = ("b_f", "b_r", "psi_f", "psi_r", "dw_f", "dw_r")
 #: the measurement sets by index 2·(b_f not fit) + (b_r not fit): the measurements used
 JOINT_SETS = ((0, 1, 2, 3, 4, 5), (0, 2, 3, 4, 5), (1, 2, 3, 4, 5), (2, 3, 4, 5))
+#: each joint measurement's carrier view and the kind of its statistic there
+JOINT_LEAD = (("front", "lat"), ("rear", "lat"), ("front", "psi"), ("rear", "psi"), ("front", "dw"), ("rear", "dw"))
+#: the bias statistic beyond which the drift test is computed and published instead (χ²(1):
+#: p = 0.003 per window without a fault; far below any innovation_chi2 that makes sense): the
+#: drift test costs ~10 µs, the bias test ~2, and it only has to name what is found
+DRIFT_GATE = 9.0
+#: cycles past the gate the same fault must explain the innovations best before the views name it (a drift's
+#: onset inside the window fits neither hypothesis well: a lateral laser's looked like a yaw pair's
+#: for ~0.1 s; b_f and b_r count as one — a lateral finding isolates both)
+LEAD_CONFIRM = 40
 
 
 @dataclass(frozen=True)
@@ -298,6 +425,7 @@ class CarrierPart:
     encoders: tuple[str, ...]
     ft_sensors: tuple[str, ...]
     dw_row: tuple[float, float, float]
+    yaw: Optional[YawModel] = None           # the carrier's hysteresis and damping law (None: not modelled)
 
     @property
     def channels(self) -> tuple[str, ...]:
@@ -331,6 +459,9 @@ class JointDesign:
     #: 6×6, row j: the weights w_j of the bias test on measurement j over the window's summed
     #: innovations (all lasers in use; observer_design._isolation_weights)
     isolation: tuple[float, ...] = ()
+    #: 6×15, row j: the drift test on measurement j (observer_design._ramp_weights): u_j (6),
+    #: l_j (6) and the inverse information matrix (M⁻¹₁₁, M⁻¹₁₂, M⁻¹₂₂) of (β0, ρ)
+    drift: tuple[float, ...] = ()
 
     @property
     def lateral_lasers(self) -> tuple[str, str]:
@@ -363,7 +494,7 @@ class CarrierView:
 
     __slots__ = ("joint", "carrier", "d", "y", "psi", "rate", "nu_lat", "nu_psi", "nu_dw", "T_lat", "T_psi",
                  "T_dw", "lat_used", "mean_lat", "mean_dw", "degraded", "outage", "sigma_y", "window_full",
-                 "started")
+                 "started", "lead")
 
     def __init__(self, joint: "JointObserver", carrier: str):
         self.joint = joint
@@ -379,6 +510,10 @@ class CarrierView:
         self.sigma_y = 0.0
         self.window_full = False
         self.started = False
+        #: the kind ("lat", "psi", "dw") of this carrier's measurement whose fault explains the
+        #: joint filter's innovations best, "" when it is the other carrier's, None: not decided
+        #: (a laser out: each statistic on its own; the rules then judge in their order)
+        self.lead: Optional[str] = None
 
     def select(self, v: float) -> None:
         self.joint.select(v)
@@ -406,11 +541,16 @@ class JointObserver:
         self._N = N
         self._raw = [[0.0] * N for _ in JOINT_MEASUREMENTS]     # the innovations themselves
         self._rsum = [0.0] * 6
+        self._rsum1 = [0.0] * 6                  # Σ k ν_k over the window (k = 0 oldest … N−1)
+        self.lead = -1                           # the measurement the drift/bias test names (-1: none)
+        self._lead_key = -1                      # its group (both lateral lasers: 0) and for how long
+        self._lead_n = 0
         self._nfull = 0                          # cycles of the window on all lasers
         self._i = self._n = 0
         self.T = [0.0] * 6
         self.nu = [0.0] * 6
         self._inv = tuple(tuple(1.0 / math.sqrt(s) for s in S) for S in design.S)
+        self._ys_f, self._ys_r = _YawState(), _YawState()
         self.front = CarrierView(self, "front")
         self.rear = CarrierView(self, "rear")
         t = design.table
@@ -444,7 +584,9 @@ class JointObserver:
             for k in range(self._N):
                 r[k] = 0.0
         for k in range(6):
-            self._rsum[k] = self.T[k] = 0.0
+            self._rsum[k] = self._rsum1[k] = self.T[k] = 0.0
+        self.lead = self._lead_key = -1
+        self._lead_n = 0
         self._nfull = 0
         self._i = self._n = 0
         self.outage = 0
@@ -468,22 +610,54 @@ class JointObserver:
                 x[0] = x[3] = 0.0
             x[1], x[4] = psi_f, psi_r
             x[2] = x[5] = 0.0
+            self._ys_f.start(psi_f, u_f)
+            self._ys_r.start(psi_r, u_r)
             f, r = self.front, self.rear
             f.started = r.started = True
             self._publish(ok_f, ok_r)
             return
         A, Bu, BF, c = d.A, d.Bu, d.BF, d.c
         x0, x1, x2, x3, x4, x5 = x
+        # the hysteresis and damping law of each carrier: known inputs from the estimate
+        # (_YawState.inputs written out for both carriers: this is the cycle's hot path)
+        ymf, ymr = d.front.yaw, d.rear.yaw
+        ef, er, kf, kr = u_f, u_r, 1.0, 1.0
+        if ymf is not None:
+            ys = self._ys_f
+            if ys._m is not ymf:
+                ys.bind(ymf)
+            q = ys.e + (u_f - ys.u)
+            ys.u, ys.e = u_f, q * ys._ef
+            rho = (q if q >= 0.0 else -q) * ys._irm
+            if rho >= 1.0:
+                kf = ys._kmin
+            else:
+                q = ys._c * (ys._top - rho * ys._dD)
+                kf = math.exp(-q) if q < 40.0 else 0.0
+            ef = u_f + ys._gain * (x1 - ys.z)
+        if ymr is not None:
+            ys = self._ys_r
+            if ys._m is not ymr:
+                ys.bind(ymr)
+            q = ys.e + (u_r - ys.u)
+            ys.u, ys.e = u_r, q * ys._ef
+            rho = (q if q >= 0.0 else -q) * ys._irm
+            if rho >= 1.0:
+                kr = ys._kmin
+            else:
+                q = ys._c * (ys._top - rho * ys._dD)
+                kr = math.exp(-q) if q < 40.0 else 0.0
+            er = u_r + ys._gain * (x4 - ys.z)
         # predict: the yaw rows depend on their own carrier's ψ, ψ̇ and u only (the design's
         # block structure, exact zeros elsewhere: JointDesign)
         p0 = (A[0] * x0 + A[1] * x1 + A[2] * x2 + A[3] * x3 + A[4] * x4 + A[5] * x5
-              + Bu[0] * u_f + Bu[1] * u_r + BF[0] * F_f + BF[1] * F_r + c[0])
-        p1 = A[7] * x1 + A[8] * x2 + Bu[2] * u_f + c[1]
-        p2 = A[13] * x1 + A[14] * x2 + Bu[4] * u_f + c[2]
+              + Bu[0] * ef + Bu[1] * er + BF[0] * F_f + BF[1] * F_r + c[0])
+        p1 = A[7] * x1 + A[8] * x2 + Bu[2] * ef + c[1]
+        p2 = (A[13] * x1 + A[14] * x2 + Bu[4] * ef + c[2]) * kf
         p3 = (A[18] * x0 + A[19] * x1 + A[20] * x2 + A[21] * x3 + A[22] * x4 + A[23] * x5
-              + Bu[6] * u_f + Bu[7] * u_r + BF[6] * F_f + BF[7] * F_r + c[3])
-        p4 = A[28] * x4 + A[29] * x5 + Bu[9] * u_r + c[4]
-        p5 = A[34] * x4 + A[35] * x5 + Bu[11] * u_r + c[5]
+              + Bu[6] * ef + Bu[7] * er + BF[6] * F_f + BF[7] * F_r + c[3])
+        p4 = A[28] * x4 + A[29] * x5 + Bu[9] * er + c[4]
+        p5 = (A[34] * x4 + A[35] * x5 + Bu[11] * er + c[5]) * kr
         gf, gr = d.front.dw_row, d.rear.dw_row
         s = (0 if ok_f else 2) + (0 if ok_r else 1)
         n0 = zf - (ff * p0 + fr * p3) if ok_f else 0.0
@@ -501,6 +675,22 @@ class JointObserver:
         x[3] = p3 + K[18] * n0 + K[19] * n1 + K[20] * n2 + K[21] * n3 + K[22] * n4 + K[23] * n5
         x[4] = p4 + K[24] * n0 + K[25] * n1 + K[26] * n2 + K[27] * n3 + K[28] * n4 + K[29] * n5
         x[5] = p5 + K[30] * n0 + K[31] * n1 + K[32] * n2 + K[33] * n3 + K[34] * n4 + K[35] * n5
+        if ymf is not None:                     # ẑ follows ψ̂ past the dead band (_YawState.follow)
+            ys = self._ys_f
+            q = ys.acc + x[1] - x1
+            if q >= ymf.dead or -q >= ymf.dead:
+                if ys._gain != 0.0:
+                    ys.z = zmap(ys.z, q, ymf.A, ymf.beta, ymf.gamma)
+                q = 0.0
+            ys.acc = q
+        if ymr is not None:
+            ys = self._ys_r
+            q = ys.acc + x[4] - x4
+            if q >= ymr.dead or -q >= ymr.dead:
+                if ys._gain != 0.0:
+                    ys.z = zmap(ys.z, q, ymr.A, ymr.beta, ymr.gamma)
+                q = 0.0
+            ys.acc = q
         self.set = s
         self.outage = 0 if s == 0 else self.outage + 1
         self._window(s)
@@ -508,8 +698,16 @@ class JointObserver:
 
     def _window(self, s: int) -> None:
         i, N, nu = self._i, self._N, self.nu
-        rs = self._rsum
+        rs, r1 = self._rsum, self._rsum1
         q0, q1, q2, q3, q4, q5 = self._raw
+        # the time-weighted sums first (from the sums before this cycle): every sample's k drops by 1
+        m = N - 1
+        r1[0] += m * nu[0] - rs[0] + q0[i]
+        r1[1] += m * nu[1] - rs[1] + q1[i]
+        r1[2] += m * nu[2] - rs[2] + q2[i]
+        r1[3] += m * nu[3] - rs[3] + q3[i]
+        r1[4] += m * nu[4] - rs[4] + q4[i]
+        r1[5] += m * nu[5] - rs[5] + q5[i]
         rs[0] += nu[0] - q0[i]
         rs[1] += nu[1] - q1[i]
         rs[2] += nu[2] - q2[i]
@@ -537,11 +735,43 @@ class JointObserver:
                 w5 = W[30] * a0 + W[31] * a1 + W[32] * a2 + W[33] * a3 + W[34] * a4 + W[35] * a5
                 T[0], T[1], T[2] = w0 * w0 * invN, w1 * w1 * invN, w2 * w2 * invN
                 T[3], T[4], T[5] = w3 * w3 * invN, w4 * w4 * invN, w5 * w5 * invN
+                mx = max(T)
+                j = T.index(mx)
+                if mx > DRIFT_GATE and self.d.drift:
+                    self._drift_test(T)
+                    mx = max(T)
+                    j = T.index(mx)
+                    key = 0 if j < 2 else j        # counted only past the gate, where something is found
+                    if key == self._lead_key:
+                        self._lead_n += 1
+                    else:
+                        self._lead_key, self._lead_n = key, 1
+                else:
+                    self._lead_key, self._lead_n = -1, 0
+                self.lead = j
             else:                                # a laser out: each measurement's own statistic
                 inv = self._inv[s]                   # (normalised by this set's variances)
                 for j in range(6):
                     z = rs[j] * inv[j]
                     T[j] = z * z * invN
+                self.lead = self._lead_key = -1
+                self._lead_n = 0
+
+    def _drift_test(self, T: list) -> None:
+        """The drift test of every measurement (``JointDesign.drift``) into ``T``: a bias that
+        grows over the window, as a drifting laser's does, is named by the measurement whose
+        drift explains the innovations best (the bias test cannot tell a lateral laser's ramp
+        from a yaw pair's bias: its lag term)."""
+        D, s0, s1 = self.d.drift, self._rsum, self._rsum1
+        a0, a1, a2, a3, a4, a5 = s0
+        b0, b1, b2, b3, b4, b5 = s1
+        for j in range(6):
+            o = 15 * j
+            u0, u1, u2, u3, u4, u5, l0, l1, l2, l3, l4, l5, i11, i12, i22 = D[o:o + 15]
+            z1 = u0 * a0 + u1 * a1 + u2 * a2 + u3 * a3 + u4 * a4 + u5 * a5
+            z2 = (u0 * b0 + u1 * b1 + u2 * b2 + u3 * b3 + u4 * b4 + u5 * b5
+                  + l0 * a0 + l1 * a1 + l2 * a2 + l3 * a3 + l4 * a4 + l5 * a5)
+            T[j] = i11 * z1 * z1 + 2.0 * i12 * z1 * z2 + i22 * z2 * z2
 
     def _publish(self, ok_f: bool, ok_r: bool) -> None:
         """Write each carrier's view (its own laser's statistic as its lateral one; the window
@@ -555,6 +785,14 @@ class JointObserver:
         r.nu_lat = nu[1] if ok_r else math.nan
         f.nu_psi, r.nu_psi, f.nu_dw, r.nu_dw = nu[2], nu[3], nu[4], nu[5]
         f.T_lat, r.T_lat, f.T_psi, r.T_psi, f.T_dw, r.T_dw = T
+        j = self.lead
+        if j < 0:
+            f.lead = r.lead = None
+        elif self._lead_n < LEAD_CONFIRM:
+            f.lead = r.lead = ""                  # not yet confirmed: no carrier's rule names it
+        else:
+            car, kind = JOINT_LEAD[j]
+            f.lead, r.lead = (kind, "") if car == "front" else ("", kind)
         f.lat_used = 1.0 if ok_f else 0.0
         r.lat_used = 1.0 if ok_r else 0.0
         f.outage = r.outage = k

@@ -425,7 +425,7 @@ class _MemServer:
             for conn in self._conns:
                 conn.end.rx.on_data = None
         n = 0
-        for conn in self._conns:
+        for conn in list(self._conns):          # a copy: _serve drops hung-up connections from the list
             if conn.end.rx.buf or conn.end.hung_up:
                 n += self._serve(conn)
         return n

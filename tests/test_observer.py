@@ -248,3 +248,20 @@ def test_degraded_covariance_rule(cfg):
     f = degraded_covariance(o, deg)
     assert (f.device, f.check, f.value, f.limit) == ("b_r/b_f", "sigma_y", 2e-4, 1e-4)
     assert "rear carrier" in f.message and "degraded.sigma_y_max" in f.message
+
+
+def test_the_rules_follow_the_observers_lead(cfg):
+    """An observer that names the measurement whose fault explains its innovations best (the
+    joint filter's views: ``lead``) is judged on that one only; "" (the other carrier's, or not
+    yet confirmed) raises nothing on this carrier; without a lead the rules' order decides."""
+    lim = dataclasses.replace(cfg.limits, innovation_chi2=30.0)
+
+    def led(lead, **kw):
+        o = _stats(**kw)
+        o.lead = lead
+        return o
+    assert innovation(led("lat", T_psi=40.0, T_lat=99.0), lim).device == "b_r/b_f"
+    assert innovation(led("psi", T_psi=40.0, T_lat=99.0), lim).device == "s_rl/s_rr"
+    assert innovation(led("dw", T_psi=40.0, T_dw=35.0), lim).device == "b_r|rl/rr"
+    assert innovation(led("", T_psi=40.0, T_lat=99.0, T_dw=50.0), lim) is None
+    assert innovation(led(None, T_psi=40.0, T_lat=99.0), lim).device == "s_rl/s_rr"

@@ -85,6 +85,24 @@ def _model(p: Plant, carrier: str, D: float, v: float) -> tuple[np.ndarray, np.n
     return A, Bc
 
 
+def yaw_model(p: Plant, D0: float, h: float, on: bool, sigma_psi: float = 0.0):
+    """The carrier's hysteresis (9) and damping law (7) for the estimate's known nonlinear input
+    (:class:`rig_runtime.observer.YawModel`), from its plant values ``p``; None when ``on`` is
+    false (``observer.yaw_model``). The hysteresis only for n = 1 (the exact map; the shipped
+    plants' n, Sec. 4.3.4), else left to the process noise as before (gain 0). ``sigma_psi``:
+    the σ of the measured ψ (rad); ẑ moves once ψ̂ has moved by 4 of it (its jitter does not)."""
+    from ..observer import YawModel
+    if not on:
+        return None
+    bw = p.bouc_wen
+    hyst = bw is not None and bw.a < 1.0 and bw.n == 1
+    tau = 1.0 / (2.0 * math.pi * p.u_filter_hz)
+    return YawModel(gain=(1.0 - bw.a) / p.K if hyst else 0.0,
+                    A=bw.A if hyst else 1.0, beta=bw.beta if hyst else 0.0, gamma=bw.gamma if hyst else 0.0,
+                    w0=p.omega0, D0=D0, D_min=p.D_min, D_max=p.D_max, irc=1.0 / (tau * p.c_udot_max),
+                    ef=math.exp(-h / tau), mid=math.exp(-0.5 * h / tau), h=h, dead=4.0 * sigma_psi)
+
+
 def discretise(A: np.ndarray, Bc: np.ndarray, Qc: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Zero-order hold of (A, Bc) and the process noise Qc integrated over h (Van Loan)."""
     n, m = A.shape[0], Bc.shape[1]
@@ -255,7 +273,7 @@ def _design(carrier: str, p: Plant, g: Geometry, o: ObserverConfig, h: float, ou
         S_full=flat(np.diag(S_full)), S_nolat=flat(np.diag(S_nl)),
         window=window, lateral_lasers=lasers, lateral_weights=weights,
         yaw_lasers=(f"s_{left}", f"s_{right}"), encoders=(left, right),
-        ft_sensors=ft_sensors, sigma_y_outage=sig, v=v)
+        ft_sensors=ft_sensors, sigma_y_outage=sig, v=v, yaw=yaw_model(p, D, h, o.yaw_model, math.sqrt(r_psi)))
 
 
 def speed_table(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None) -> ObserverDesign:
@@ -391,23 +409,25 @@ def _joint(pf: Plant, pr: Plant, g: Geometry, o: ObserverConfig, h: float, outag
         if P_full is None:
             P_full, K_full = P, K
             glr = _isolation_weights(Ad, C, K, S)
+            ramp = _ramp_weights(Ad, C, K, S, window)
             Pp = (np.eye(6) - K @ C[idx]) @ P
             sigmas.append(((math.sqrt(Pp[0, 0]),), (math.sqrt(Pp[3, 3]),)))
         else:
             sigmas.append(_outage_sigmas(Ad, Qd, P_full, K_full, C, K, C[idx], R[np.ix_(idx, idx)], n_max))
     (ff, fr), (rf, rr) = laser_rows(g)
     parts = []
-    for carrier, p, dw, ft in (("front", pf, dwf, ft_f), ("rear", pr, dwr, ft_r)):
+    for carrier, p, dw, ft, D in (("front", pf, dwf, ft_f, D_f), ("rear", pr, dwr, ft_r, D_r)):
         L, W = _weights(g, carrier)
         left, right = CARRIER_WHEELS[carrier]
         parts.append(CarrierPart(carrier=carrier, lateral_lasers=L, lateral_weights=W,
                                  yaw_lasers=(f"s_{left}", f"s_{right}"), encoders=(left, right),
-                                 ft_sensors=ft, dw_row=dw))
+                                 ft_sensors=ft, dw_row=dw,
+                                 yaw=yaw_model(p, D, h, o.yaw_model, math.sqrt(R[2, 2]))))
     flat = lambda M: tuple(float(x) for x in np.asarray(M).ravel())     # noqa: E731
     return JointDesign(A=flat(Ad), Bu=flat(Bd[:, 0:2]), BF=flat(Bd[:, 2:4]), c=flat(Bd[:, 4]),
                        laser_rows=((ff, fr), (rf, rr)), b0=g.b0, K=tuple(gains), S=tuple(variances),
                        sigma_y=tuple(sigmas), window=window, front=parts[0], rear=parts[1], v=v,
-                       isolation=flat(glr))
+                       isolation=flat(glr), drift=flat(ramp))
 
 
 def _isolation_weights(Ad: np.ndarray, C: np.ndarray, K: np.ndarray, S: np.ndarray) -> np.ndarray:
@@ -423,6 +443,33 @@ def _isolation_weights(Ad: np.ndarray, C: np.ndarray, K: np.ndarray, S: np.ndarr
     W = Si @ G
     norm = np.sqrt(np.einsum("ij,ij->j", G, W))
     return (W / norm[None, :]).T
+
+
+def _ramp_weights(Ad: np.ndarray, C: np.ndarray, K: np.ndarray, S: np.ndarray, N: int) -> np.ndarray:
+    """The generalised likelihood ratio test of a *drift* on one measurement (a bias β_k = β0 +
+    ρ k, both unknown): it leaves the steady-state filter's innovations at g_j β_k + ℓ_j ρ, with
+    g_j of :func:`_isolation_weights` and the lag term ℓ_j = C (I − Φ)⁻² A K e_j (Φ = A(I − KC):
+    the predictor error follows a ramp with a constant lag). Over a window of N cycles (k = 0 …
+    N−1, oldest first) the statistic is zᵀ M⁻¹ z with z = (u_j·Σν, u_j·Σkν + l_j·Σν), u_j = S⁻¹g_j,
+    l_j = S⁻¹ℓ_j, and M the 2×2 information matrix of (β0, ρ): χ²(2) without a drift. Row j:
+    (u_j (6), l_j (6), M⁻¹₁₁, M⁻¹₁₂, M⁻¹₂₂)."""
+    n, m = Ad.shape[0], C.shape[0]
+    I = np.eye(n)
+    Phi = Ad @ (I - K @ C)
+    IP = np.linalg.inv(I - Phi)
+    G = np.eye(m) - C @ IP @ Ad @ K
+    L = C @ IP @ IP @ Ad @ K
+    Si = np.linalg.inv(S)
+    k = np.arange(N, dtype=float)
+    s1, s2 = k.sum(), (k * k).sum()
+    rows = []
+    for j in range(m):
+        g, ell = G[:, j], L[:, j]
+        a, b, c = g @ Si @ g, g @ Si @ ell, ell @ Si @ ell
+        M = np.array([[N * a, a * s1 + N * b], [a * s1 + N * b, a * s2 + 2 * b * s1 + N * c]])
+        Mi = np.linalg.inv(M)
+        rows.append(np.concatenate([Si @ g, Si @ ell, [Mi[0, 0], Mi[0, 1], Mi[1, 1]]]))
+    return np.array(rows)
 
 
 #: the entries of the held model the yaw rows may have (each carrier's ψ, ψ̇ and its own u and

@@ -276,13 +276,23 @@ def _joined(names: Sequence[str]) -> str:
     return "/".join(names)
 
 
+def _leads(o, kind: str) -> bool:
+    """The observer names this kind of measurement as the one whose fault explains its
+    innovations best (the running gear's filter: ``CarrierView.lead``, the largest of its six
+    statistics — another beyond the threshold is a symptom of the same fault); an observer that
+    does not decide (``lead`` None: the per-carrier filter, or a laser out) leaves it to the
+    rules' order."""
+    lead = getattr(o, "lead", None)
+    return lead is None or lead == kind
+
+
 def innovation_yaw(o, lim: Limits) -> Optional[Finding]:
     """Analytical redundancy (docs/observer.md): a measurement whose window-mean normalised
     innovation has χ²(1) ``T`` above ``limits.innovation_chi2`` disagrees with the model and
     the other sensors. The yaw lasers are tested first (every other measurement leans on ψ);
     the test cannot tell the two apart."""
     thr = lim.innovation_chi2
-    if thr is None or not o.window_full or not o.T_psi > thr:
+    if thr is None or not o.window_full or not o.T_psi > thr or not _leads(o, "psi"):
         return None
     d = o.d
     return Finding(_joined(d.yaw_lasers), "innovation", o.T_psi, thr,
@@ -297,7 +307,7 @@ def innovation_lateral(o, lim: Limits) -> Optional[Finding]:
     left behind must not find it again. With ``degraded.on_lateral_loss: observe`` the
     supervisor isolates the lasers on this finding instead of tripping."""
     thr = lim.innovation_chi2
-    if thr is None or not o.window_full or not o.lat_used or not o.T_lat > thr:
+    if thr is None or not o.window_full or not o.lat_used or not o.T_lat > thr or not _leads(o, "lat"):
         return None
     d = o.d
     L = d.lateral_lasers
@@ -313,7 +323,7 @@ def innovation_dw(o, lim: Limits) -> Optional[Finding]:
     finding says so (never a degradation: the observer cannot vouch for Δω, which carries
     ŷ without the lateral lasers)."""
     thr = lim.innovation_chi2
-    if thr is None or not o.window_full or not o.T_dw > thr:
+    if thr is None or not o.window_full or not o.T_dw > thr or not _leads(o, "dw"):
         return None
     d = o.d
     L, enc = d.lateral_lasers, d.encoders
