@@ -342,3 +342,12 @@ def test_lateral_data_with_both_carriers_on_the_rollers_is_refused(runs, tmp_pat
     assert main(["identify", str(dst)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "front carrier was on the rollers too" in err[0]
+
+
+def test_speeds_within_an_experiments_steadiness_are_one_speed():
+    from rig_runtime.app.identify.procedure import distinct_speeds
+    assert distinct_speeds([-1.00000125, -0.9999975]) == [pytest.approx(-0.999999375, abs=1e-15)]
+    assert distinct_speeds([1.0, 0.5, 1.0]) == [0.5, 1.0]
+    assert distinct_speeds([1.0, -1.0]) == [-1.0, 1.0]
+    assert distinct_speeds([1.0, 1.019, 1.021]) == [1.0095, 1.021]       # 2 % of the group's first
+    assert distinct_speeds([]) == []

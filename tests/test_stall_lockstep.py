@@ -13,7 +13,8 @@ machine is exact here:
   shorter than ``limits.overrun_burst`` is no fault at all;
 - a burst of ``overrun_burst`` periods is the loop's ``overrun`` fault, nothing else;
 - a drive that stops answering the SYNCs while the loop runs on time is a ``stale`` fault
-  naming that drive.
+  naming that drive (with ``on_drive_loss: stop``; as shipped, a controlled one is
+  RECONFIGURED at the same instant).
 """
 
 from __future__ import annotations
@@ -87,7 +88,8 @@ def test_a_stall_of_the_overrun_burst_is_the_loops_overrun_fault(tmp_path):
 
 @pytest.mark.parametrize("wheel", ["rl", "fr"])
 def test_a_drive_silent_longer_than_its_staleness_limit_is_stale(tmp_path, wheel):
-    cfg = config.load()
+    cfg = config.load()          # the staleness rule's fault: with on_drive_loss stop (sim.yaml reallocates)
+    cfg = dataclasses.replace(cfg, degraded=dataclasses.replace(cfg.degraded, on_drive_loss="stop"))
     h, n = cfg.controller.h, cfg.limits.stale_periods
     r = run(tmp_path, _scenario(f"drive-dropout-{wheel}",
                                 FaultInjection(kind="dropout", device=wheel, t=T_FAULT, duration_s=0.5)), cfg)
@@ -98,6 +100,21 @@ def test_a_drive_silent_longer_than_its_staleness_limit_is_stale(tmp_path, wheel
     # detected once `stale_periods` SYNCs went unanswered: within a period or two of n h
     t_fault = r.fault["t"] - r.summary["run_started_t"]
     assert T_FAULT + n * h - 1e-9 <= t_fault <= T_FAULT + (n + 2) * h, (t_fault, n)
+
+
+def test_a_controlled_drive_silent_past_its_staleness_limit_is_reconfigured_on_sim_yaml(tmp_path):
+    """As shipped (on_drive_loss: reallocate) the same silence of rl is judged by the same
+    rule at the same instant, and the rear carrier runs on rr to the end."""
+    cfg = config.load()
+    h, n = cfg.controller.h, cfg.limits.stale_periods
+    r = run(tmp_path, _scenario("drive-dropout-rl", FaultInjection(kind="dropout", device="rl", t=T_FAULT,
+                                                                   duration_s=0.5)), cfg)
+    s = r.summary
+    assert s["final_state"] == "IDLE" and s["faults"] == [] and r.code == 0
+    (e,) = s["reconfigured"]
+    assert (e["device"], e["carrier"], e["check"], e["end"]) == ("rl", "rear", "stale", "IDLE")
+    t = e["t_start"] - s["run_started_t"]
+    assert T_FAULT + n * h - 1e-9 <= t <= T_FAULT + (n + 2) * h, (t, n)
 
 
 def config_state(name: str):

@@ -21,6 +21,7 @@ and runs the procedure once per carrier.
 
 from __future__ import annotations
 
+import statistics
 import time
 from dataclasses import replace
 
@@ -28,7 +29,7 @@ from rig_runtime.config import CARRIERS, Plant as PlantParams
 from rig_runtime.errors import ConfigError
 
 from . import free_response, joint, lateral, sines, steps, verify, wheelspeed
-from .experiments import Experiment
+from .experiments import SPEED_STEADY, Experiment
 from .model import bouc_wen
 
 SINE_TOL = 1e-3     # the sines' own fit only starts the joint refinement: a loose tolerance
@@ -175,7 +176,7 @@ def run(P: PlantParams, exps: list[Experiment]) -> dict:
                         "identified": [verify.errors(cur, e) for e in ol],
                         "configured": [verify.errors(P, e) for e in ol]}
         timing["verification"] = time.perf_counter() - t0
-    speeds = sorted({float(e.v) for e in exps if e.kind != "free-response"})
+    speeds = distinct_speeds([float(e.v) for e in exps if e.kind != "free-response"])
     return {"carrier": carriers[0], "v": speeds, "parameters": params, "experiments": experiments,
             "verification": verification, "skipped": skipped, "timing_s": timing, "_plant": cur,
             "_written": written}
@@ -196,3 +197,16 @@ def identified_plant(result: dict) -> PlantParams:
 
 
 __all__ = ["run", "run_carriers", "public", "identified_plant"]
+
+
+def distinct_speeds(vs: list[float]) -> list[float]:
+    """The speeds the experiments ran at, one per roller speed: measured speeds within
+    ``SPEED_STEADY`` of each other (an experiment's own steadiness bound) are one speed,
+    reported as their median."""
+    out: list[list[float]] = []
+    for v in sorted(vs):
+        if out and abs(v - out[-1][0]) <= SPEED_STEADY * abs(out[-1][0]):
+            out[-1].append(v)
+        else:
+            out.append([v])
+    return [statistics.median(g) for g in out]
