@@ -619,35 +619,14 @@ class JointObserver:
         A, Bu, BF, c = d.A, d.Bu, d.BF, d.c
         x0, x1, x2, x3, x4, x5 = x
         # the hysteresis and damping law of each carrier: known inputs from the estimate
-        # (_YawState.inputs written out for both carriers: this is the cycle's hot path)
         ymf, ymr = d.front.yaw, d.rear.yaw
         ef, er, kf, kr = u_f, u_r, 1.0, 1.0
         if ymf is not None:
-            ys = self._ys_f
-            if ys._m is not ymf:
-                ys.bind(ymf)
-            q = ys.e + (u_f - ys.u)
-            ys.u, ys.e = u_f, q * ys._ef
-            rho = (q if q >= 0.0 else -q) * ys._irm
-            if rho >= 1.0:
-                kf = ys._kmin
-            else:
-                q = ys._c * (ys._top - rho * ys._dD)
-                kf = math.exp(-q) if q < 40.0 else 0.0
-            ef = u_f + ys._gain * (x1 - ys.z)
+            hf, kf = self._ys_f.inputs(ymf, x1, u_f)
+            ef = u_f + hf
         if ymr is not None:
-            ys = self._ys_r
-            if ys._m is not ymr:
-                ys.bind(ymr)
-            q = ys.e + (u_r - ys.u)
-            ys.u, ys.e = u_r, q * ys._ef
-            rho = (q if q >= 0.0 else -q) * ys._irm
-            if rho >= 1.0:
-                kr = ys._kmin
-            else:
-                q = ys._c * (ys._top - rho * ys._dD)
-                kr = math.exp(-q) if q < 40.0 else 0.0
-            er = u_r + ys._gain * (x4 - ys.z)
+            hr, kr = self._ys_r.inputs(ymr, x4, u_r)
+            er = u_r + hr
         # predict: the yaw rows depend on their own carrier's ψ, ψ̇ and u only (the design's
         # block structure, exact zeros elsewhere: JointDesign)
         p0 = (A[0] * x0 + A[1] * x1 + A[2] * x2 + A[3] * x3 + A[4] * x4 + A[5] * x5
