@@ -654,22 +654,10 @@ class JointObserver:
         x[3] = p3 + K[18] * n0 + K[19] * n1 + K[20] * n2 + K[21] * n3 + K[22] * n4 + K[23] * n5
         x[4] = p4 + K[24] * n0 + K[25] * n1 + K[26] * n2 + K[27] * n3 + K[28] * n4 + K[29] * n5
         x[5] = p5 + K[30] * n0 + K[31] * n1 + K[32] * n2 + K[33] * n3 + K[34] * n4 + K[35] * n5
-        if ymf is not None:                     # ẑ follows ψ̂ past the dead band (_YawState.follow)
-            ys = self._ys_f
-            q = ys.acc + x[1] - x1
-            if q >= ymf.dead or -q >= ymf.dead:
-                if ys._gain != 0.0:
-                    ys.z = zmap(ys.z, q, ymf.A, ymf.beta, ymf.gamma)
-                q = 0.0
-            ys.acc = q
+        if ymf is not None:                     # ẑ follows ψ̂ past the dead band
+            self._ys_f.follow(ymf, x[1] - x1)
         if ymr is not None:
-            ys = self._ys_r
-            q = ys.acc + x[4] - x4
-            if q >= ymr.dead or -q >= ymr.dead:
-                if ys._gain != 0.0:
-                    ys.z = zmap(ys.z, q, ymr.A, ymr.beta, ymr.gamma)
-                q = 0.0
-            ys.acc = q
+            self._ys_r.follow(ymr, x[4] - x4)
         self.set = s
         self.outage = 0 if s == 0 else self.outage + 1
         self._window(s)

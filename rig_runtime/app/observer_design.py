@@ -276,11 +276,11 @@ def _design(carrier: str, p: Plant, g: Geometry, o: ObserverConfig, h: float, ou
         ft_sensors=ft_sensors, sigma_y_outage=sig, v=v, yaw=yaw_model(p, D, h, o.yaw_model, math.sqrt(r_psi)))
 
 
-def speed_table(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None) -> ObserverDesign:
-    """The carrier's designs over a grid of speeds for the schedule (docs/observer.md,
-    "vehicle"): |v_k| = |v_d| ρᵏ (v_d = schedule.v_design or plant.v, ρ = ``SPEED_RATIO``) for
-    both signs, from ``SPEED_FLOOR``·v_min (inside the standstill band) to the largest |v| of
-    v_range; returned as the design at v_d carrying the table (``ObserverDesign.table``)."""
+def over_speed_grid(cfg: RigConfig, design):
+    """``design(v)`` over the schedule's speed grid, returned as the design at v_d carrying the
+    table (``table``, a :class:`SpeedTable`): |v_k| = |v_d| ρᵏ (v_d = schedule.v_design or
+    plant.v, ρ = ``SPEED_RATIO``) for both signs, from ``SPEED_FLOOR``·v_min (inside the
+    standstill band) to the largest |v| of v_range."""
     sch = cfg.controller.schedule
     v_d = sch.v_design if sch.v_design is not None else cfg.plant.v
     ref = abs(v_d)
@@ -288,12 +288,20 @@ def speed_table(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None
     k_lo = math.floor(math.log(SPEED_FLOOR * sch.v_min / ref) / lr)
     k_hi = math.ceil(math.log(max(abs(sch.v_range[0]), abs(sch.v_range[1])) / ref) / lr)
     speeds = [ref * SPEED_RATIO ** k for k in range(k_lo, k_hi + 1)]
-    inputs = design_inputs(cfg, carrier, ocfg)
-    fw = tuple(_design(*inputs._replace(v=v)) for v in speeds)
-    bw = tuple(_design(*inputs._replace(v=-v)) for v in speeds)
+    fw = tuple(design(v) for v in speeds)
+    bw = tuple(design(-v) for v in speeds)
     base = (fw if v_d > 0 else bw)[-k_lo]
     table = SpeedTable(v_ref=ref, ratio=SPEED_RATIO, k_lo=k_lo, k_hi=k_hi, forward=fw, backward=bw)
     return dataclasses.replace(base, table=table)
+
+
+def speed_table(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None) -> ObserverDesign:
+    """The carrier's designs over a grid of speeds for the schedule (docs/observer.md,
+    "vehicle"): |v_k| = |v_d| ρᵏ (v_d = schedule.v_design or plant.v, ρ = ``SPEED_RATIO``) for
+    both signs, from ``SPEED_FLOOR``·v_min (inside the standstill band) to the largest |v| of
+    v_range; returned as the design at v_d carrying the table (``ObserverDesign.table``)."""
+    inputs = design_inputs(cfg, carrier, ocfg)
+    return over_speed_grid(cfg, lambda v: _design(*inputs._replace(v=v)))
 
 
 def _ft_sensors(cfg: RigConfig, wheels: tuple[str, str]) -> tuple[str, ...]:
@@ -540,16 +548,4 @@ def _outage_sigma_loop(Ad, Qd, P_full, K_full, C, K_nl, C_nl, R_nl, n_max, i) ->
 def joint_speed_table(cfg: RigConfig, ocfg: ObserverConfig | None = None):
     """The joint design over the schedule's speed grid (as :func:`speed_table`), returned as
     the design at v_d carrying the table."""
-    from ..observer import SpeedTable
-    sch = cfg.controller.schedule
-    v_d = sch.v_design if sch.v_design is not None else cfg.plant.v
-    ref = abs(v_d)
-    lr = math.log(SPEED_RATIO)
-    k_lo = math.floor(math.log(SPEED_FLOOR * sch.v_min / ref) / lr)
-    k_hi = math.ceil(math.log(max(abs(sch.v_range[0]), abs(sch.v_range[1])) / ref) / lr)
-    speeds = [ref * SPEED_RATIO ** k for k in range(k_lo, k_hi + 1)]
-    fw = tuple(joint_design(cfg, ocfg, v) for v in speeds)
-    bw = tuple(joint_design(cfg, ocfg, -v) for v in speeds)
-    base = (fw if v_d > 0 else bw)[-k_lo]
-    table = SpeedTable(v_ref=ref, ratio=SPEED_RATIO, k_lo=k_lo, k_hi=k_hi, forward=fw, backward=bw)
-    return dataclasses.replace(base, table=table)
+    return over_speed_grid(cfg, lambda v: joint_design(cfg, ocfg, v))
