@@ -44,7 +44,7 @@ from drivers.laser import LaserDriver  # noqa: E402
 from sim_backend.lockstep_bus import LockstepBus  # noqa: E402
 from sim_backend.virtual_drive import VirtualDriveSet  # noqa: E402
 from sim_backend.virtual_ft import VirtualFTServer  # noqa: E402
-from sim_backend.virtual_laser import VirtualLaser, emit_all  # noqa: E402
+from sim_backend.virtual_laser import LaserGroup, VirtualLaser  # noqa: E402
 
 from _machine import StealMeter  # noqa: E402
 
@@ -83,6 +83,7 @@ def main() -> int:
         vl = VirtualLaser(lc, noise_std_m=1e-6, seed=i, output_rate_hz=4000.0)
         lasers.append(vl)
         drivers.append(LaserDriver(lc, port=vl.port_name))
+    group = LaserGroup(lasers)
     chan = f"bench-{os.getpid()}"
     new_bus = (lambda: LockstepBus(channel=chan)) if args.can == "lockstep" else \
         (lambda: can.Bus(interface="virtual", channel=chan))
@@ -121,7 +122,8 @@ def main() -> int:
             for w in WHEELS:
                 vdrives.set_wheel_speed(w, 13.3)
             vdrives.service(t - h)          # answers last cycle's SYNC with TPDOs
-            emit_all(lasers, t)             # one period of laser frames
+            group.emit(t)                   # one period of laser frames
+            group.wait()
             t0 = time.perf_counter()
             for d in drivers:
                 d.poll(t)
@@ -141,7 +143,8 @@ def main() -> int:
         for k in range(args.cycles + 200):
             t += h
             vdrives.service(t - h)
-            emit_all(lasers, t)
+            group.emit(t)
+            group.wait()
             t0 = time.perf_counter()
             for fd in raw_fds:
                 try:

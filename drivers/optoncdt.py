@@ -22,11 +22,9 @@ import math
 import re
 from typing import Iterable
 
-import numpy as np
-
 __all__ = [
     "MAX_DISTANCE_X", "MAX_X", "ERROR_CODES", "X_PER_PERCENT",
-    "encode_value", "encode_values", "encode_list", "x_from_distance_mm", "xs_from_distance_mm",
+    "encode_value", "encode_values", "x_from_distance_mm", "xs_from_distance_mm",
     "distance_mm_from_x", "error_reason", "FrameDecoder", "Decoded",
 ]
 
@@ -60,26 +58,23 @@ def encode_value(x: int) -> bytes:
     return bytes((x & 0x3F, _FLAG_M | (x >> 6) & 0x3F, _FLAG_H | (x >> 12) & 0x3F))
 
 
-def encode_values(xs: Iterable[int] | np.ndarray) -> bytes:
-    """Wire bytes of many values at once (vectorised; the virtual device's hot path)."""
-    a = np.asarray(xs, dtype=np.int64).reshape(-1)
-    if a.size and (a.min() < 0 or a.max() > MAX_X):
-        raise ValueError(f"laser values outside 0..{MAX_X}")
-    out = np.empty((a.size, 3), dtype=np.uint8)
-    out[:, 0] = a & 0x3F
-    out[:, 1] = _FLAG_M | ((a >> 6) & 0x3F)
-    out[:, 2] = _FLAG_H | ((a >> 12) & 0x3F)
-    return out.tobytes()
-
-
-def encode_list(xs: list[int]) -> bytes:
-    """Wire bytes of a few values (pure Python: cheaper than numpy below ~50 values)."""
-    out = bytearray()
+def encode_values(xs: Iterable[int]) -> bytes:
+    """Wire bytes of many values, frame after frame: each value's frame is made once by
+    :func:`encode_value` and kept (a device sends few distinct values, so after the first
+    frames a value costs one dict look-up)."""
+    frames = _FRAMES
+    try:
+        return b"".join(map(frames.__getitem__, xs))
+    except KeyError:
+        pass
+    xs = list(xs)
     for x in xs:
-        if not 0 <= x <= MAX_X:
-            raise ValueError(f"laser value {x} outside 0..{MAX_X}")
-        out += bytes((x & 0x3F, _FLAG_M | (x >> 6) & 0x3F, _FLAG_H | (x >> 12) & 0x3F))
-    return bytes(out)
+        if x not in frames:
+            frames[x] = encode_value(x)
+    return b"".join(map(frames.__getitem__, xs))
+
+
+_FRAMES: dict[int, bytes] = {}      # value -> its frame, filled by encode_values
 
 
 def distance_mm_from_x(x: int, mr_mm: float) -> float:
@@ -91,14 +86,24 @@ def x_from_distance_mm(d_mm: float, mr_mm: float) -> int:
     """Inverse of :func:`distance_mm_from_x`: rounded to the nearest value, clipped to 0..65520."""
     if math.isnan(d_mm):
         raise ValueError("distance is NaN")
-    x = round((d_mm * 100.0 / mr_mm + 1.0) * X_PER_PERCENT)
-    return min(max(x, 0), MAX_DISTANCE_X)
+    return xs_from_distance_mm([d_mm], mr_mm)[0]
 
 
-def xs_from_distance_mm(d_mm: np.ndarray, mr_mm: float) -> np.ndarray:
-    """Vector form of :func:`x_from_distance_mm` (same rounding: half to even)."""
-    x = np.rint((np.asarray(d_mm, dtype=float) * 100.0 / mr_mm + 1.0) * X_PER_PERCENT)
-    return np.clip(x, 0, MAX_DISTANCE_X).astype(np.int64)
+def xs_from_distance_mm(d: Iterable[float], mr_mm: float, *, base: float = 0.0, scale: float = 1.0,
+                        offset_mm: float = 0.0, below: int = 0, above: int = MAX_DISTANCE_X) -> list[int]:
+    """Wire values of distances r = (base + d)·scale − offset_mm from the start of the
+    measuring range (mm; a device that sees ``base`` metres from its mounting, sampled with
+    deviations ``d``, passes scale 1000 and its offset), each rounded to the nearest value
+    (half to even). A distance before the span (r < −1 % of MR) gives ``below``, one beyond
+    it (> 101 %) ``above``: by default the ends 0 and 65520 (clipped); a device passes the
+    error codes it sends there. A NaN raises ValueError."""
+    lo, hi, xpp = -0.01 * mr_mm, 1.01 * mr_mm, X_PER_PERCENT
+    out: list[int] = []
+    add = out.append
+    for e in d:         # a loop: its names are fast locals (a comprehension's are cells here)
+        r = (base + e) * scale - offset_mm
+        add(below if r < lo else above if r > hi else round((r * 100.0 / mr_mm + 1.0) * xpp))
+    return out
 
 
 def error_reason(x: int) -> str | None:

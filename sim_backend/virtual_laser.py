@@ -10,8 +10,9 @@ path, or the line's URL) with pyserial like a real port; both wires carry the sa
 Time: frame k (k = 1, 2, …) is sampled at k/rate and written at k/rate + latency, so after
 ``emit_until(t)`` exactly ``floor((t − latency)·rate)`` frames have been produced —
 independent of how the calls are spaced. Lockstep backends call ``emit_until`` each step
-(or emit all lasers at once through a :class:`LaserGroup`, which writes the same bytes);
-``start_realtime`` runs the same on a thread against the monotonic clock.
+(or emit all lasers at once through a :class:`LaserGroup`: the same frames by the same
+path, the pty writes back to back and one wait for all); ``start_realtime`` runs the same
+on a thread against the monotonic clock.
 
 Faults (``inject(kind, **params)``, ``clear(kind)``):
   dropout                      no bytes on the wire (the sample clock keeps running)
@@ -47,21 +48,17 @@ from typing import Any
 
 import numpy as np
 
-from drivers.optoncdt import (
-    X_PER_PERCENT, MAX_DISTANCE_X, MAX_X, encode_list, encode_value, encode_values, x_from_distance_mm,
-    xs_from_distance_mm,
-)
+from drivers.optoncdt import MAX_X, encode_values, xs_from_distance_mm
 from rig_runtime import wires
 from rig_runtime.config import LaserDevice
 
-__all__ = ["FAULT_KINDS", "LaserGroup", "VirtualLaser", "emit_all"]
+__all__ = ["FAULT_KINDS", "LaserGroup", "VirtualLaser"]
 
 FAULT_KINDS = ("dropout", "corrupt", "stuck", "offset", "out_of_range", "drift")
 PEAK_BEFORE_RANGE = 262077
 PEAK_AFTER_RANGE = 262078
 NO_PEAK = 262076
 _EPS = 1e-9     # k/rate computed in floats: 0.005·4000 may land just below 20
-_SMALL = 48         # up to this many frames per call: scalar Python (numpy's per-call cost dominates)
 _LDISC_CAP = 4095   # bytes the Linux n_tty line discipline holds; more waits in the flip buffer
 _NOISE_BLOCK = 4096  # standard normals drawn from the generator at a time
 _SPIN_S = 20e-6      # waiting for pty delivery: spin this long, then sleep in poll()
@@ -70,6 +67,7 @@ _SPIN_S = 20e-6      # waiting for pty delivery: spin this long, then sleep in p
 # kernel's worker may not run for tens of milliseconds. Delivery itself takes microseconds.
 _DELIVERY_TIMEOUT_S = 2.0
 _FIONREAD = termios.FIONREAD
+_floor = math.floor
 _ioctl = fcntl.ioctl
 
 
@@ -97,10 +95,12 @@ class VirtualLaser:
         self.quantization_m = quantization_m
         self.latency_frames = round(latency_s * self.rate_hz)
         self._noise_rng, self._fault_rng = _rngs(seed)
-        # noise block, read position, number of refills (a LaserGroup caches the scaled block)
-        self._nbuf = np.empty(_NOISE_BLOCK)
-        self._ni = _NOISE_BLOCK         # exhausted: the first draw fills the block
-        self._nfill = 0
+        # noise samples drawn, m (noise_std_m · e for each standard normal e, drawn in blocks
+        # of _NOISE_BLOCK), and the next one to use
+        self._noise: list[float] = []
+        self._ni = 0
+        self._mr = float(cfg.measuring_range_mm)
+        self._off = float(cfg.offset_mm)
         self._qbuf = bytearray(4)       # FIONREAD result, reused
         self._distance_m = cfg.offset_mm / 1000.0 + cfg.measuring_range_mm / 2000.0  # mid-range
         self._faults: dict[str, dict[str, Any]] = {}
@@ -154,23 +154,57 @@ class VirtualLaser:
         """
         with self._lock:
             q0 = self._slave_queued() if wait else 0
-            n = self._emit(t)
+            data = self._due(t)
+            n = self._write(data) if data else 0
             if wait and n:
                 self._wait_delivered(min(q0 + n, _LDISC_CAP))
             return n
 
-    def _emit(self, t: float) -> int:
-        """Sample and release the frames due at t (lock held)."""
-        k = math.floor(t * self.rate_hz + _EPS)
-        if k > self._sampled:
-            self._queue.extend(self._measure(k - self._sampled))
+    def _due(self, t: float) -> bytes:
+        """Sample the frames due by t and release those past the latency: their wire bytes,
+        encoded and damaged as the faults say (b"" if none, or in a dropout). Lock held.
+
+        Sampling: the distance (+ an offset or drift fault) plus noise, turned into wire
+        values (``_xs``), or a fault's code."""
+        k = _floor(t * self.rate_hz + _EPS)
+        n = k - self._sampled
+        xs = None
+        f = self._faults
+        if n > 0:
+            if f and ("out_of_range" in f or "stuck" in f):
+                code = f["out_of_range"].get("code", NO_PEAK) if "out_of_range" in f else f["stuck"]["x"]
+                xs = [int(code)] * n
+            else:
+                d0 = self._distance_m + self._bias() if f else self._distance_m
+                if self.noise_std_m > 0:
+                    ni = self._ni
+                    if ni + n > len(self._noise):
+                        self._draw(n)
+                        ni = 0
+                    noise = self._noise[ni:ni + n]
+                    self._ni = ni + n
+                else:
+                    noise = [0.0] * n       # d0 + 0.0 == d0
+                xs = self._xs(d0, noise)
+            self._last_x = xs[-1]
             self._sampled = k
-        n = k - self.latency_frames - self._released
-        if n <= 0:
-            return 0
-        xs = [self._queue.popleft() for _ in range(n)]
+        if self.latency_frames:
+            if xs is not None:
+                self._queue.extend(xs)
+            n = k - self.latency_frames - self._released
+            if n <= 0:
+                return b""
+            pop = self._queue.popleft
+            xs = [pop() for _ in range(n)]
+        elif xs is None:
+            return b""
         self._released += n
-        return self._output(xs)
+        if f and "dropout" in f:
+            self.frames_suppressed += n
+            return b""
+        self.frames_sent += n
+        data = encode_values(xs)
+        return self._corrupt(data, n, f["corrupt"]) if f and "corrupt" in f else data
 
     # ------------------------------------------------------------------ real time
     def start_realtime(self, period_s: float = 0.001) -> None:
@@ -223,31 +257,7 @@ class VirtualLaser:
     # ------------------------------------------------------------------ model
     def _clean_x(self) -> int:
         """Wire value of the current distance without noise or faults."""
-        return int(self._to_x(np.array([self._distance_m]))[0])
-
-    def _measure(self, n: int) -> list[int]:
-        """Sample n frames: distance (+offset fault, noise) -> wire values, or a fault code."""
-        f = self._faults
-        if "out_of_range" in f:
-            xs = [int(f["out_of_range"].get("code", NO_PEAK))] * n
-        elif "stuck" in f:
-            xs = [int(f["stuck"]["x"])] * n
-        elif n <= _SMALL:
-            # scalar path (the lockstep hot path: a few frames per 5 ms step)
-            d0 = self._distance_m + self._bias() if f else self._distance_m
-            sd = self.noise_std_m
-            x_of = self._x_of
-            if sd > 0:
-                xs = [x_of(d0 + sd * e) for e in self._standard_normals(n)]
-            else:
-                xs = [x_of(d0)] * n
-        else:
-            d = np.full(n, self._distance_m + self._bias())
-            if self.noise_std_m > 0:
-                d += self.noise_std_m * np.array(self._standard_normals(n))
-            xs = self._to_x(d).tolist()
-        self._last_x = xs[-1]
-        return xs
+        return self._xs(self._distance_m, [0.0])[0]
 
     def _bias(self) -> float:
         """What the offset and drift faults add to the distance, m."""
@@ -261,60 +271,27 @@ class VirtualLaser:
             if d is not None:
                 d["amount_m"] = float(amount_m)
 
-    def _standard_normals(self, n: int) -> list[float]:
-        """n standard normal draws from blocks of the seeded generator (the same sequence
-        however the frames are split into calls, and whether a LaserGroup draws them)."""
-        out: list[float] = []
-        buf = self._nbuf
-        while n > 0:
-            if self._ni >= _NOISE_BLOCK:
-                self._noise_rng.standard_normal(out=buf)
-                self._ni = 0
-                self._nfill += 1
-            take = min(n, _NOISE_BLOCK - self._ni)
-            out += buf[self._ni:self._ni + take].tolist()
-            self._ni += take
-            n -= take
-        return out
+    def _draw(self, n: int) -> None:
+        """Keep the unused noise samples and draw blocks until n are there (the seeded
+        generator's sequence, the same however the frames are split into calls)."""
+        left = self._noise[self._ni:]
+        while len(left) < n:
+            left += (self.noise_std_m * self._noise_rng.standard_normal(_NOISE_BLOCK)).tolist()
+        self._noise, self._ni = left, 0
 
-    def _x_of(self, d_m: float) -> int:
-        """Scalar form of ``_to_x``."""
+    def _xs(self, d0_m: float, noise_m: list[float]) -> list[int]:
+        """Wire values of the physical distances d0_m + each noise sample (m): quantized,
+        turned into wire values by the codec, with the device's codes outside its span."""
         q = self.quantization_m
         if q > 0:
-            d_m = round(d_m / q) * q
-        mr = self.cfg.measuring_range_mm
-        rel_mm = d_m * 1000.0 - self.cfg.offset_mm
-        if rel_mm < -0.01 * mr:
-            return PEAK_BEFORE_RANGE
-        if rel_mm > 1.01 * mr:
-            return PEAK_AFTER_RANGE
-        return x_from_distance_mm(rel_mm, mr)
+            noise_m = [round((d0_m + e) / q) * q for e in noise_m]
+            d0_m = 0.0          # 0.0 + d == d
+        return xs_from_distance_mm(noise_m, self._mr, base=d0_m, scale=1000.0, offset_mm=self._off,
+                                   below=PEAK_BEFORE_RANGE, above=PEAK_AFTER_RANGE)
 
-    def _to_x(self, d_m: np.ndarray) -> np.ndarray:
-        """Physical distances (m) -> wire values, with the device's out-of-span codes."""
-        if self.quantization_m > 0:
-            d_m = np.round(d_m / self.quantization_m) * self.quantization_m
-        mr = self.cfg.measuring_range_mm
-        rel_mm = d_m * 1000.0 - self.cfg.offset_mm
-        x = xs_from_distance_mm(rel_mm, mr)
-        x = np.where(rel_mm < -0.01 * mr, PEAK_BEFORE_RANGE, x)
-        return np.where(rel_mm > 1.01 * mr, PEAK_AFTER_RANGE, x)
-
-    def _output(self, xs: list[int]) -> int:
-        """Encode, damage and write released frames; return bytes written."""
-        if "dropout" in self._faults:
-            self.frames_suppressed += len(xs)
-            return 0
-        data = encode_list(xs) if len(xs) <= _SMALL else encode_values(xs)
-        corrupt = self._faults.get("corrupt")
-        if corrupt is not None:
-            data = self._corrupt(data, len(xs), float(corrupt.get("p", 0.1)),
-                                 bool(corrupt.get("detectable", True)))
-        self.frames_sent += len(xs)
-        return self._write(data)
-
-    def _corrupt(self, data: bytes, n: int, p: float, detectable: bool) -> bytes:
+    def _corrupt(self, data: bytes, n: int, params: dict[str, Any]) -> bytes:
         """Damage a fraction p of the n frames in data (one damage per frame)."""
+        p, detectable = float(params.get("p", 0.1)), bool(params.get("detectable", True))
         rng = self._fault_rng
         hit = np.flatnonzero(rng.random(n) < p)
         if hit.size == 0:
@@ -410,30 +387,6 @@ def _rngs(seed: Any) -> tuple[np.random.Generator, np.random.Generator]:
     return np.random.default_rng(a), np.random.default_rng(b)
 
 
-def emit_all(lasers: "list[VirtualLaser]", t: float) -> int:
-    """Lockstep: emit every laser's frames up to t, then wait until all are readable.
-
-    Writing all first and waiting once lets the kernel deliver the ptys in parallel
-    (one wait instead of six). :class:`LaserGroup` does the same with less Python."""
-    pending: list[tuple[VirtualLaser, int]] = []
-    total = 0
-    for vl in lasers:
-        total += _emit_noting(vl, t, pending)
-    _await_delivery(pending)
-    return total
-
-
-def _emit_noting(vl: VirtualLaser, t: float, pending: list) -> int:
-    """``vl``'s frames up to ``t`` by its own path; notes in ``pending`` how many bytes its
-    slave end must then hold (for :func:`_await_delivery`). Returns the bytes written."""
-    with vl._lock:
-        q0 = vl._slave_queued()
-        n = vl._emit(t)
-    if n and vl._pipe is None:          # a memory line delivers within the write
-        pending.append((vl, min(q0 + n, _LDISC_CAP)))
-    return n
-
-
 def _await_delivery(pending: list[tuple[VirtualLaser, int]], timeout_s: float = _DELIVERY_TIMEOUT_S) -> None:
     """Wait until each laser's slave end holds its target byte count, or time out (counted
     in ``delivery_timeouts``). Lockstep only: nobody reads the slaves meanwhile.
@@ -471,43 +424,17 @@ def _await_delivery(pending: list[tuple[VirtualLaser, int]], timeout_s: float = 
                 time.sleep(20e-6)
 
 
-_WIRE: list[bytes] = []
-
-
-def _wire_bytes() -> list[bytes]:
-    """The 3 wire bytes of every distance value 0..65520 (index x), built once with the
-    codec."""
-    if not _WIRE:
-        enc = encode_values(np.arange(MAX_DISTANCE_X + 1))
-        _WIRE.extend(enc[3 * x:3 * x + 3] for x in range(MAX_DISTANCE_X + 1))
-    return _WIRE
-
-
 class LaserGroup:
-    """Lockstep emission of several virtual lasers: ``emit(t)`` samples, encodes and writes
-    every laser's frames due by ``t``; ``wait()`` returns once the kernel delivered them to
-    the slave ends. pty delivery runs on a kernel worker, so the caller does other work in
-    between; a memory line has its bytes readable within the write (nothing to wait for).
-
-    A laser without faults, latency, quantization or real-time thread takes a lean path:
-    its frames are computed in plain Python from a cached copy of its noise block scaled
-    by the noise level (cheaper than numpy for a few frames in a busy cycle, where the
-    caches are cold) and encoded from a table; all such lasers' frames are written back to
-    back (the first pty write of a burst wakes the kernel worker and costs most). The bytes
-    are exactly those of ``emit_until`` (same noise sequence, same arithmetic as
-    ``x_from_distance_mm``). Any other laser emits through ``emit_until``'s own path.
+    """Lockstep emission of several virtual lasers: ``emit(t)`` has every laser produce its
+    frames due by ``t`` (its own path, as ``emit_until``) and writes them; ``wait()`` returns
+    once the kernel delivered them to the pty slave ends. pty delivery runs on a kernel
+    worker, so the caller does other work in between; the ptys are written back to back
+    (the first write of a burst wakes the worker and costs most), and a memory line has its
+    bytes readable within the write (nothing to wait for).
     """
 
     def __init__(self, lasers: list[VirtualLaser]):
         self.lasers = list(lasers)
-        self._lean = []         # per laser: (laser, offset mm, MR mm, low, high bound of the span) or None
-        for vl in self.lasers:
-            mr = vl.cfg.measuring_range_mm
-            ok = vl.latency_frames == 0 and vl.quantization_m == 0
-            self._lean.append((vl, vl.cfg.offset_mm, mr, -0.01 * mr, 1.01 * mr) if ok else None)
-        self._scaled: list[list[float] | None] = [None] * len(self.lasers)   # noise_std_m · block
-        self._nmax = [0.0] * len(self.lasers)                               # max |sd·e| of the block
-        self._fill = [-1] * len(self.lasers)
         self._poller = select.poll()
         self._by_fd: dict[int, VirtualLaser] = {}
         for vl in self.lasers:
@@ -515,94 +442,30 @@ class LaserGroup:
                 self._poller.register(vl._slave, select.POLLIN)
                 self._by_fd[vl._slave] = vl
         self._pending: list[tuple[VirtualLaser, int]] = []
-        if any(self._lean):
-            _wire_bytes()
 
     def emit(self, t: float) -> int:
         """Write every laser's frames due by ``t`` (not waiting for delivery); bytes written."""
         pend: list[tuple[VirtualLaser, int]] = []
         self._pending = pend
-        lean: list[tuple[VirtualLaser, bytes, int, int]] = []
+        ptys: list[tuple[VirtualLaser, bytes]] = []
         total = 0
-        rate = -1.0
-        k = 0
-        enc = _WIRE
-        xpp = X_PER_PERCENT
-        for i, c in enumerate(self._lean):
-            vl = c[0] if c is not None else self.lasers[i]
-            if vl.rate_hz != rate:
-                rate = vl.rate_hz
-                k = math.floor(t * rate + _EPS)
-            n = k - vl._sampled
-            d0 = vl._distance_m
-            sd = vl.noise_std_m
-            if (c is None or n <= 0 or vl._faults or vl._released != vl._sampled or vl._thread is not None
-                    or (sd > 0 and vl._ni + n > _NOISE_BLOCK) or not math.isfinite(d0)):
-                if c is not None and n <= 0 and vl._released == vl._sampled:
-                    continue                # nothing due (latency-free: nothing queued either)
-                total += _emit_noting(vl, t, pend)
-                continue
-            _, off, mr, lo, hi = c
-            if sd > 0:
-                if self._fill[i] != vl._nfill:
-                    sc = sd * vl._nbuf                  # sd·e, as the scalar path computes it
-                    self._scaled[i] = sc.tolist()
-                    self._nmax[i] = float(np.abs(sc).max())
-                    self._fill[i] = vl._nfill
-                ni = vl._ni
-                noise = self._scaled[i][ni:ni + n]
-                vl._ni = ni + n
-                nmax = self._nmax[i]
+        for vl in self.lasers:
+            if vl._thread is None:      # lockstep: nobody else emits meanwhile
+                data = vl._due(t)
             else:
-                noise = [0.0] * n       # d0 + 0.0 == d0: the scalar path's noise-free value
-                nmax = 0.0
-            # VirtualLaser._x_of, operation for operation. Rounded float operations are
-            # monotonic, so if the extreme noise of the block stays inside the span every
-            # frame does, and no frame needs the out-of-span branches
-            if (d0 - nmax) * 1000.0 - off >= lo and (d0 + nmax) * 1000.0 - off <= hi:
-                xs = [round((((d0 + ne) * 1000.0 - off) * 100.0 / mr + 1.0) * xpp) for ne in noise]
-                x = xs[-1]
-                data = b"".join([enc[v] for v in xs])
-            else:
-                parts = []
-                for ne in noise:
-                    rel = (d0 + ne) * 1000.0 - off
-                    if rel < lo:
-                        x = PEAK_BEFORE_RANGE
-                        parts.append(_PEAK_BEFORE_BYTES)
-                    elif rel > hi:
-                        x = PEAK_AFTER_RANGE
-                        parts.append(_PEAK_AFTER_BYTES)
-                    else:               # in the span this lies within 0..65520
-                        x = round((rel * 100.0 / mr + 1.0) * xpp)
-                        parts.append(enc[x])
-                data = b"".join(parts)
-            vl._sampled = vl._released = k
-            vl._last_x = x
-            vl.frames_sent += n
-            pipe = vl._pipe
-            if pipe is None:
-                lean.append((vl, data, n, x))
-                continue
-            w = pipe.write(data)                # a memory line: readable once written
-            total += w
-            vl.bytes_written += w
-            if w != len(data):
-                vl.bytes_dropped += len(data) - w
-        if lean:
-            # the ptys, back to back: unread bytes at the slaves (the runtime normally drained
-            # them), one poll for all
+                with vl._lock:
+                    data = vl._due(t)
+            if data:
+                if vl._pipe is not None:
+                    total += vl._write(data)            # a memory line: readable once written
+                else:
+                    ptys.append((vl, data))
+        if ptys:
+            # unread bytes at the slaves (the runtime normally drained them), one poll for all
             q0s = {fd: self._by_fd[fd]._slave_queued() for fd, _ in self._poller.poll(0)}
-            write = os.write
-            for vl, data, n, x in lean:
-                try:
-                    w = write(vl._master, data)
-                except OSError:
-                    w = 0
+            for vl, data in ptys:
+                w = vl._write(data)
                 total += w
-                vl.bytes_written += w
-                if w != len(data):
-                    vl.bytes_dropped += len(data) - w
                 if w:
                     pend.append((vl, min(q0s.get(vl._slave, 0) + w, _LDISC_CAP)))
         return total
@@ -612,7 +475,3 @@ class LaserGroup:
         pending, self._pending = self._pending, []
         if pending:
             _await_delivery(pending)
-
-
-_PEAK_BEFORE_BYTES = encode_value(PEAK_BEFORE_RANGE)
-_PEAK_AFTER_BYTES = encode_value(PEAK_AFTER_RANGE)

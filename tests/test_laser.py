@@ -10,6 +10,7 @@ import math
 import pickle
 import time
 
+import numpy as np
 import pytest
 
 import drivers.laser as laser_mod
@@ -27,10 +28,10 @@ from drivers.optoncdt import (
     FrameDecoder,
     distance_mm_from_x,
     encode_value,
-    encode_list,
     encode_values,
     error_reason,
     x_from_distance_mm,
+    xs_from_distance_mm,
 )
 from rig_runtime.config import LaserDevice
 from sim_backend.virtual_laser import VirtualLaser
@@ -89,6 +90,27 @@ def test_byte_layout_of_known_values():
     assert encode_values([]) == b""
     with pytest.raises(ValueError):
         encode_values([1, MAX_X + 1])
+    with pytest.raises(ValueError):
+        encode_values([-1])
+    xs = [int(x) for x in np.random.default_rng(1).integers(0, MAX_X + 1, 500)]
+    assert encode_values(xs) == b"".join(encode_value(x) for x in xs)        # the frames it keeps too
+    assert encode_values(xs) == b"".join(encode_value(x) for x in xs)
+    assert encode_values(np.array(xs[:3])) == encode_values(xs[:3])
+
+
+def test_many_distances_convert_like_one_with_the_device_codes_outside_the_span():
+    mr, off = 25.0, 25.0
+    d_m = [0.0249, 0.02495, 0.025, 0.0375, 0.05, 0.05025, 0.0503, float("inf"), -float("inf")]
+    noise = [0.0, 1e-6, -1e-6, 3.3e-7]
+    for d0 in d_m:
+        xs = xs_from_distance_mm(noise, mr, base=d0, scale=1000.0, offset_mm=off, below=-1, above=-2)
+        for e, x in zip(noise, xs):
+            rel = (d0 + e) * 1000.0 - off
+            want = -1 if rel < -0.25 else -2 if rel > 25.25 else x_from_distance_mm(rel, mr)
+            assert x == want, (d0, e)
+    assert xs_from_distance_mm([-3.0, 25.0, 80.0], 50) == [0, 32760, MAX_DISTANCE_X]    # clipped
+    with pytest.raises(ValueError):
+        xs_from_distance_mm([1.0, math.nan], 50)
 
 
 def test_error_codes_decode_with_reason():
@@ -459,12 +481,12 @@ def test_corrupt_frames_are_dropped_never_made_up(rig):
 def _sent_x(vl: VirtualLaser, k: int) -> list[int]:
     """Emit cycle k while capturing the values the device measured (before corruption)."""
     captured: list[int] = []
-    orig = vl._output
-    vl._output = lambda xs: (captured.extend(xs), orig(xs))[1]  # type: ignore[method-assign]
+    orig = vl._xs
+    vl._xs = lambda d0, noise: (xs := orig(d0, noise), captured.extend(xs))[0]  # type: ignore[method-assign]
     try:
         vl.emit_until(k * H)
     finally:
-        del vl._output
+        del vl._xs
     return captured
 
 
@@ -679,10 +701,10 @@ def test_poll_decodes_like_the_decoder(xs, average):
     try:
         drv = LaserDriver(_cfg(average=average), port="/dev/null")
         drv._ser = type("Port", (), {"fd": r})()
-        _os.write(w, encode_list(xs))
+        _os.write(w, encode_values(xs))
         got = drv.poll(1.0)
         assert drv.last_values == xs
-        ref = FrameDecoder().feed(encode_list(xs))
+        ref = FrameDecoder().feed(encode_values(xs))
         valid = [x for x in ref if x <= MAX_DISTANCE_X]
         assert got.raw_x == xs[-1] and got.n_values == len(valid)
         if xs[-1] > MAX_DISTANCE_X:
@@ -721,7 +743,7 @@ def test_counts_and_arrival_time_follow_what_was_sent(polls):
         t_last = math.nan
         for k, (xs, garbage) in enumerate(polls):
             now = 1.0 + k * H
-            _os.write(w, encode_list(xs) + bytes([0xC0 + (i * 7) % 64 for i in range(garbage)]))
+            _os.write(w, encode_values(xs) + bytes([0xC0 + (i * 7) % 64 for i in range(garbage)]))
             got = drv.poll(now)
             n_valid += len(xs)
             n_bad += garbage
