@@ -164,19 +164,21 @@ class VirtualLaser:
         """Sample the frames due by t and release those past the latency: their wire bytes,
         encoded and damaged as the faults say (b"" if none, or in a dropout). Lock held.
 
-        Sampling: the distance (+ an offset or drift fault) plus noise, turned into wire
-        values (``_xs``), or a fault's code."""
+        A sample: the distance (+ an offset or drift fault) plus noise, quantized, turned
+        into wire values by the codec with the device's codes outside its span — or a
+        fault's code (out of range, stuck)."""
         k = _floor(t * self.rate_hz + _EPS)
         n = k - self._sampled
-        xs = None
         f = self._faults
+        xs = None
         if n > 0:
-            if f and ("out_of_range" in f or "stuck" in f):
-                code = f["out_of_range"].get("code", NO_PEAK) if "out_of_range" in f else f["stuck"]["x"]
-                xs = [int(code)] * n
+            code = _fault_code(f) if f else None
+            if code is not None:
+                xs = [code] * n
             else:
+                stuck = f.get("stuck") if f else None   # stuck before anything was sent
                 d0 = self._distance_m + self._bias() if f else self._distance_m
-                if self.noise_std_m > 0:
+                if self.noise_std_m > 0 and stuck is None:
                     ni = self._ni
                     if ni + n > len(self._noise):
                         self._draw(n)
@@ -185,7 +187,15 @@ class VirtualLaser:
                     self._ni = ni + n
                 else:
                     noise = [0.0] * n       # d0 + 0.0 == d0
-                xs = self._xs(d0, noise)
+                q = self.quantization_m
+                if q > 0:
+                    noise = [round((d0 + e) / q) * q for e in noise]
+                    d0 = 0.0                # 0.0 + d == d
+                # (d, mr_mm, base, scale, offset_mm, below, above) by position: the per-cycle call
+                xs = xs_from_distance_mm(noise, self._mr, d0, 1000.0, self._off, PEAK_BEFORE_RANGE,
+                                         PEAK_AFTER_RANGE)
+                if stuck is not None:       # ... sticks at this noise-free value
+                    stuck["x"] = xs[-1]
             self._last_x = xs[-1]
             self._sampled = k
         if self.latency_frames:
@@ -238,8 +248,8 @@ class VirtualLaser:
         if kind == "out_of_range" and not 0 <= params.get("code", NO_PEAK) <= MAX_X:
             raise ValueError(f"out_of_range: code must be in 0..{MAX_X}")
         with self._lock:
-            if kind == "stuck":
-                params.setdefault("x", self._last_x if self._last_x is not None else self._clean_x())
+            if kind == "stuck":         # the last value sent (none yet: the next noise-free one)
+                params.setdefault("x", self._last_x)
             self._faults[kind] = params
 
     def clear(self, kind: str | None = None) -> None:
@@ -255,10 +265,6 @@ class VirtualLaser:
         return {k: dict(v) for k, v in self._faults.items()}
 
     # ------------------------------------------------------------------ model
-    def _clean_x(self) -> int:
-        """Wire value of the current distance without noise or faults."""
-        return self._xs(self._distance_m, [0.0])[0]
-
     def _bias(self) -> float:
         """What the offset and drift faults add to the distance, m."""
         f = self._faults
@@ -278,16 +284,6 @@ class VirtualLaser:
         while len(left) < n:
             left += (self.noise_std_m * self._noise_rng.standard_normal(_NOISE_BLOCK)).tolist()
         self._noise, self._ni = left, 0
-
-    def _xs(self, d0_m: float, noise_m: list[float]) -> list[int]:
-        """Wire values of the physical distances d0_m + each noise sample (m): quantized,
-        turned into wire values by the codec, with the device's codes outside its span."""
-        q = self.quantization_m
-        if q > 0:
-            noise_m = [round((d0_m + e) / q) * q for e in noise_m]
-            d0_m = 0.0          # 0.0 + d == d
-        return xs_from_distance_mm(noise_m, self._mr, base=d0_m, scale=1000.0, offset_mm=self._off,
-                                   below=PEAK_BEFORE_RANGE, above=PEAK_AFTER_RANGE)
 
     def _corrupt(self, data: bytes, n: int, params: dict[str, Any]) -> bytes:
         """Damage a fraction p of the n frames in data (one damage per frame)."""
@@ -376,6 +372,14 @@ class VirtualLaser:
             self.close()
         except Exception:  # noqa: BLE001
             pass
+
+
+def _fault_code(f: dict[str, dict[str, Any]]) -> int | None:
+    """The code an out-of-range or stuck fault sends instead of a measurement, if any."""
+    if "out_of_range" in f:
+        return int(f["out_of_range"].get("code", NO_PEAK))
+    stuck = f.get("stuck")
+    return None if stuck is None or stuck["x"] is None else int(stuck["x"])
 
 
 def _rngs(seed: Any) -> tuple[np.random.Generator, np.random.Generator]:

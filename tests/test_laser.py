@@ -34,6 +34,7 @@ from drivers.optoncdt import (
     xs_from_distance_mm,
 )
 from rig_runtime.config import LaserDevice
+import sim_backend.virtual_laser as vl_mod
 from sim_backend.virtual_laser import VirtualLaser
 
 MR = 50.0                    # measuring range of the b_f/b_r lasers in configs/, mm
@@ -481,12 +482,12 @@ def test_corrupt_frames_are_dropped_never_made_up(rig):
 def _sent_x(vl: VirtualLaser, k: int) -> list[int]:
     """Emit cycle k while capturing the values the device measured (before corruption)."""
     captured: list[int] = []
-    orig = vl._xs
-    vl._xs = lambda d0, noise: (xs := orig(d0, noise), captured.extend(xs))[0]  # type: ignore[method-assign]
+    orig = vl_mod.encode_values
+    vl_mod.encode_values = lambda xs: (captured.extend(xs), orig(xs))[1]
     try:
         vl.emit_until(k * H)
     finally:
-        del vl._xs
+        vl_mod.encode_values = orig
     return captured
 
 
@@ -512,6 +513,20 @@ def test_stuck_repeats_the_last_value(rig):
     assert r.health.fresh and r.value_m == r0.value_m and set(drv.last_values) == {r0.raw_x}
     vl.clear("stuck")
     assert abs(_cycle(vl, drv, 3).value_m - 0.08) <= STEP_M
+
+
+@pytest.mark.parametrize("rig", [{"virtual": {"noise_std_m": 20e-6}}], indirect=True)
+def test_stuck_before_anything_was_sent_sticks_at_the_next_noise_free_value(rig):
+    vl, drv = rig
+    vl.inject("stuck")
+    vl.set_distance(0.07)
+    r = _cycle(vl, drv, 1)
+    assert set(drv.last_values) == {x_from_distance_mm(0.07 * 1000 - OFFSET, MR)} and r.n_values == 20
+    vl.set_distance(0.08)
+    _cycle(vl, drv, 2)
+    assert set(drv.last_values) == {r.raw_x} and vl.faults["stuck"]["x"] == r.raw_x
+    vl.clear("stuck")
+    assert len(set(_cycle(vl, drv, 3) and drv.last_values)) > 1       # noisy again
 
 
 def test_offset_fault_shifts_the_distance(rig):
