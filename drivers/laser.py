@@ -19,12 +19,12 @@ from rig_runtime.hardware import Driver, Freshness, Health, health
 
 from .ports import open_port
 from .tty import HangUp, bytes_waiting
-from .optoncdt import MAX_DISTANCE_X, X_PER_PERCENT, Decoded, FrameDecoder, error_reason
+from .optoncdt import MAX_DISTANCE_X, X_PER_PERCENT, FrameDecoder, error_reason
 
 __all__ = ["LaserReading", "LaserDriver"]
 
 _os_read = os.read              # module-level so a test can make the port fail
-_NO_VALUES = Decoded(b"", [])
+_HUNG_UP = "device disconnected (hang-up on the port)"
 _NO_DATA = "no data yet"        # FRESH's note before the first valid value (t is NaN)
 
 
@@ -90,9 +90,8 @@ class LaserDriver(Driver):
 
     def _reset_state(self) -> None:
         """Fresh decoder, counters and latest-value memory (each open starts a session)."""
-        self._decoder = FrameDecoder()
-        self._last = _NO_VALUES                 # what the latest poll decoded
-        self._counters = {"values": 0, "error_frames": 0, "read_errors": 0, "bytes": 0}
+        self._decoder = FrameDecoder()          # its latest chunk: what the latest poll decoded
+        self._n_values = self._n_error_frames = self._n_read_errors = self._n_bytes = 0
         self._errors = 0                # error codes received and read errors
         self._health = Health(Freshness.FRESH, _NO_DATA)   # the latest value handed out
         self._value = math.nan          # latest valid value (or cycle mean), m; reported only
@@ -103,7 +102,8 @@ class LaserDriver(Driver):
 
     # ------------------------------------------------------------------ transport
     def counters(self) -> dict[str, int]:
-        return dict(self._counters)
+        return {"values": self._n_values, "error_frames": self._n_error_frames,
+                "read_errors": self._n_read_errors, "bytes": self._n_bytes}
 
     def _configure(self) -> None:
         """Open the port 8N1 with ``timeout=0`` and drop bytes buffered before now."""
@@ -125,87 +125,67 @@ class LaserDriver(Driver):
             except Exception:  # noqa: BLE001 - a vanished device must not stop shutdown
                 pass
 
-    def _pending(self, fd: int) -> int:
-        """Bytes the line discipline holds for us (:func:`drivers.tty.bytes_waiting`: asked,
-        not read blind, so the loop never waits for the kernel's worker); a hang-up raises."""
-        try:
-            return bytes_waiting(fd, self._inq)
-        except HangUp as exc:
-            raise DeviceIOError(self.name, "device disconnected (hang-up on the port)") from exc
-
-    def _read_all(self, ser) -> bytes:
-        """What a port without a file descriptor holds (pyserial's ``read_all``: never
-        waits); a hang-up raises as for a tty."""
-        try:
-            return ser.read_all()
-        except HangUp as exc:
-            raise DeviceIOError(self.name, "device disconnected (hang-up on the port)") from exc
-
     # ------------------------------------------------------------------ cycle
     def poll(self, now: float) -> LaserReading:
-        """Drain the port, decode, and report the latest value with its health."""
+        """Drain the port, decode, and report the latest value with its health.
+
+        A tty is asked how many bytes its line discipline holds (:func:`drivers.tty.bytes_waiting`:
+        never a wait for the kernel's worker) and read with one ``read(2)``; a port without a
+        file descriptor with pyserial's ``read_all`` (never waits). A hang-up on either is a
+        read error."""
         ser = self._ser
         if ser is None:
             return self._reading(Freshness.INVALID, "port not configured", math.nan, 0)
+        dec = self._decoder
         try:
             fd = getattr(ser, "fd", None)
             if fd is not None:
-                # read only what the line discipline holds: never a wait for the kernel's worker
-                n = self._pending(fd)
+                n = bytes_waiting(fd, self._inq)
                 data = _os_read(fd, n) if n > 0 else b""
             else:                               # a port without a file descriptor (a URL)
-                data = self._read_all(ser)
+                data = ser.read_all()
         except BlockingIOError:
             data = b""
         except Exception as exc:  # noqa: BLE001 - poll must not raise inside the loop
+            if isinstance(exc, HangUp):
+                exc = DeviceIOError(self.name, _HUNG_UP)
             self._errors += 1
-            self._counters["read_errors"] += 1
-            self._last = _NO_VALUES
-            self._decoder.reset()
+            self._n_read_errors += 1
+            dec.reset()
             return self._reading(Freshness.INVALID, f"read error: {type(exc).__name__}: {exc}", math.nan, 0)
-        if not data:
-            self._last = _NO_VALUES
-            return self._classify(0)
-        self._counters["bytes"] += len(data)
-        decoded = self._last = self._decoder.decode(data)
-        return self._classify(self._take(decoded, now) if decoded.count else 0)
+        n_valid = 0
+        if data:
+            self._n_bytes += len(data)
+            if dec.decode(data):
+                # the latest value/error from this poll's values; how many are valid
+                last = self._raw_x = dec.last
+                if dec.distances_only:          # the usual case
+                    n_valid = dec.count
+                    valid = dec.values() if self._average else None
+                else:
+                    valid = [x for x in dec.values() if x <= MAX_DISTANCE_X]
+                    n_valid = len(valid)
+                    n_err = dec.count - n_valid
+                    self._errors += n_err
+                    self._n_error_frames += n_err
+                self._n_values += n_valid
+                if last > MAX_DISTANCE_X:
+                    self._latest_error = error_reason(last)    # _value keeps the last valid value
+                else:
+                    self._latest_error = None
+                    self._value = self._gain * (sum(valid) / n_valid if self._average else last) + self._bias
+                    self._value_t = now
+        else:
+            dec.clear()
+        if self._latest_error is not None:      # INVALID while the latest value is an error code
+            return self._reading(Freshness.INVALID, self._latest_error, math.nan, n_valid)
+        return self._reading(Freshness.FRESH, "" if self._n_values else _NO_DATA, self._value, n_valid)
 
     @property
     def last_values(self) -> list[int]:
         """Raw values (distances and error codes) decoded by the latest poll."""
-        return self._last.values()
-
-    def _take(self, decoded: Decoded, now: float) -> int:
-        """Update the latest value/error from this cycle's values; return how many are valid."""
-        last = decoded.last()
-        self._raw_x = last
-        if decoded.all_distances():             # the usual case
-            n_valid = decoded.count
-            valid = decoded.values() if self._average else None
-        else:
-            valid = [x for x in decoded.values() if x <= MAX_DISTANCE_X]
-            n_valid = len(valid)
-            n_err = decoded.count - n_valid
-            self._errors += n_err
-            self._counters["error_frames"] += n_err
-        self._counters["values"] += n_valid
-        if last > MAX_DISTANCE_X:
-            self._latest_error = error_reason(last)    # _value keeps the last valid value
-        else:
-            self._latest_error = None
-            x = sum(valid) / n_valid if self._average else last
-            self._value = self._gain * x + self._bias
-            self._value_t = now
-        return n_valid
-
-    def _classify(self, n_valid: int) -> LaserReading:
-        """INVALID while the latest value is an error code, else FRESH (age is not judged here)."""
-        if self._latest_error is not None:
-            return self._reading(Freshness.INVALID, self._latest_error, math.nan, n_valid)
-        return self._reading(Freshness.FRESH, "" if self._counters["values"] else _NO_DATA,
-                             self._value, n_valid)
+        return self._decoder.values()
 
     def _reading(self, state: Freshness, cause: str, value: float, n_valid: int) -> LaserReading:
         h = self._health = health(self._health, state, cause, self._decoder.discarded, 0, self._errors)
-        return LaserReading(self._role, value, self._value_t, h, n_valid, self._raw_x,
-                            self._counters["values"])
+        return LaserReading(self._role, value, self._value_t, h, n_valid, self._raw_x, self._n_values)

@@ -25,7 +25,7 @@ from typing import Iterable
 __all__ = [
     "MAX_DISTANCE_X", "MAX_X", "ERROR_CODES", "X_PER_PERCENT",
     "encode_value", "encode_values", "x_from_distance_mm", "xs_from_distance_mm",
-    "distance_mm_from_x", "error_reason", "FrameDecoder", "Decoded",
+    "distance_mm_from_x", "error_reason", "FrameDecoder",
 ]
 
 MAX_DISTANCE_X = 65520          # largest 16-bit distance value (d = 1.01·MR)
@@ -45,10 +45,14 @@ ERROR_CODES: dict[int, str] = {
 _FLAG_L, _FLAG_M, _FLAG_H = 0x00, 0x40, 0x80
 # x = L + (M << 6) + (H << 12) − _FLAG_SUM when M and H carry their flags 01 and 10.
 _FLAG_SUM = (_FLAG_M << 6) + (_FLAG_H << 12)
-# Each byte -> one flag letter, so frame search runs on bytes in C (X = flag 11, never valid).
-_FLAG_TABLE = bytes(b"LMHX"[b >> 6] for b in range(256))
-_FRAME_RUN = re.compile(rb"(?:LMH)+")
-_CLEAN = b"LMH" * 1024          # flags of a gap-free stream of up to 1024 frames
+# An H byte whose six data bits are at most 14 makes x <= 14·4096 + 4095 = 61439 < 65520: a
+# distance, whatever L and M hold.
+_H_SAFE = _FLAG_H | 14
+# Each byte -> one letter, so frame search runs on bytes in C: L, M, H by the flag bits, h for
+# an H byte above _H_SAFE (a value that may be an error code), X for flag 11 (never valid).
+_FLAG_TABLE = bytes(b"LMHX"[b >> 6] if not _H_SAFE < b < 0xC0 else ord("h") for b in range(256))
+_FRAME_RUN = re.compile(rb"(?:LM[Hh])+")
+_CLEAN = b"LMH" * 1024          # letters of a gap-free stream of up to 1024 distance frames
 
 
 def encode_value(x: int) -> bytes:
@@ -89,7 +93,7 @@ def x_from_distance_mm(d_mm: float, mr_mm: float) -> int:
     return xs_from_distance_mm([d_mm], mr_mm)[0]
 
 
-def xs_from_distance_mm(d: Iterable[float], mr_mm: float, *, base: float = 0.0, scale: float = 1.0,
+def xs_from_distance_mm(d: Iterable[float], mr_mm: float, base: float = 0.0, scale: float = 1.0,
                         offset_mm: float = 0.0, below: int = 0, above: int = MAX_DISTANCE_X) -> list[int]:
     """Wire values of distances r = (base + d)·scale − offset_mm from the start of the
     measuring range (mm; a device that sees ``base`` metres from its mounting, sampled with
@@ -118,18 +122,25 @@ class FrameDecoder:
     """Incremental decoder: bytes in, 18-bit values out.
 
     A frame is three consecutive bytes flagged L, M, H. Partial frames at the end of a
-    chunk are kept for the next :meth:`feed`; every other byte that is not part of such
+    chunk are kept for the next :meth:`decode`; every other byte that is not part of such
     a triple (garbage, a frame with a lost or damaged byte) is dropped and counted in
-    ``discarded``, and decoding resynchronises on the next L, M, H. The search runs on a
-    flag string made with ``bytes.translate``, so the per-byte work happens in C.
+    ``discarded``, and decoding resynchronises on the next L, M, H. One pass of
+    ``bytes.translate`` (in C) gives each byte's letter; a chunk of whole clean frames none
+    of which can be an error code (the usual case) is then kept as bytes: its last value
+    is decoded at once, the others only if asked (:meth:`values`).
+
+    After :meth:`decode`, the latest chunk: ``count`` values, the last one ``last`` (-1 if
+    none), ``distances_only`` (no error code or value beyond the range end among them).
     """
 
-    __slots__ = ("discarded", "frames", "_pending")
+    __slots__ = ("discarded", "frames", "count", "last", "distances_only", "_pending", "_buf", "_list")
 
     def __init__(self) -> None:
         self.discarded = 0      # bytes thrown away as not part of a frame
         self.frames = 0         # values decoded
         self._pending = b""     # an L or L, M waiting for the rest of its frame
+        self._buf = b""         # the latest chunk's clean frames, not decoded yet (_list None)
+        self.clear()
 
     @property
     def pending(self) -> int:
@@ -140,74 +151,59 @@ class FrameDecoder:
         """Forget a partial frame (after a read error); its bytes count as discarded."""
         self.discarded += len(self._pending)
         self._pending = b""
+        self.clear()
+
+    def clear(self) -> None:
+        """The latest chunk is empty (nothing was read)."""
+        self.count = 0
+        self.last = -1
+        self.distances_only = True
+        self._list: list[int] | None = []
 
     def feed(self, data: bytes) -> list[int]:
         """Decode what ``data`` (plus the held partial frame) completes, in order."""
-        return self.decode(data).values()
+        self.decode(data)
+        return self.values()
 
-    def decode(self, data: bytes) -> "Decoded":
-        """Like :meth:`feed`, but the values come as a :class:`Decoded` that decodes them
-        only when asked (a poll usually needs the count and the latest value)."""
+    def decode(self, data: bytes) -> int:
+        """Decode what ``data`` (plus the held partial frame) completes, as the latest chunk;
+        how many values it holds."""
         buf = self._pending + data if self._pending else bytes(data)
         n = len(buf)
-        if n == 0:
-            return _NONE
-        flags = buf.translate(_FLAG_TABLE)
-        if n % 3 == 0 and _CLEAN.startswith(flags):   # the usual case: whole clean frames
+        letters = buf.translate(_FLAG_TABLE)
+        if n % 3 == 0 and _CLEAN.startswith(letters):   # whole clean distance frames
             self._pending = b""
-            self.frames += n // 3
-            return Decoded(buf, None)
+            if not n:
+                self.clear()
+                return 0
+            self._buf, self._list = buf, None
+            self.count = n // 3
+            self.frames += self.count
+            self.last = buf[-3] + (buf[-2] << 6) + (buf[-1] << 12) - _FLAG_SUM
+            self.distances_only = True
+            return self.count
         out: list[int] = []
         pos = 0
-        for m in _FRAME_RUN.finditer(flags):
+        for m in _FRAME_RUN.finditer(letters):
             start, end = m.span()
             self.discarded += start - pos
             out += _values(buf, start, end)
             pos = end
-        keep = 2 if flags.endswith(b"LM") else 1 if flags.endswith(b"L") else 0
+        keep = 2 if letters.endswith(b"LM") else 1 if letters.endswith(b"L") else 0
         self.discarded += n - keep - pos
         self._pending = buf[n - keep:] if keep else b""
-        self.frames += len(out)
-        return Decoded(b"", out)
-
-
-class Decoded:
-    """The values of one :meth:`FrameDecoder.decode`: whole clean frames kept as bytes and
-    decoded on demand, or the list a resynchronising decode made. ``count``: how many
-    values (known when decoded; ``len()`` says the same)."""
-
-    __slots__ = ("_buf", "_list", "count")
-
-    def __init__(self, buf: bytes, values: list[int] | None) -> None:
-        self._buf = buf
-        self._list = values
-        self.count = len(values) if values is not None else len(buf) // 3
-
-    def __len__(self) -> int:
+        self._list = out
+        self.count = len(out)
+        self.frames += self.count
+        self.last = out[-1] if out else -1
+        self.distances_only = not out or max(out) <= MAX_DISTANCE_X
         return self.count
 
     def values(self) -> list[int]:
+        """The latest chunk's values."""
         if self._list is None:
             self._list = _values(self._buf, 0, len(self._buf))
         return self._list
-
-    def last(self) -> int:
-        """The latest value (the chunk must not be empty)."""
-        if self._list is not None:
-            return self._list[-1]
-        b = self._buf
-        return b[-3] + (b[-2] << 6) + (b[-1] << 12) - _FLAG_SUM
-
-    def all_distances(self) -> bool:
-        """No error code (or value beyond the range end) among the values: decided from the
-        H bytes when they rule it out (H6 <= 14: below 15·4096 <= 65520), else by decoding."""
-        if self._list is None and max(self._buf[2::3]) <= _H_SAFE:
-            return True
-        return max(self.values()) <= MAX_DISTANCE_X
-
-
-_H_SAFE = _FLAG_H | 14
-_NONE = Decoded(b"", [])
 
 
 def _values(buf: bytes, start: int, end: int) -> list[int]:
