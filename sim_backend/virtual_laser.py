@@ -154,15 +154,14 @@ class VirtualLaser:
         """
         with self._lock:
             q0 = self._slave_queued() if wait else 0
-            data = self._due(t)
-            n = self._write(data) if data else 0
+            n = self._emit(t)
             if wait and n:
                 self._wait_delivered(min(q0 + n, _LDISC_CAP))
             return n
 
-    def _due(self, t: float) -> bytes:
-        """Sample the frames due by t and release those past the latency: their wire bytes,
-        encoded and damaged as the faults say (b"" if none, or in a dropout). Lock held.
+    def _emit(self, t: float) -> int:
+        """Sample the frames due by t, release those past the latency, encode and damage them
+        as the faults say (nothing in a dropout) and write them; bytes written. Lock held.
 
         A sample: the distance (+ an offset or drift fault) plus noise, quantized, turned
         into wire values by the codec with the device's codes outside its span — or a
@@ -203,18 +202,32 @@ class VirtualLaser:
                 self._queue.extend(xs)
             n = k - self.latency_frames - self._released
             if n <= 0:
-                return b""
+                return 0
             pop = self._queue.popleft
             xs = [pop() for _ in range(n)]
         elif xs is None:
-            return b""
+            return 0
         self._released += n
         if f and "dropout" in f:
             self.frames_suppressed += n
-            return b""
+            return 0
         self.frames_sent += n
         data = encode_values(xs)
-        return self._corrupt(data, n, f["corrupt"]) if f and "corrupt" in f else data
+        if f and "corrupt" in f:
+            data = self._corrupt(data, n, f["corrupt"])
+        # non-blocking: what does not fit is dropped and counted
+        pipe = self._pipe
+        if pipe is not None:
+            w = pipe.write(data)
+        else:
+            try:
+                w = os.write(self._master, data)
+            except OSError:             # BlockingIOError included: a full pty
+                w = 0
+        self.bytes_written += w
+        if w != len(data):
+            self.bytes_dropped += len(data) - w
+        return w
 
     # ------------------------------------------------------------------ real time
     def start_realtime(self, period_s: float = 0.001) -> None:
@@ -313,21 +326,6 @@ class VirtualLaser:
             b = int(rng.integers(0xC0, 0x100)) if detectable else int(rng.integers(0, 0x100))
             if b != old:
                 return b
-
-    def _write(self, data: bytes) -> int:
-        """Non-blocking write to the master (or the line); what does not fit is dropped and
-        counted."""
-        pipe = self._pipe
-        if pipe is not None:
-            n = pipe.write(data)
-        else:
-            try:
-                n = os.write(self._master, data)
-            except (BlockingIOError, OSError):
-                n = 0
-        self.bytes_written += n
-        self.bytes_dropped += len(data) - n
-        return n
 
     def _slave_queued(self) -> int:
         """Bytes readable at the slave end now (FIONREAD into a reused buffer; a memory
@@ -429,12 +427,11 @@ def _await_delivery(pending: list[tuple[VirtualLaser, int]], timeout_s: float = 
 
 
 class LaserGroup:
-    """Lockstep emission of several virtual lasers: ``emit(t)`` has every laser produce its
-    frames due by ``t`` (its own path, as ``emit_until``) and writes them; ``wait()`` returns
-    once the kernel delivered them to the pty slave ends. pty delivery runs on a kernel
-    worker, so the caller does other work in between; the ptys are written back to back
-    (the first write of a burst wakes the worker and costs most), and a memory line has its
-    bytes readable within the write (nothing to wait for).
+    """Lockstep emission of several virtual lasers: ``emit(t)`` has every laser produce and
+    write its frames due by ``t`` (its own path, as ``emit_until``); ``wait()`` returns once
+    the kernel delivered them to the pty slave ends. pty delivery runs on a kernel worker, so
+    the caller does other work in between; a memory line has its bytes readable within the
+    write (nothing to wait for).
     """
 
     def __init__(self, lasers: list[VirtualLaser]):
@@ -451,27 +448,18 @@ class LaserGroup:
         """Write every laser's frames due by ``t`` (not waiting for delivery); bytes written."""
         pend: list[tuple[VirtualLaser, int]] = []
         self._pending = pend
-        ptys: list[tuple[VirtualLaser, bytes]] = []
+        # unread bytes at the pty slaves (the runtime normally drained them), one poll for all
+        q0s = {fd: self._by_fd[fd]._slave_queued() for fd, _ in self._poller.poll(0)} if self._by_fd else None
         total = 0
         for vl in self.lasers:
             if vl._thread is None:      # lockstep: nobody else emits meanwhile
-                data = vl._due(t)
+                w = vl._emit(t)
             else:
                 with vl._lock:
-                    data = vl._due(t)
-            if data:
-                if vl._pipe is not None:
-                    total += vl._write(data)            # a memory line: readable once written
-                else:
-                    ptys.append((vl, data))
-        if ptys:
-            # unread bytes at the slaves (the runtime normally drained them), one poll for all
-            q0s = {fd: self._by_fd[fd]._slave_queued() for fd, _ in self._poller.poll(0)}
-            for vl, data in ptys:
-                w = vl._write(data)
-                total += w
-                if w:
-                    pend.append((vl, min(q0s.get(vl._slave, 0) + w, _LDISC_CAP)))
+                    w = vl._emit(t)
+            total += w
+            if w and q0s is not None and vl._pipe is None:
+                pend.append((vl, min(q0s.get(vl._slave, 0) + w, _LDISC_CAP)))
         return total
 
     def wait(self) -> None:
