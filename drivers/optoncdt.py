@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 import re
-from typing import Iterable
+from typing import Iterable, Sequence
 
 __all__ = [
     "MAX_DISTANCE_X", "MAX_X", "ERROR_CODES", "X_PER_PERCENT",
@@ -62,23 +62,25 @@ def encode_value(x: int) -> bytes:
     return bytes((x & 0x3F, _FLAG_M | (x >> 6) & 0x3F, _FLAG_H | (x >> 12) & 0x3F))
 
 
-def encode_values(xs: Iterable[int]) -> bytes:
-    """Wire bytes of many values, frame after frame: each value's frame is made once by
-    :func:`encode_value` and kept (a device sends few distinct values, so after the first
-    frames a value costs one dict look-up)."""
-    frames = _FRAMES
+def encode_values(xs: Sequence[int]) -> bytes:
+    """Wire bytes of many values, frame after frame. The frames of distance values are made
+    by :func:`encode_value` a block at a time, when a value of the block is first asked
+    for, and kept (a device sends values near each other: a value then costs one look-up);
+    an error code's frame is made each time."""
     try:
-        return b"".join(map(frames.__getitem__, xs))
+        return b"".join(map(_FRAMES.__getitem__, xs))
     except KeyError:
         pass
-    xs = list(xs)
-    for x in xs:
-        if x not in frames:
-            frames[x] = encode_value(x)
-    return b"".join(map(frames.__getitem__, xs))
+    for x in xs:                            # make the blocks of the distance values missing
+        if x not in _FRAMES and 0 <= x <= MAX_DISTANCE_X:
+            lo = x - x % _BLOCK
+            block = range(lo, min(lo + _BLOCK, MAX_DISTANCE_X + 1))
+            _FRAMES.update(zip(block, map(encode_value, block)))
+    return b"".join([_FRAMES[x] if x in _FRAMES else encode_value(x) for x in xs])   # error codes
 
 
-_FRAMES: dict[int, bytes] = {}      # value -> its frame, filled by encode_values
+_BLOCK = 512
+_FRAMES: dict[int, bytes] = {}      # distance value -> its frame, made a block at a time
 
 
 def distance_mm_from_x(x: int, mr_mm: float) -> float:
