@@ -171,13 +171,14 @@ class VirtualLaser:
         f = self._faults
         xs = None
         if n > 0:
-            code = _fault_code(f) if f else None
-            if code is not None:
-                xs = [code] * n
-            else:
-                stuck = f.get("stuck") if f else None   # stuck before anything was sent
-                d0 = self._distance_m + self._bias() if f else self._distance_m
-                if self.noise_std_m > 0 and stuck is None:
+            d0 = self._distance_m
+            code = stuck = None
+            if f:
+                code = _fault_code(f)
+                stuck = f.get("stuck")          # (stuck before anything was sent)
+                d0 += self._bias()
+            if code is None:
+                if stuck is None and self.noise_std_m > 0:
                     ni = self._ni
                     if ni + n > len(self._noise):
                         self._draw(n)
@@ -195,6 +196,8 @@ class VirtualLaser:
                                          PEAK_AFTER_RANGE)
                 if stuck is not None:       # ... sticks at this noise-free value
                     stuck["x"] = xs[-1]
+            else:
+                xs = [code] * n
             self._last_x = xs[-1]
             self._sampled = k
         if self.latency_frames:
