@@ -29,9 +29,11 @@ time it does not count the time the process waits while others run on a loaded m
 
 With several ``--config`` (or ``--wires``) the runs are made one after the other in one
 process and shown side by side (e.g. the paper's single-carrier set-up against the vehicle,
-or memory wires against kernel wires):
+or memory wires against kernel wires). ``--clock cpu`` times the parts with the loop thread's
+CPU time (``time.thread_time``) instead of the wall clock: medians that hold on a loaded
+machine, each call paying a clock read of ≈ 0.3 µs more.
 
-    python benchmarks/lockstep_breakdown.py [--duration S] [--scenario NAME]
+    python benchmarks/lockstep_breakdown.py [--duration S] [--scenario NAME] [--clock wall|cpu]
     python benchmarks/lockstep_breakdown.py --config configs/sim.yaml --config configs/vehicle.yaml
     python benchmarks/lockstep_breakdown.py --wires memory --wires kernel
 """
@@ -65,9 +67,13 @@ STAGES = ((ControlLoop, "_measure", "runtime: stage geometry (_measure)"),
           (ControlLoop, "row", "runtime: log row"))
 
 
+CLOCK = {"wall": time.perf_counter, "cpu": time.thread_time}
+clock = CLOCK["wall"]           # what the parts are timed with (--clock)
+
+
 def timed(f, key: str):
     out = samples[key]
-    pc = time.perf_counter
+    pc = clock
 
     def call(*a, **k):
         t = pc()
@@ -148,7 +154,11 @@ def main() -> int:
     ap.add_argument("--config", action="append", help="a config (repeat: side by side; default: the shipped one)")
     ap.add_argument("--wires", action="append", choices=("memory", "kernel"),
                     help="sim.wires (repeat: side by side; default: the config's)")
+    ap.add_argument("--clock", choices=tuple(CLOCK), default="wall",
+                    help="time the parts on the wall clock (default) or the loop thread's CPU time")
     args = ap.parse_args()
+    global clock
+    clock = CLOCK[args.clock]
     runs = [(f"{p or 'default'}" + (f" ({w})" if w else ""), *measure(p, args.scenario, args.duration, w))
             for p in (args.config or [None]) for w in (args.wires or [None])]
     if len(runs) == 1:
@@ -165,7 +175,7 @@ def main() -> int:
         print(f"  {'= wires (devices + drivers + transport)':46s} {wires:14.1f} {wires50:12.1f}")
         print(f"  {'= plant step + runtime stages':46s} {plant_rt:14.1f} {plant_rt50:12.1f}")
         return 0
-    print(f"us: mean per cycle / median per call ({args.scenario}, {args.duration:g} s); config: " +
+    print(f"us ({args.clock} clock): mean per cycle / median per call ({args.scenario}, {args.duration:g} s); config: " +
           ", ".join(f"[{i}] {name}" for i, (name, _, _) in enumerate(runs)))
     print(f"  {'':46s} " + " ".join(f"{f'[{i}] mean':>9s} {'p50':>7s}" for i in range(len(runs))))
     print(f"  {'in the loop (whole cycle)':46s} " +
