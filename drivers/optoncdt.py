@@ -68,7 +68,7 @@ def encode_values(xs: Sequence[int]) -> bytes:
     for, and kept (a device sends values near each other: a value then costs one look-up);
     an error code's frame is made each time."""
     try:
-        return b"".join(map(_FRAMES.__getitem__, xs))
+        return b"".join(map(_frame_of, xs))
     except KeyError:
         pass
     for x in xs:                            # make the blocks of the distance values missing
@@ -81,6 +81,7 @@ def encode_values(xs: Sequence[int]) -> bytes:
 
 _BLOCK = 512
 _FRAMES: dict[int, bytes] = {}      # distance value -> its frame, made a block at a time
+_frame_of = _FRAMES.__getitem__
 
 
 def distance_mm_from_x(x: int, mr_mm: float) -> float:
