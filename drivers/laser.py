@@ -134,58 +134,62 @@ class LaserDriver(Driver):
         file descriptor with pyserial's ``read_all`` (never waits). A hang-up on either is a
         read error."""
         ser = self._ser
-        if ser is None:
-            return self._reading(Freshness.INVALID, "port not configured", math.nan, 0)
         dec = self._decoder
-        try:
-            fd = getattr(ser, "fd", None)
-            if fd is not None:
-                n = bytes_waiting(fd, self._inq)
-                data = _os_read(fd, n) if n > 0 else b""
-            else:                               # a port without a file descriptor (a URL)
-                data = ser.read_all()
-        except BlockingIOError:
-            data = b""
-        except Exception as exc:  # noqa: BLE001 - poll must not raise inside the loop
-            if isinstance(exc, HangUp):
-                exc = DeviceIOError(self.name, _HUNG_UP)
-            self._errors += 1
-            self._n_read_errors += 1
-            dec.reset()
-            return self._reading(Freshness.INVALID, f"read error: {type(exc).__name__}: {exc}", math.nan, 0)
         n_valid = 0
-        if data:
-            self._n_bytes += len(data)
-            if dec.decode(data):
-                # the latest value/error from this poll's values; how many are valid
-                last = self._raw_x = dec.last
-                if dec.distances_only:          # the usual case
-                    n_valid = dec.count
-                    valid = dec.values() if self._average else None
-                else:
-                    valid = [x for x in dec.values() if x <= MAX_DISTANCE_X]
-                    n_valid = len(valid)
-                    n_err = dec.count - n_valid
-                    self._errors += n_err
-                    self._n_error_frames += n_err
-                self._n_values += n_valid
-                if last > MAX_DISTANCE_X:
-                    self._latest_error = error_reason(last)    # _value keeps the last valid value
-                else:
-                    self._latest_error = None
-                    self._value = self._gain * (sum(valid) / n_valid if self._average else last) + self._bias
-                    self._value_t = now
+        failed = None                           # why nothing could be read
+        if ser is None:
+            failed = "port not configured"
         else:
-            dec.clear()
-        if self._latest_error is not None:      # INVALID while the latest value is an error code
-            return self._reading(Freshness.INVALID, self._latest_error, math.nan, n_valid)
-        return self._reading(Freshness.FRESH, "" if self._n_values else _NO_DATA, self._value, n_valid)
+            try:
+                fd = getattr(ser, "fd", None)
+                if fd is not None:
+                    n = bytes_waiting(fd, self._inq)
+                    data = _os_read(fd, n) if n > 0 else b""
+                else:                           # a port without a file descriptor (a URL)
+                    data = ser.read_all()
+            except BlockingIOError:
+                data = b""
+            except Exception as exc:  # noqa: BLE001 - poll must not raise inside the loop
+                if isinstance(exc, HangUp):
+                    exc = DeviceIOError(self.name, _HUNG_UP)
+                self._errors += 1
+                self._n_read_errors += 1
+                dec.reset()
+                failed = f"read error: {type(exc).__name__}: {exc}"
+        if failed is not None:
+            state, cause, value = Freshness.INVALID, failed, math.nan
+        else:
+            if data:
+                self._n_bytes += len(data)
+                if dec.decode(data):
+                    # the latest value/error from this poll's values; how many are valid
+                    last = self._raw_x = dec.last
+                    if dec.distances_only:      # the usual case
+                        n_valid = dec.count
+                        valid = dec.values() if self._average else None
+                    else:
+                        valid = [x for x in dec.values() if x <= MAX_DISTANCE_X]
+                        n_valid = len(valid)
+                        n_err = dec.count - n_valid
+                        self._errors += n_err
+                        self._n_error_frames += n_err
+                    self._n_values += n_valid
+                    if last > MAX_DISTANCE_X:
+                        self._latest_error = error_reason(last)    # _value keeps the last valid value
+                    else:
+                        self._latest_error = None
+                        self._value = self._gain * (sum(valid) / n_valid if self._average else last) + self._bias
+                        self._value_t = now
+            else:
+                dec.clear()
+            if self._latest_error is not None:  # INVALID while the latest value is an error code
+                state, cause, value = Freshness.INVALID, self._latest_error, math.nan
+            else:
+                state, cause, value = Freshness.FRESH, "" if self._n_values else _NO_DATA, self._value
+        h = self._health = health(self._health, state, cause, dec.discarded, 0, self._errors)
+        return LaserReading(self._role, value, self._value_t, h, n_valid, self._raw_x, self._n_values)
 
     @property
     def last_values(self) -> list[int]:
         """Raw values (distances and error codes) decoded by the latest poll."""
         return self._decoder.values()
-
-    def _reading(self, state: Freshness, cause: str, value: float, n_valid: int) -> LaserReading:
-        h = self._health = health(self._health, state, cause, self._decoder.discarded, 0, self._errors)
-        return LaserReading(self._role, value, self._value_t, h, n_valid, self._raw_x, self._n_values)
