@@ -171,20 +171,22 @@ class FrameDecoder:
     def decode(self, data: bytes) -> int:
         """Decode what ``data`` (plus the held partial frame) completes, as the latest chunk;
         how many values it holds."""
-        buf = self._pending + data if self._pending else bytes(data)
+        pending = self._pending
+        buf = pending + data if pending else data if type(data) is bytes else bytes(data)
         n = len(buf)
         letters = buf.translate(_FLAG_TABLE)
         if n % 3 == 0 and _CLEAN.startswith(letters):   # whole clean distance frames
-            self._pending = b""
+            if pending:
+                self._pending = b""
             if not n:
                 self.clear()
                 return 0
             self._buf, self._list = buf, None
-            self.count = n // 3
-            self.frames += self.count
+            count = self.count = n // 3
+            self.frames += count
             self.last = buf[-3] + (buf[-2] << 6) + (buf[-1] << 12) - _FLAG_SUM
             self.distances_only = True
-            return self.count
+            return count
         out: list[int] = []
         pos = 0
         for m in _FRAME_RUN.finditer(letters):
