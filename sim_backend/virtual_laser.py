@@ -74,7 +74,8 @@ _ioctl = fcntl.ioctl
 class VirtualLaser:
     """A simulated optoNCDT 1420 writing binary frames into a pty.
 
-    Sensor model: ``noise_std_m`` Gaussian noise per sample, optional extra
+    Sensor model: ``noise_std_m`` Gaussian noise per sample (set at construction: the noise
+    is drawn already scaled, a block at a time), optional extra
     ``quantization_m`` (the 16-bit wire value quantizes to MR·102/65520/100 anyway),
     ``latency_s`` from sampling to the wire, ``seed`` (int, SeedSequence or numpy
     Generator) for reproducible noise and faults. ``wire``: "pty" (a kernel pty pair) or
