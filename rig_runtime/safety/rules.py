@@ -11,7 +11,7 @@ redundancy), the degraded stop rules and the output rules (a lane's command)."""
 from __future__ import annotations
 
 import math
-from typing import Callable, Collection, NamedTuple, Optional, Sequence
+from typing import Callable, Collection, Optional, Sequence
 
 from ..config import Limits
 from ..hardware import Freshness
@@ -22,16 +22,22 @@ _finite = math.isfinite
 
 
 # ---------------------------------------------------------------------- system rules
-class System(NamedTuple):
-    """What the system rules look at in one cycle."""
-    t: float
-    h: float
-    misses: int             # consecutive control periods lost to deadline misses
-    recorder_ok: bool
-    recorder_cause: str
-    conv: Converters
-    running: bool           # the state is RUNNING (power stages must be enabled)
-    lost: Collection[str] = ()      # the wheels whose drive the run does without (RECONFIGURED)
+class System:
+    """What the system rules look at in one cycle. The supervisor keeps one and fills it in
+    place every cycle (nothing is allocated per cycle); read by name."""
+
+    __slots__ = ("t", "h", "misses", "recorder_ok", "recorder_cause", "conv", "running", "lost")
+
+    def __init__(self, t: float, h: float, misses: int, recorder_ok: bool, recorder_cause: str,
+                 conv: Converters, running: bool, lost: Collection[str] = ()):
+        self.t = t
+        self.h = h
+        self.misses = misses                # consecutive control periods lost to deadline misses
+        self.recorder_ok = recorder_ok
+        self.recorder_cause = recorder_cause
+        self.conv = conv
+        self.running = running              # the state is RUNNING (power stages must be enabled)
+        self.lost = lost                    # the wheels whose drive the run does without (RECONFIGURED)
 
 
 def overrun(s: System, lim: Limits) -> Optional[Finding]:
@@ -92,8 +98,9 @@ ChannelRule = Callable[[Sequence[Channel], float, Limits], Optional[Finding]]
 
 
 def invalid(chs: Sequence[Channel], t: float, lim: Limits) -> Optional[Finding]:
+    bad = Freshness.INVALID
     for c in chs:
-        if c.state is Freshness.INVALID:
+        if c.state is bad:
             return Finding(c.name, "invalid", c.value, math.nan, c.cause)
     return None
 
@@ -129,9 +136,10 @@ def stale(chs: Sequence[Channel], t: float, lim: Limits) -> Optional[Finding]:
 
 
 def not_finite(chs: Sequence[Channel], t: float, lim: Limits) -> Optional[Finding]:
+    finite = _finite
     for c in chs:
         v = c.value
-        if not math.isfinite(v):
+        if not finite(v):
             return Finding(c.name, "nan", v, math.nan, "value is not finite")
     return None
 
@@ -164,7 +172,8 @@ def stuck(chs: Sequence[Channel], t: float, lim: Limits) -> Optional[Finding]:
 
 def jump(chs: Sequence[Channel], t: float, lim: Limits) -> Optional[Finding]:
     for c in chs:
-        if abs(c.delta) > c.step_max:
+        d, m = c.delta, c.step_max
+        if d > m or -d > m:                 # |delta| > step_max
             return Finding(c.name, "jump", c.delta, c.step_max, "implausible change between two cycles")
     return None
 

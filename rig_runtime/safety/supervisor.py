@@ -115,7 +115,10 @@ class Supervisor:
         self._armed_t = 0.0
         self._stop_reason: str | None = None
         self._out = Limiter(limits, h, self.carriers)
-        self._psi_prev: dict[str, float] = {}      # the carrier's ψ of the last cycle it was measured
+        # what a cycle fills in place (nothing allocated per cycle): each carrier's pose (its ψ
+        # of the last cycle it was measured gives ψ̇) and what the system rules look at
+        self._poses: dict[str, Pose] = {}
+        self._system = System(0.0, h, 0, True, "", Converters(True, "", False), False, self.drives.isolated)
         self._latched: Fault | None = None          # the fault latched in the cycle under way
         self._started = False
         self._on_event = on_event or (lambda *a: None)
@@ -280,16 +283,24 @@ class Supervisor:
         h = self.h
         for c in self.channels:
             c.observe(samples[c.name], t, h)
-        pp = self._psi_prev
+        slots = self._poses
         pose_list = []
         for carrier, y, psi in poses:
-            p = pp.get(carrier)
-            pose_list.append(Pose(carrier, y, psi, 0.0 if p is None else (psi - p) / h))
-            pp[carrier] = psi
+            p = slots.get(carrier)
+            if p is None:                   # its first measurement: no ψ̇ yet
+                p = slots[carrier] = Pose(carrier, y, psi, 0.0)
+            else:
+                p.psi_rate = (psi - p.psi) / h
+                p.y, p.psi = y, psi
+            pose_list.append(p)
         self._transitions(t, conv, consecutive_misses)
-        if self.active:
-            f = self._check(t, System(t, h, consecutive_misses, recorder_ok, recorder_cause, conv,
-                                      self.state is State.RUNNING, self.drives.isolated), pose_list)
+        st = self.state
+        if st is State.ARMED or st is State.RUNNING or st is State.STOPPING:        # active
+            system = self._system
+            system.t, system.misses, system.conv = t, consecutive_misses, conv
+            system.recorder_ok, system.recorder_cause = recorder_ok, recorder_cause
+            system.running, system.lost = st is State.RUNNING, self.drives.isolated
+            f = self._check(t, system, pose_list)
             if f is not None:
                 self.trip(t, f)
         return Step(self.state, self._started)
@@ -297,9 +308,11 @@ class Supervisor:
     def _check(self, t: float, system: System, poses: Sequence[Pose]) -> Optional[Finding]:
         """The check sequence; returns the finding that trips (None: none)."""
         lim = self.limits
+        conv = system.conv
+        absorb = bool(conv.drives) and self._outages is not None     # what a drive said of itself
         for rule in SYSTEM_RULES:       # root causes first: a starved loop makes the watchdogs trip too
-            if rule is converter and system.conv.drives and self._outages is not None:
-                self._absorb_drives(t, system.conv)      # what a drive said of itself: reconfigure?
+            if absorb and rule is converter:
+                self._absorb_drives(t, conv)        # reconfigure?
             f = rule(system, lim)
             if f is not None:
                 return f
@@ -330,10 +343,11 @@ class Supervisor:
                     return f
         for rule in OBSERVER_RULES:
             for o in self.observers:
-                if self._channel_evidence(o.d.channels):
-                    continue
+                # a rule that holds has nothing to wait for: the channel evidence (the rules are
+                # pure) is asked only of a finding — while a channel rule gathers evidence on one
+                # of the carrier's sensors the observer rules wait
                 f = rule(o, lim)
-                if f is not None:
+                if f is not None and not self._channel_evidence(o.d.channels):
                     iso = ISOLATING_RULES.get(rule)
                     if iso is None or not self._degrade(t, tuple(iso(o)), f, readmit=False):
                         return f
@@ -476,17 +490,24 @@ class Supervisor:
         carrier where the analysis allows (else it is the fault)."""
         deg, lost = self._deg_cfg, self.drives.isolated
         thr = deg.torque_residual_A
+        cmds_of, runs, worst, h = self._cmds, self._torque_run, self.torque_residual_max, self.h
         for w, actual in conv.torque:
-            cmds = self._cmds.get(w)
+            cmds = cmds_of.get(w)
             if cmds is None or w in lost:
                 continue
             c0, c1, c2 = cmds
             r = min(abs(c0 - actual), abs(c1 - actual), abs(c2 - actual))
             small = min(abs(c0), abs(c1), abs(c2)) < thr
-            run = self._torque_run[w] = 0 if small or not r > thr else self._torque_run[w] + 1
-            if not small and r > self.torque_residual_max[w]:
-                self.torque_residual_max[w] = r          # the largest judged residual (healthy runs: the margin)
-            f = torque_response(w, run, r, cmds[0], actual, deg, self.h)
+            if small:
+                runs[w] = 0             # commands too small to judge: the rule has nothing to judge
+                continue
+            if r > worst[w]:
+                worst[w] = r            # the largest judged residual (healthy runs: the margin)
+            if not r > thr:
+                runs[w] = 0             # on one of its commands: no run for the rule to judge
+                continue
+            run = runs[w] = runs[w] + 1
+            f = torque_response(w, run, r, c0, actual, deg, h)
             if f is not None and not self._reconfigure(t, w, f):
                 return f
         return None

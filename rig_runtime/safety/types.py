@@ -80,12 +80,14 @@ class Converters(NamedTuple):
     torque: tuple[tuple[str, float], ...] = ()      # (wheel, torque actual in A of its latest TPDO)
 
 
-class Pose(NamedTuple):
-    """One controlled carrier's state as measured this cycle."""
-    carrier: str
-    y: float
-    psi: float
-    psi_rate: float
+class Pose:
+    """One controlled carrier's state as measured this cycle. The supervisor keeps one per
+    carrier and updates it in place every cycle (its ψ is the previous ψ for the next ψ̇)."""
+
+    __slots__ = ("carrier", "y", "psi", "psi_rate")
+
+    def __init__(self, carrier: str, y: float, psi: float, psi_rate: float):
+        self.carrier, self.y, self.psi, self.psi_rate = carrier, y, psi, psi_rate
 
 
 class Step(NamedTuple):
