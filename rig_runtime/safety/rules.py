@@ -15,7 +15,7 @@ from typing import Callable, Collection, Optional, Sequence
 
 from ..config import Limits
 from ..hardware import Freshness
-from .types import BAD_UNIT, Channel, Converters, Finding, Pose
+from .types import _NEVER_T, BAD_UNIT, Channel, Converters, Finding, Pose
 
 _NEVER = 1 << 62         # a count limit that is switched off
 _finite = math.isfinite
@@ -118,19 +118,20 @@ def stale(chs: Sequence[Channel], t: float, lim: Limits) -> Optional[Finding]:
     unanswered — the runtime's own lateness is not the device's fault. Either reaching
     ``stale_n`` is stale. The finding names what was observed instead: discarded data in
     that time makes it a corrupted link (``corrupt``), not a silent device."""
+    never = _NEVER_T
     for c in chs:
         n = c.stale_n
         if c.unanswered >= 0:
-            if c.unanswered >= n or c.t == -math.inf:
-                what = "no valid value yet" if c.t == -math.inf else "no valid value"
+            if c.unanswered >= n or c.t == never:
+                what = "no valid value yet" if c.t == never else "no valid value"
                 g = _discarded(c)
                 return Finding(c.name, "corrupt" if g else "stale", c.unanswered, n,
                                f"{what} for {c.unanswered} requests sent{g}")
             continue
-        if c.t == -math.inf or c.silent >= n:
+        if c.t == never or c.silent >= n:
             age = t - c.t
             g = _discarded(c)
-            what = "no valid value yet" if c.t == -math.inf else f"no valid value for {age * 1e3:.0f} ms"
+            what = "no valid value yet" if c.t == never else f"no valid value for {age * 1e3:.0f} ms"
             return Finding(c.name, "corrupt" if g else "stale", age, c.stale_s, what + g)
     return None
 
