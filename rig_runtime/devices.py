@@ -201,7 +201,7 @@ class RigDevices:
         samples, values = self._samples, self._values
         rd = self.drives.poll(now)
         ok, cause = True, ""
-        lost = off = ()             # per wheel: each INVALID drive's cause, each power stage not enabled
+        drives = not_enabled = ()   # per wheel: each INVALID drive's (wheel, cause), each power stage not enabled
         torque = []                 # per wheel: (wheel, its drive's reported current)
         for w, r in rd.wheels.items():
             v = values[w] = r.omega
@@ -211,12 +211,12 @@ class RigDevices:
             torque.append((w, r.current_A))
             if h.state is _INVALID:
                 why = f"drive {r.wheel} (node {r.node_id}): {h.cause}"
-                lost += ((w, why),)
+                drives += ((w, why),)
                 if ok:
                     ok, cause = False, why
-                off += (w,)
+                not_enabled += (w,)
             elif not r.enabled:                 # as the driver's `enabled`
-                off += (w,)
+                not_enabled += (w,)
         bus = rd.bus
         bus_ok = bus.state is not _INVALID
         if ok and not bus_ok:
@@ -243,8 +243,10 @@ class RigDevices:
             r = d.poll(now)
             v = values[role] = r.value_m
             s.value, s.t, s.health = v, r.t, r.health
-        conv = Converters(ok, cause, rd.enabled, rd.bus_error_t, bus.cause, lost, off, bus_ok, tuple(torque))
-        return Reading(now, samples, values, self._wrench, conv)
+        enabled, bus_error_t, bus_cause, torque = rd.enabled, rd.bus_error_t, bus.cause, tuple(torque)
+        # each field from the local of its name, in the fields' order (by keyword it costs three times as much)
+        converters = Converters(ok, cause, enabled, bus_error_t, bus_cause, drives, not_enabled, bus_ok, torque)
+        return Reading(now, samples, values, self._wrench, converters)
 
     def write(self, currents: Mapping[str, float], now: float) -> None:
         """Each wheel's current (A) by wheel name."""

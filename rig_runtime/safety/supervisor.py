@@ -64,6 +64,7 @@ class Supervisor:
         for c in self.channels:
             c.periods(h)
         self._by_name = {c.name: c for c in self.channels}
+        self._groups: dict[tuple, tuple[Channel, ...]] = {}      # names -> their channels (fit)
         self.observers = tuple(observers)      # the lanes' observers (rig_runtime.observer.Observer)
         # degraded mode (config.Degraded; docs/observer.md): only with on_lateral_loss "observe"
         self._deg = degraded if (degraded is not None and degraded.on_lateral_loss == "observe"
@@ -233,7 +234,7 @@ class Supervisor:
         why = []
         if misses:      # warm-up still missing deadlines (first drains, imports)
             why.append(f"loop: {misses} periods lost to deadline misses")
-        lim = self.limits
+        lim = self._limits
         for c in self.channels:
             for rule in ARM_RULES:
                 f = rule((c,), t, lim)
@@ -307,7 +308,7 @@ class Supervisor:
 
     def _check(self, t: float, system: System, poses: Sequence[Pose]) -> Optional[Finding]:
         """The check sequence; returns the finding that trips (None: none)."""
-        lim = self.limits
+        lim = self._limits
         conv = system.conv
         absorb = bool(conv.drives) and self._outages is not None     # what a drive said of itself
         for rule in SYSTEM_RULES:       # root causes first: a starved loop makes the watchdogs trip too
@@ -358,7 +359,7 @@ class Supervisor:
         lateral laser (an arm rule's breach, not a lying one: stuck, jumping, garbling) that
         degraded mode absorbs is isolated, and the remaining channels are judged afresh from
         the first rule — a second laser breaching the same rule is caught in this cycle."""
-        lim = self.limits
+        lim = self._limits
         iso, lost = self.lasers.isolated, self.drives.isolated
         chs = ([c for c in self.channels if c.name not in iso and c.name not in lost] if iso or lost
                else self.channels)
@@ -425,7 +426,7 @@ class Supervisor:
                 if self._deg_stop:
                     break
         y_meas = {p.carrier: p.y for p in poses}
-        lim = self.limits
+        lim = self._limits
 
         def fit(name: str) -> bool:     # fit again, and the measured y agrees with ŷ
             c = (self._by_name[name],)
@@ -472,7 +473,7 @@ class Supervisor:
         keep = [x for x in (left, right) if x not in lost]
         auth = len(keep) * min((tb.i_max.get(x, math.inf) for x in keep), default=0.0)   # the wheels' authority
         deg = self._deg_cfg.limits
-        lim = self.limits
+        lim = self._limits
         self._reconf_limits[car] = dataclasses.replace(lim, u_max=min(lim.u_max, deg.u_max, auth),
                                                         y_max=min(lim.y_max, deg.y_max))
         self.drives.isolate(t, (wheel,), f.check, readmit=False)
@@ -524,7 +525,7 @@ class Supervisor:
     def _update_limits(self) -> None:
         """The limits each carrier runs under now: DEGRADED and RECONFIGURED each tighten them
         (the tighter of both when both hold)."""
-        lim = self.limits
+        lim = self._limits
         out = {}
         for car in set(self.lasers.since) | set(self._reconf_limits):
             a = self._deg_limits if car in self.lasers.since else lim
@@ -556,14 +557,17 @@ class Supervisor:
     def fit(self, names: Sequence[str], t: float) -> bool:
         """Every named channel fit for use this cycle: what arming asks of a channel (a
         fresh, finite, in-range sample; ``ARM_RULES``). The observer's lateral update uses a
-        laser only then."""
-        lim = self.limits
-        by = self._by_name
-        for n in names:
-            c = (by[n],)
-            for rule in ARM_RULES:
-                if rule(c, t, lim) is not None:
-                    return False
+        laser only then. Each rule is asked once of the named channels together (the names
+        resolved to channels once per set of names)."""
+        if type(names) is not tuple:
+            names = tuple(names)
+        chs = self._groups.get(names)
+        if chs is None:
+            chs = self._groups[names] = tuple(self._by_name[n] for n in names)
+        lim = self._limits
+        for rule in ARM_RULES:
+            if rule(chs, t, lim) is not None:
+                return False
         return True
 
     # ------------------------------------------------------------------ output limit
@@ -573,7 +577,7 @@ class Supervisor:
         while STOPPING (``end_cycle`` then moves to IDLE once every output is zero)."""
         st = self.state
         if st is State.RUNNING:
-            lim = self.limits
+            lim = self._limits
             for rule in OUTPUT_RULES:
                 f = rule(carrier, u, lim)
                 if f is not None:
