@@ -426,8 +426,9 @@ class ControlLoop:
                 self.max_abs_current = abs(u)
         fault = sup.end_cycle(t)
         cy.state = float(sup.state)
-        wheel_currents(self.lanes, cy.currents, sup.wheels_lost, self._i_wheel)
-        if sup.wheels_lost:                 # RECONFIGURED: a lone wheel carries its carrier's whole command
+        lost = sup.wheels_lost
+        wheel_currents(self.lanes, cy.currents, lost, self._i_wheel)
+        if lost:                            # RECONFIGURED: a lone wheel carries its carrier's whole command
             m = max(abs(i) for i in cy.currents.values())
             if m > self.max_abs_reconfigured_wheel:
                 self.max_abs_reconfigured_wheel = m

@@ -583,7 +583,8 @@ class Supervisor:
                 if f is not None:
                     self.trip(t, f)
                     return self._out.zero(carrier)
-            return self._out.running(carrier, u, self._lim_of.get(carrier, lim).u_max)
+            lim_of = self._lim_of           # empty unless DEGRADED or RECONFIGURED
+            return self._out.running(carrier, u, (lim_of.get(carrier, lim) if lim_of else lim).u_max)
         if st is State.STOPPING:
             return self._out.stopping(carrier)
         return self._out.zero(carrier)
