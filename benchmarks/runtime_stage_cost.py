@@ -1,7 +1,8 @@
 """The runtime's own per-cycle cost in a lockstep run, stage by stage, without the simulated
 wires: the median per cycle of each stage of loop.py (geometry, measured speed, supervisor,
 observer, control, output limit, log row) and of ``devices.poll``'s own work (the poll minus
-the drivers' polls inside it: filing the readings under their names). Each call is timed in
+the drivers' polls inside it: filing the readings under their names; what timing each driver's
+poll adds is measured on an empty call and taken off). Each call is timed in
 the loop thread's CPU time (``time.thread_time``: the time other processes of a shared machine
 take is not counted) and the median of many cycles is shown (robust against the rest).
 
@@ -59,6 +60,7 @@ def one_run(path: str, scenario: str, duration: float) -> dict[str, float]:
     pc = time.thread_time
     samples: dict[str, list[float]] = collections.defaultdict(list)
     inner = [0.0]
+    calls = [0]                         # the drivers' polls timed inside this devices.poll
 
     def timed(f, key):
         out = samples[key]
@@ -75,8 +77,24 @@ def one_run(path: str, scenario: str, duration: float) -> dict[str, float]:
             t = pc()
             r = f(*a, **k)
             inner[0] += pc() - t
+            calls[0] += 1
             return r
         return call
+
+    # what timing a driver's poll adds to the devices.poll around it (the wrapper and its two
+    # clock reads, outside the interval it subtracts): measured on an empty call, taken off
+    def nop(now):
+        return None
+    wrapped, bare = child(nop), []
+    for f, out in ((wrapped, []), (nop, bare)):
+        for _ in range(20000):
+            inner[0] = 0.0
+            t = pc()
+            f(0.0)
+            out.append(pc() - t - inner[0])
+        if f is wrapped:
+            with_timer = out
+    per_child = max(0.0, statistics.median(with_timer) - statistics.median(bare))
 
     def prepare(sim, dev, clock):
         for d in dev.lasers:
@@ -89,9 +107,10 @@ def one_run(path: str, scenario: str, duration: float) -> dict[str, float]:
 
         def poll(now):
             inner[0] = 0.0
+            calls[0] = 0
             t = pc()
             r = outer(now)
-            own.append(pc() - t - inner[0])
+            own.append(pc() - t - inner[0] - calls[0] * per_child)
             return r
         dev.poll = poll
 
