@@ -363,9 +363,11 @@ class Supervisor:
         iso, lost = self.lasers.isolated, self.drives.isolated
         chs = ([c for c in self.channels if c.name not in iso and c.name not in lost] if iso or lost
                else self.channels)
+        rules = CHANNEL_RULES
+        n = len(rules)
         k = 0
-        while k < len(CHANNEL_RULES):
-            rule = CHANNEL_RULES[k]
+        while k < n:
+            rule = rules[k]
             f = rule(chs, t, lim)
             if f is None:
                 k += 1
