@@ -15,7 +15,7 @@ from typing import Callable, Collection, Optional, Sequence
 
 from ..config import Limits
 from ..hardware import Freshness
-from .types import _NEVER_T, BAD_UNIT, Channel, Converters, Finding, Pose
+from .types import BAD_UNIT, NEVER_T, Channel, Converters, Finding, Pose
 
 _NEVER = 1 << 62         # a count limit that is switched off
 _finite = math.isfinite
@@ -118,7 +118,7 @@ def stale(chs: Sequence[Channel], t: float, lim: Limits) -> Optional[Finding]:
     unanswered — the runtime's own lateness is not the device's fault. Either reaching
     ``stale_n`` is stale. The finding names what was observed instead: discarded data in
     that time makes it a corrupted link (``corrupt``), not a silent device."""
-    never = _NEVER_T
+    never = NEVER_T
     for c in chs:
         n = c.stale_n
         if c.unanswered >= 0:

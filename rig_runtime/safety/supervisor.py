@@ -499,11 +499,10 @@ class Supervisor:
             if cmds is None or w in lost:
                 continue
             c0, c1, c2 = cmds
-            r = min(abs(c0 - actual), abs(c1 - actual), abs(c2 - actual))
-            small = min(abs(c0), abs(c1), abs(c2)) < thr
-            if small:
+            if min(abs(c0), abs(c1), abs(c2)) < thr:
                 runs[w] = 0             # commands too small to judge: the rule has nothing to judge
                 continue
+            r = min(abs(c0 - actual), abs(c1 - actual), abs(c2 - actual))
             if r > worst[w]:
                 worst[w] = r            # the largest judged residual (healthy runs: the margin)
             if not r > thr:

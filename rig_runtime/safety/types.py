@@ -97,7 +97,7 @@ class Step(NamedTuple):
     started: bool
 
 
-_NEVER_T = -math.inf     # a channel's arrival time before its first valid value
+NEVER_T = -math.inf     # a channel's arrival time before its first valid value
 
 # what a channel's discarded data is counted in, by kind (the driver's ``Health.bad_frames``)
 BAD_UNIT = {"laser": "bytes of unparseable data", "wheel": "garbled frames", "ft": "garbled replies"}
@@ -124,7 +124,7 @@ class Channel:
         self.step_max = step_max          # largest plausible change between two cycles
         self.stuck_check = stuck_check    # a sensor with noise never repeats bit-identically for long
         self.value = math.nan
-        self.t = -math.inf
+        self.t = NEVER_T
         self.silent = 0                   # cycles since the latest valid value was first seen
         self.state = Freshness.STALE
         self.cause = "no sample yet"
@@ -150,7 +150,7 @@ class Channel:
         self.value = v
         t = s.t
         if t != t:
-            t = _NEVER_T                            # NaN: no valid value ever
+            t = NEVER_T                            # NaN: no valid value ever
         if t != self.t:
             self.t = t
             self.bad_at_value = hl.bad_frames      # a new valid value: discarded data counted from here
