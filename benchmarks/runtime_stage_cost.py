@@ -131,9 +131,10 @@ def _in_process(tree: Path, a) -> dict[str, float]:
     """One run of the benchmark on ``tree``'s code in a fresh interpreter."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--tree", str(tree), "--json", "--repeat", "1",
            "--config", str(Path(a.config).resolve()), "--scenario", a.scenario, "--duration", str(a.duration)]
-    out = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=tree,
-                         env={**os.environ, "PYTHONPATH": str(tree)}).stdout
-    return json.loads(out.strip().splitlines()[-1])
+    p = subprocess.run(cmd, capture_output=True, text=True, cwd=tree, env={**os.environ, "PYTHONPATH": str(tree)})
+    if p.returncode != 0:
+        raise SystemExit(f"{tree}: the run failed (exit {p.returncode}):\n{p.stderr}")
+    return json.loads(p.stdout.strip().splitlines()[-1])
 
 
 def main() -> int:
