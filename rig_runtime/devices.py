@@ -207,7 +207,8 @@ class RigDevices:
             v = values[w] = r.omega
             h = r.health
             s = samples[w]
-            s.value, s.t, s.health, s.unanswered = v, r.t, h, r.syncs_unanswered
+            s.value, s.t, s.health = v, r.t, h
+            s.unanswered = r.syncs_unanswered
             torque.append((w, r.current_A))
             if h.state is _INVALID:
                 why = f"drive {r.wheel} (node {r.node_id}): {h.cause}"
