@@ -72,6 +72,7 @@ class Readings:
 #: takes the six distances and the four speeds in two C calls, not ten lookups
 _LASERS = itemgetter("b_f", "b_r", "s_fl", "s_fr", "s_rl", "s_rr")
 _WHEELS = itemgetter("fl", "fr", "rl", "rr")
+_atan, _sin = math.atan, math.sin
 
 
 def measure(v: Mapping[str, float], geo: Geometry) -> Measurement:
@@ -81,12 +82,15 @@ def measure(v: Mapping[str, float], geo: Geometry) -> Measurement:
     b_f, b_r, s_fl, s_fr, s_rl, s_rr = _LASERS(v)
     fl, fr, rl, rr = _WHEELS(v)
     y_m = 0.5 * (b_f + b_r) - geo.b0
-    psi_m = math.atan((b_f - b_r) / geo.l_L)
-    lat = geo.l0 * math.sin(psi_m)
-    psi_af = math.atan((s_fl - s_fr) / geo.d0)
-    psi_ar = math.atan((s_rl - s_rr) / geo.d0)
-    return Measurement(y_m=y_m, psi_m=psi_m, y_f=y_m + lat, y_r=y_m - lat, psi_af=psi_af, psi_ar=psi_ar,
-                       psi_f=psi_af + psi_m, psi_r=psi_ar + psi_m, dw_f=fl - fr, dw_r=rl - rr)
+    psi_m = _atan((b_f - b_r) / geo.l_L)
+    lat = geo.l0 * _sin(psi_m)
+    psi_af = _atan((s_fl - s_fr) / geo.d0)
+    psi_ar = _atan((s_rl - s_rr) / geo.d0)
+    y_f, y_r = y_m + lat, y_m - lat
+    psi_f, psi_r = psi_af + psi_m, psi_ar + psi_m
+    dw_f, dw_r = fl - fr, rl - rr
+    # each field from the local of its name, in the fields' order (by keyword it costs three times as much)
+    return Measurement(y_m, psi_m, y_f, y_r, psi_af, psi_ar, psi_f, psi_r, dw_f, dw_r)
 
 
 def ideal_readings(pose: Pose, geo: Geometry, s0: float = 0.0375) -> Readings:

@@ -343,9 +343,9 @@ class ControlLoop:
         # (a stalled loop is the root cause of what it finds on waking, e.g. a drive watchdog)
         misses = self.stats.overrun_periods + int(self.cycle.lateness / self.h)
         poses = [(l.carrier, l.y, l.psi) for l in self._controlled]
-        return sup.cycle(t, reading.samples, reading.converters, poses, misses,
-                         rec.healthy if rec is not None else True, rec.error if rec is not None else "",
-                         self.speed)
+        ok = rec.healthy if rec is not None else True
+        cause = "" if ok else rec.error           # the cause only of an unhealthy recorder (the rule's)
+        return sup.cycle(t, reading.samples, reading.converters, poses, misses, ok, cause, self.speed)
 
     def _estimate(self, t: float) -> None:
         """Each observed lane's observer on this cycle's measurement; the lateral lasers are
@@ -426,8 +426,9 @@ class ControlLoop:
                 self.max_abs_current = abs(u)
         fault = sup.end_cycle(t)
         cy.state = float(sup.state)
-        wheel_currents(self.lanes, cy.currents, sup.wheels_lost, self._i_wheel)
-        if sup.wheels_lost:                 # RECONFIGURED: a lone wheel carries its carrier's whole command
+        lost = sup.wheels_lost
+        wheel_currents(self.lanes, cy.currents, lost, self._i_wheel)
+        if lost:                            # RECONFIGURED: a lone wheel carries its carrier's whole command
             m = max(abs(i) for i in cy.currents.values())
             if m > self.max_abs_reconfigured_wheel:
                 self.max_abs_reconfigured_wheel = m

@@ -243,3 +243,49 @@ def test_findings_are_read_by_name():
     with pytest.raises(TypeError):
         f[0]                                        # noqa: B018 - not a tuple: no positional reads
     assert dataclasses.is_dataclass(f)
+
+
+# ---------------------------------------------------------------------- the cycle's slots
+def test_the_observer_rules_wait_while_a_channel_rule_gathers_evidence(cfg):
+    """An innovation finding on a carrier one of whose sensors brings garbled data (the
+    corrupt-link rule gathering evidence) waits; once the channel is clean again it trips in
+    that cycle. The evidence is asked only of a finding: the outcome is the rules' order."""
+    r = Rig(cfg)
+    o = r.obs
+    thr = r.cfg.limits.innovation_chi2
+    o.window_full, o.lat_used, o.T_psi, o.T_lat, o.T_dw = True, 0.0, 2 * thr, 0.0, 0.0
+    for k in (1, 2, 3):                 # b_r discards data three cycles in a row
+        r.step(b_r={"health": Health(Freshness.FRESH, "", bad_frames=k)})
+        assert r.s.state is State.RUNNING
+    t = r.step(b_r={"health": Health(Freshness.FRESH, "", bad_frames=3)})      # nothing newly discarded
+    f = r.s.fault
+    assert r.s.state is State.FAULT and (f.check, f.t, f.value) == ("innovation", t, 2 * thr)
+
+
+def test_fit_judges_every_named_channel_by_the_arm_rules(cfg):
+    """``fit`` is False if any named channel breaks an arm rule, whichever order the names
+    come in and whether they come as a tuple or a list."""
+    r = Rig(cfg)
+    t = r.step(b_r={"value": 1.0})           # out of its range (isolated: fit judges the channel itself)
+    s = r.s
+    assert s.fit(("b_f",), t) and s.fit(("b_f", "rl"), t)
+    assert not s.fit(("b_f", "b_r"), t) and not s.fit(("b_r", "b_f"), t) and not s.fit(["b_f", "b_r"], t)
+    t = r.step()
+    assert s.fit(("b_f", "b_r"), t)
+
+
+def test_the_largest_torque_residual_counts_residuals_within_the_threshold():
+    """A drive answering a little off its commands (within degraded.torque_residual_A) starts
+    no run of the torque rule, and the largest residual is still recorded (the margin a
+    healthy run reports)."""
+    from .test_reconfiguration import Vehicle, _torque_cycle
+    cfg = config.load(config.resolve_config_path("vehicle.yaml"))
+    cfg = dataclasses.replace(cfg, degraded=dataclasses.replace(cfg.degraded, on_drive_loss="reallocate"))
+    from rig_runtime.reconfig_analysis import table
+    r = Vehicle(cfg, table(cfg))
+    off = 0.5 * cfg.degraded.torque_residual_A
+    for _ in range(100):                    # -1 A ramps in at du_max, then holds
+        _torque_cycle(r, -1.0, {"fl": r.s._cmds["fl"][0] + off})
+    assert r.s.state is State.RUNNING and not r.s.wheels_lost
+    assert r.s.torque_residual_max["fl"] == pytest.approx(off, rel=1e-9)
+    assert r.s._torque_run["fl"] == 0 and max(r.s.torque_residual_max[w] for w in ("fr", "rl", "rr")) <= 1e-12

@@ -11,27 +11,33 @@ redundancy), the degraded stop rules and the output rules (a lane's command)."""
 from __future__ import annotations
 
 import math
-from typing import Callable, Collection, NamedTuple, Optional, Sequence
+from typing import Callable, Collection, Optional, Sequence
 
 from ..config import Limits
 from ..hardware import Freshness
-from .types import BAD_UNIT, Channel, Converters, Finding, Pose
+from .types import BAD_UNIT, NEVER_T, Channel, Converters, Finding, Pose
 
 _NEVER = 1 << 62         # a count limit that is switched off
 _finite = math.isfinite
 
 
 # ---------------------------------------------------------------------- system rules
-class System(NamedTuple):
-    """What the system rules look at in one cycle."""
-    t: float
-    h: float
-    misses: int             # consecutive control periods lost to deadline misses
-    recorder_ok: bool
-    recorder_cause: str
-    conv: Converters
-    running: bool           # the state is RUNNING (power stages must be enabled)
-    lost: Collection[str] = ()      # the wheels whose drive the run does without (RECONFIGURED)
+class System:
+    """What the system rules look at in one cycle. The supervisor keeps one and fills it in
+    place every cycle (nothing is allocated per cycle); read by name."""
+
+    __slots__ = ("t", "h", "misses", "recorder_ok", "recorder_cause", "conv", "running", "lost")
+
+    def __init__(self, t: float, h: float, misses: int, recorder_ok: bool, recorder_cause: str,
+                 conv: Converters, running: bool, lost: Collection[str] = ()):
+        self.t = t
+        self.h = h
+        self.misses = misses                # consecutive control periods lost to deadline misses
+        self.recorder_ok = recorder_ok
+        self.recorder_cause = recorder_cause
+        self.conv = conv
+        self.running = running              # the state is RUNNING (power stages must be enabled)
+        self.lost = lost                    # the wheels whose drive the run does without (RECONFIGURED)
 
 
 def overrun(s: System, lim: Limits) -> Optional[Finding]:
@@ -92,8 +98,9 @@ ChannelRule = Callable[[Sequence[Channel], float, Limits], Optional[Finding]]
 
 
 def invalid(chs: Sequence[Channel], t: float, lim: Limits) -> Optional[Finding]:
+    bad = Freshness.INVALID
     for c in chs:
-        if c.state is Freshness.INVALID:
+        if c.state is bad:
             return Finding(c.name, "invalid", c.value, math.nan, c.cause)
     return None
 
@@ -111,27 +118,29 @@ def stale(chs: Sequence[Channel], t: float, lim: Limits) -> Optional[Finding]:
     unanswered — the runtime's own lateness is not the device's fault. Either reaching
     ``stale_n`` is stale. The finding names what was observed instead: discarded data in
     that time makes it a corrupted link (``corrupt``), not a silent device."""
+    never = NEVER_T
     for c in chs:
         n = c.stale_n
         if c.unanswered >= 0:
-            if c.unanswered >= n or c.t == -math.inf:
-                what = "no valid value yet" if c.t == -math.inf else "no valid value"
+            if c.unanswered >= n or c.t == never:
+                what = "no valid value yet" if c.t == never else "no valid value"
                 g = _discarded(c)
                 return Finding(c.name, "corrupt" if g else "stale", c.unanswered, n,
                                f"{what} for {c.unanswered} requests sent{g}")
             continue
-        if c.t == -math.inf or c.silent >= n:
+        if c.t == never or c.silent >= n:
             age = t - c.t
             g = _discarded(c)
-            what = "no valid value yet" if c.t == -math.inf else f"no valid value for {age * 1e3:.0f} ms"
+            what = "no valid value yet" if c.t == never else f"no valid value for {age * 1e3:.0f} ms"
             return Finding(c.name, "corrupt" if g else "stale", age, c.stale_s, what + g)
     return None
 
 
 def not_finite(chs: Sequence[Channel], t: float, lim: Limits) -> Optional[Finding]:
+    finite = _finite
     for c in chs:
         v = c.value
-        if not math.isfinite(v):
+        if not finite(v):
             return Finding(c.name, "nan", v, math.nan, "value is not finite")
     return None
 
@@ -164,7 +173,8 @@ def stuck(chs: Sequence[Channel], t: float, lim: Limits) -> Optional[Finding]:
 
 def jump(chs: Sequence[Channel], t: float, lim: Limits) -> Optional[Finding]:
     for c in chs:
-        if abs(c.delta) > c.step_max:
+        d, m = c.delta, c.step_max
+        if d > m or -d > m:                 # |delta| > step_max
             return Finding(c.name, "jump", c.delta, c.step_max, "implausible change between two cycles")
     return None
 

@@ -64,6 +64,7 @@ class Supervisor:
         for c in self.channels:
             c.periods(h)
         self._by_name = {c.name: c for c in self.channels}
+        self._groups: dict[tuple, tuple[Channel, ...]] = {}      # names -> their channels (fit)
         self.observers = tuple(observers)      # the lanes' observers (rig_runtime.observer.Observer)
         # degraded mode (config.Degraded; docs/observer.md): only with on_lateral_loss "observe"
         self._deg = degraded if (degraded is not None and degraded.on_lateral_loss == "observe"
@@ -115,7 +116,10 @@ class Supervisor:
         self._armed_t = 0.0
         self._stop_reason: str | None = None
         self._out = Limiter(limits, h, self.carriers)
-        self._psi_prev: dict[str, float] = {}      # the carrier's ψ of the last cycle it was measured
+        # what a cycle fills in place (nothing allocated per cycle): each carrier's pose (its ψ
+        # of the last cycle it was measured gives ψ̇) and what the system rules look at
+        self._poses: dict[str, Pose] = {}
+        self._system = System(0.0, h, 0, True, "", Converters(True, "", False), False, self.drives.isolated)
         self._latched: Fault | None = None          # the fault latched in the cycle under way
         self._started = False
         self._on_event = on_event or (lambda *a: None)
@@ -230,7 +234,7 @@ class Supervisor:
         why = []
         if misses:      # warm-up still missing deadlines (first drains, imports)
             why.append(f"loop: {misses} periods lost to deadline misses")
-        lim = self.limits
+        lim = self._limits
         for c in self.channels:
             for rule in ARM_RULES:
                 f = rule((c,), t, lim)
@@ -280,26 +284,36 @@ class Supervisor:
         h = self.h
         for c in self.channels:
             c.observe(samples[c.name], t, h)
-        pp = self._psi_prev
+        slots = self._poses
         pose_list = []
         for carrier, y, psi in poses:
-            p = pp.get(carrier)
-            pose_list.append(Pose(carrier, y, psi, 0.0 if p is None else (psi - p) / h))
-            pp[carrier] = psi
+            p = slots.get(carrier)
+            if p is None:                   # its first measurement: no ψ̇ yet
+                p = slots[carrier] = Pose(carrier, y, psi, 0.0)
+            else:
+                p.psi_rate = (psi - p.psi) / h
+                p.y, p.psi = y, psi
+            pose_list.append(p)
         self._transitions(t, conv, consecutive_misses)
-        if self.active:
-            f = self._check(t, System(t, h, consecutive_misses, recorder_ok, recorder_cause, conv,
-                                      self.state is State.RUNNING, self.drives.isolated), pose_list)
+        st = self.state
+        if st is State.ARMED or st is State.RUNNING or st is State.STOPPING:        # active
+            system = self._system
+            system.t, system.misses, system.conv = t, consecutive_misses, conv
+            system.recorder_ok, system.recorder_cause = recorder_ok, recorder_cause
+            system.running, system.lost = st is State.RUNNING, self.drives.isolated
+            f = self._check(t, system, pose_list)
             if f is not None:
                 self.trip(t, f)
         return Step(self.state, self._started)
 
     def _check(self, t: float, system: System, poses: Sequence[Pose]) -> Optional[Finding]:
         """The check sequence; returns the finding that trips (None: none)."""
-        lim = self.limits
+        lim = self._limits
+        conv = system.conv
+        absorb = bool(conv.drives) and self._outages is not None     # what a drive said of itself
         for rule in SYSTEM_RULES:       # root causes first: a starved loop makes the watchdogs trip too
-            if rule is converter and system.conv.drives and self._outages is not None:
-                self._absorb_drives(t, system.conv)      # what a drive said of itself: reconfigure?
+            if absorb and rule is converter:
+                self._absorb_drives(t, conv)        # reconfigure?
             f = rule(system, lim)
             if f is not None:
                 return f
@@ -330,10 +344,11 @@ class Supervisor:
                     return f
         for rule in OBSERVER_RULES:
             for o in self.observers:
-                if self._channel_evidence(o.d.channels):
-                    continue
+                # a rule that holds has nothing to wait for: the channel evidence (the rules are
+                # pure) is asked only of a finding — while a channel rule gathers evidence on one
+                # of the carrier's sensors the observer rules wait
                 f = rule(o, lim)
-                if f is not None:
+                if f is not None and not self._channel_evidence(o.d.channels):
                     iso = ISOLATING_RULES.get(rule)
                     if iso is None or not self._degrade(t, tuple(iso(o)), f, readmit=False):
                         return f
@@ -344,13 +359,15 @@ class Supervisor:
         lateral laser (an arm rule's breach, not a lying one: stuck, jumping, garbling) that
         degraded mode absorbs is isolated, and the remaining channels are judged afresh from
         the first rule — a second laser breaching the same rule is caught in this cycle."""
-        lim = self.limits
+        lim = self._limits
         iso, lost = self.lasers.isolated, self.drives.isolated
         chs = ([c for c in self.channels if c.name not in iso and c.name not in lost] if iso or lost
                else self.channels)
+        rules = CHANNEL_RULES
+        n = len(rules)
         k = 0
-        while k < len(CHANNEL_RULES):
-            rule = CHANNEL_RULES[k]
+        while k < n:
+            rule = rules[k]
             f = rule(chs, t, lim)
             if f is None:
                 k += 1
@@ -411,7 +428,7 @@ class Supervisor:
                 if self._deg_stop:
                     break
         y_meas = {p.carrier: p.y for p in poses}
-        lim = self.limits
+        lim = self._limits
 
         def fit(name: str) -> bool:     # fit again, and the measured y agrees with ŷ
             c = (self._by_name[name],)
@@ -458,7 +475,7 @@ class Supervisor:
         keep = [x for x in (left, right) if x not in lost]
         auth = len(keep) * min((tb.i_max.get(x, math.inf) for x in keep), default=0.0)   # the wheels' authority
         deg = self._deg_cfg.limits
-        lim = self.limits
+        lim = self._limits
         self._reconf_limits[car] = dataclasses.replace(lim, u_max=min(lim.u_max, deg.u_max, auth),
                                                         y_max=min(lim.y_max, deg.y_max))
         self.drives.isolate(t, (wheel,), f.check, readmit=False)
@@ -476,17 +493,23 @@ class Supervisor:
         carrier where the analysis allows (else it is the fault)."""
         deg, lost = self._deg_cfg, self.drives.isolated
         thr = deg.torque_residual_A
+        cmds_of, runs, worst, h = self._cmds, self._torque_run, self.torque_residual_max, self.h
         for w, actual in conv.torque:
-            cmds = self._cmds.get(w)
+            cmds = cmds_of.get(w)
             if cmds is None or w in lost:
                 continue
             c0, c1, c2 = cmds
+            if min(abs(c0), abs(c1), abs(c2)) < thr:
+                runs[w] = 0             # commands too small to judge: the rule has nothing to judge
+                continue
             r = min(abs(c0 - actual), abs(c1 - actual), abs(c2 - actual))
-            small = min(abs(c0), abs(c1), abs(c2)) < thr
-            run = self._torque_run[w] = 0 if small or not r > thr else self._torque_run[w] + 1
-            if not small and r > self.torque_residual_max[w]:
-                self.torque_residual_max[w] = r          # the largest judged residual (healthy runs: the margin)
-            f = torque_response(w, run, r, cmds[0], actual, deg, self.h)
+            if r > worst[w]:
+                worst[w] = r            # the largest judged residual (healthy runs: the margin)
+            if not r > thr:
+                runs[w] = 0             # on one of its commands: no run for the rule to judge
+                continue
+            run = runs[w] = runs[w] + 1
+            f = torque_response(w, run, r, c0, actual, deg, h)
             if f is not None and not self._reconfigure(t, w, f):
                 return f
         return None
@@ -503,7 +526,7 @@ class Supervisor:
     def _update_limits(self) -> None:
         """The limits each carrier runs under now: DEGRADED and RECONFIGURED each tighten them
         (the tighter of both when both hold)."""
-        lim = self.limits
+        lim = self._limits
         out = {}
         for car in set(self.lasers.since) | set(self._reconf_limits):
             a = self._deg_limits if car in self.lasers.since else lim
@@ -535,14 +558,17 @@ class Supervisor:
     def fit(self, names: Sequence[str], t: float) -> bool:
         """Every named channel fit for use this cycle: what arming asks of a channel (a
         fresh, finite, in-range sample; ``ARM_RULES``). The observer's lateral update uses a
-        laser only then."""
-        lim = self.limits
-        by = self._by_name
-        for n in names:
-            c = (by[n],)
-            for rule in ARM_RULES:
-                if rule(c, t, lim) is not None:
-                    return False
+        laser only then. Each rule is asked once of the named channels together (the names
+        resolved to channels once per set of names)."""
+        if type(names) is not tuple:
+            names = tuple(names)
+        chs = self._groups.get(names)
+        if chs is None:
+            chs = self._groups[names] = tuple(self._by_name[n] for n in names)
+        lim = self._limits
+        for rule in ARM_RULES:
+            if rule(chs, t, lim) is not None:
+                return False
         return True
 
     # ------------------------------------------------------------------ output limit
@@ -552,13 +578,14 @@ class Supervisor:
         while STOPPING (``end_cycle`` then moves to IDLE once every output is zero)."""
         st = self.state
         if st is State.RUNNING:
-            lim = self.limits
+            lim = self._limits
             for rule in OUTPUT_RULES:
                 f = rule(carrier, u, lim)
                 if f is not None:
                     self.trip(t, f)
                     return self._out.zero(carrier)
-            return self._out.running(carrier, u, self._lim_of.get(carrier, lim).u_max)
+            lim_of = self._lim_of           # empty unless DEGRADED or RECONFIGURED
+            return self._out.running(carrier, u, (lim_of.get(carrier, lim) if lim_of else lim).u_max)
         if st is State.STOPPING:
             return self._out.stopping(carrier)
         return self._out.zero(carrier)

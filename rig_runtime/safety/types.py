@@ -80,12 +80,14 @@ class Converters(NamedTuple):
     torque: tuple[tuple[str, float], ...] = ()      # (wheel, torque actual in A of its latest TPDO)
 
 
-class Pose(NamedTuple):
-    """One controlled carrier's state as measured this cycle."""
-    carrier: str
-    y: float
-    psi: float
-    psi_rate: float
+class Pose:
+    """One controlled carrier's state as measured this cycle. The supervisor keeps one per
+    carrier and updates it in place every cycle (its ψ is the previous ψ for the next ψ̇)."""
+
+    __slots__ = ("carrier", "y", "psi", "psi_rate")
+
+    def __init__(self, carrier: str, y: float, psi: float, psi_rate: float):
+        self.carrier, self.y, self.psi, self.psi_rate = carrier, y, psi, psi_rate
 
 
 class Step(NamedTuple):
@@ -94,6 +96,8 @@ class Step(NamedTuple):
     state: State
     started: bool
 
+
+NEVER_T = -math.inf     # a channel's arrival time before its first valid value
 
 # what a channel's discarded data is counted in, by kind (the driver's ``Health.bad_frames``)
 BAD_UNIT = {"laser": "bytes of unparseable data", "wheel": "garbled frames", "ft": "garbled replies"}
@@ -110,7 +114,8 @@ class Channel:
     ``stale_n`` is ``stale_s`` in periods, set by the supervisor (it knows h)."""
 
     __slots__ = ("name", "kind", "value", "t", "state", "cause", "lo", "hi", "stale_s", "stale_n", "silent",
-                 "step_max", "stuck_check", "same", "delta", "bad", "bad_run", "unanswered", "bad_at_value")
+                 "step_max", "stuck_check", "same", "delta", "bad", "bad_run", "unanswered", "bad_at_value",
+                 "_health")
 
     def __init__(self, name: str, kind: str, lo: float, hi: float, stale_s: float,
                  step_max: float = math.inf, stuck_check: bool = False):
@@ -119,7 +124,7 @@ class Channel:
         self.step_max = step_max          # largest plausible change between two cycles
         self.stuck_check = stuck_check    # a sensor with noise never repeats bit-identically for long
         self.value = math.nan
-        self.t = -math.inf
+        self.t = NEVER_T
         self.silent = 0                   # cycles since the latest valid value was first seen
         self.state = Freshness.STALE
         self.cause = "no sample yet"
@@ -129,6 +134,7 @@ class Channel:
         self.bad_run = 0        # consecutive cycles with newly discarded data
         self.unanswered = -1    # requests unanswered (-1: free-running, judged by silent cycles)
         self.bad_at_value = 0   # the discarded count when the latest valid value arrived
+        self._health = None     # the Health object last observed (a driver hands out the same while nothing changes)
 
     def periods(self, h: float) -> None:
         """Set ``stale_n`` from ``stale_s`` for the period ``h`` (at least one period)."""
@@ -142,8 +148,11 @@ class Channel:
         prev = self.value
         self.delta = v - prev
         self.value = v
-        t = -math.inf if math.isnan(s.t) else s.t      # NaN: no valid value ever
+        t = s.t
+        if t != t:
+            t = NEVER_T                            # NaN: no valid value ever
         if t != self.t:
+            self.t = t
             self.bad_at_value = hl.bad_frames      # a new valid value: discarded data counted from here
             # whole periods it was already late: 0 if it arrived within the period before
             # the cycle that sees it, at any phase (a micro-period tolerance for k·h rounding)
@@ -151,12 +160,15 @@ class Channel:
             self.silent = 0 if age <= h * (1 + 1e-6) or age == math.inf else math.ceil(age / h - 1e-6) - 1
         else:
             self.silent += 1
-        self.t = t
-        self.state = hl.state
-        self.cause = hl.cause
         self.unanswered = s.unanswered
         if self.stuck_check:
             self.same = self.same + 1 if v == prev else 0
+        if hl is self._health:          # the same report: its state, cause and count as observed
+            self.bad_run = 0            # (no data newly discarded)
+            return
+        self._health = hl
+        self.state = hl.state
+        self.cause = hl.cause
         b = hl.bad_frames
         self.bad_run = self.bad_run + 1 if b > self.bad else 0
         self.bad = b
