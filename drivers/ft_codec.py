@@ -79,7 +79,7 @@ def registers_from_wrench(w: Wrench) -> list[int]:
     """Encode a :class:`Wrench` as the six registers a sensor would hold (rounded to the
     nearest count, saturated at the INT16 range; NaN is refused)."""
     out = []
-    for value, counts_per_unit in zip((w.fx, w.fy, w.fz, w.mx, w.my, w.mz), _SCALES):
+    for value, counts_per_unit in zip(w, _SCALES):       # fx, fy, fz, mx, my, mz
         counts = value * counts_per_unit
         if counts >= INT16_MAX:
             n = INT16_MAX
