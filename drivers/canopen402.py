@@ -106,6 +106,7 @@ class DriveReadings:
 
 # --------------------------------------------------------------------------- driver
 _FRESH, _INVALID = Freshness.FRESH, Freshness.INVALID
+_INFINITIES = (math.inf, -math.inf)
 _MAX_FRAMES_PER_POLL = 2000       # bound on one drain (a flooding bus must not stall the loop)
 
 
@@ -494,7 +495,7 @@ class DriveBus(Driver):
         if x is None:
             c["missing_commands"] += 1
             x = 0.0
-        elif x != x or x in (math.inf, -math.inf):
+        elif x != x or x in _INFINITIES:
             c["nan_commands"] += 1
             x = 0.0
         if not self._want_enabled:
