@@ -434,16 +434,18 @@ class _MemServer:
         end = conn.end
         rx = conn.rx
         rx += end.read()
-        if end.hung_up and not rx:
-            self._drop(conn)
+        if not rx:
+            if end.hung_up:
+                self._drop(conn)
             return 0
+        answer, name = self._owner._answer, conn.name
         n_req = 0
         while True:
             try:
                 n = frame_length(rx)
                 if n is None or len(rx) < n:
                     break
-                reply = self._owner._answer(conn.name, rx[:n])
+                reply = answer(name, rx[:n])
             except ValueError:                          # not Modbus TCP: hang up, like a device would
                 self._drop(conn)
                 return n_req
