@@ -55,9 +55,12 @@ class Wrench(NamedTuple):
         at an INT16 limit (what a register of +32767 or −32768 decodes to, or beyond), e.g.
         ``"Fz saturated at +327.67 N (int16 limit)"``. Computed from the values, so it
         survives any hand-off that carries the six floats (the poll process's shared memory)."""
-        out = [f"{a} saturated at {fmt.format(v)}"
-               for v, (a, lo, hi, fmt) in zip((self.fx, self.fy, self.fz, self.mx, self.my, self.mz), _AXIS_LIMITS)
-               if v >= hi or v <= lo]
+        out = None                      # a loop, not a comprehension: no frame per call (one per sample)
+        for v, (a, lo, hi, fmt) in zip(self, _AXIS_LIMITS):      # fx, fy, fz, mx, my, mz
+            if v >= hi or v <= lo:
+                if out is None:
+                    out = []
+                out.append(f"{a} saturated at {fmt.format(v)}")
         return ", ".join(out) + " (int16 limit)" if out else ""
 
 
