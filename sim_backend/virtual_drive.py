@@ -320,12 +320,6 @@ class VirtualDrive:
             return
         self.node.sdo.on_request(cob, data, t)
 
-    def rx_rpdo(self, cob: int, data: bytearray, t: float) -> None:
-        """An RPDO1 to this drive off the bus (lost to an injected bus error, or taken)."""
-        if "bus_error" in self.faults and self.owner._dropped(self, "rx_dropped"):
-            return
-        self.on_rpdo(data, t)
-
     def on_sync(self, t: float) -> None:
         if self.node.nmt._state != NMT_OPERATIONAL:
             return
@@ -344,7 +338,10 @@ class VirtualDrive:
         if self.sync_count % every == 0:
             self._send_tpdo()
 
-    def on_rpdo(self, data: bytearray, t: float) -> None:
+    def on_rpdo(self, cob: int, data: bytearray, t: float) -> None:
+        """An RPDO1 to this drive off the bus (lost to an injected bus error, or taken)."""
+        if "bus_error" in self.faults and self.owner._dropped(self, "rx_dropped"):
+            return
         if self.node.nmt._state != NMT_OPERATIONAL:
             return
         if self._cfg_dirty:
@@ -696,7 +693,7 @@ class VirtualDriveSet:
             for d in self.drives.values():
                 routes[node_cob_id(COB_SDO_RX, d.node_id)] = d.rx_sdo
                 if d.rpdo_cob is not None:
-                    routes[d.rpdo_cob] = d.rx_rpdo
+                    routes[d.rpdo_cob] = d.on_rpdo
             routes[COB_SYNC] = self._rx_sync
             routes[COB_NMT] = self._rx_nmt
             for node in range(1, 0x80):
