@@ -7,9 +7,9 @@ bus on the channel: receivers must not modify received messages, which neither
 python-can's listeners nor canopen do. ``send_owned`` skips even that copy for a sender
 that gives its message up. ``recv(timeout)`` blocks like any bus, so canopen's notifier
 threads work on it during start-up; ``recv`` without filters skips ``BusABC.recv``'s
-filter and logging layer; ``drain()`` takes every queued frame at once (the simulated
-drives' side of a lockstep cycle). Each bus keeps the list of the buses a frame it sends
-goes to, updated when a bus joins or leaves the channel (not worked out per frame).
+filter and logging layer (the lockstep cycle drains with ``recv(0)``). Each bus keeps the
+list of the buses a frame it sends goes to, updated when a bus joins or leaves the channel
+(not worked out per frame).
 """
 
 from __future__ import annotations
@@ -99,18 +99,6 @@ class LockstepBus(can.BusABC):
             if bus._waiting:
                 with bus._cond:
                     bus._cond.notify()
-
-    def drain(self) -> list:
-        """Every frame queued now, oldest first, never waiting (``[]`` if none); with
-        filters set, the frames ``recv(0)`` returns, one by one."""
-        if self._filters is not None:
-            out = []
-            while (msg := self.recv(0)) is not None:
-                out.append(msg)
-            return out
-        q = self._queue
-        n = len(q)
-        return [q.popleft() for _ in range(n)] if n else []
 
     def recv(self, timeout: Optional[float] = None) -> Optional[can.Message]:
         if self._filters is None:

@@ -511,7 +511,6 @@ class VirtualDriveSet:
         # a LockstepBus takes our fresh messages without copying them
         self._send = getattr(bus, "send_owned", None) or bus.send
         self._send_many = getattr(bus, "send_many_owned", None)      # a batch of fresh frames, given up
-        self._drain = getattr(bus, "drain", None)       # every received frame at once (the lockstep bus)
         path = Path(eds_path) if eds_path is not None else resolve_config_path(cfg.eds)
         self._network = _SimNetwork(self, bus)
         self._by_sdo_tx: dict[int, VirtualDrive] = {}
@@ -728,16 +727,9 @@ class VirtualDriveSet:
 
     def _drain_and_tick(self, t: float) -> None:
         self._now = t
-        handle = self._handle
-        drain = self._drain
-        if drain is not None:               # the lockstep bus: every queued frame in one call
-            while batch := drain():
-                for msg in batch:
-                    handle(msg, t)
-        else:
-            recv = self.bus.recv
-            while (msg := recv(0.0)) is not None:
-                handle(msg, t)
+        recv, handle = self.bus.recv, self._handle
+        while (msg := recv(0.0)) is not None:
+            handle(msg, t)
         for d in self._drive_list:
             d.timers(t)
 
