@@ -471,16 +471,14 @@ class SimulatedRig:
         """The wheel speeds — the plant's, a lifted wheel's own (``lifted_wheels``) — with
         encoder noise, to the virtual drives."""
         p = self.plant
-        om = [p.omega_fl, p.omega_fr, p.omega_rl, p.omega_rr]      # WHEELS order
         lifted = self.lifted_wheels.omega
-        if lifted:
-            om = [lifted.get(w, pw) for w, pw in zip(WHEELS, om)]
         en = self.sc.encoder_noise_rad_s
-        if en:
-            g = self._rng.gauss
-            om = [pw + g(0.0, en) for pw in om]
-        else:
-            om = [pw + 0.0 for pw in om]
+        g = self._rng.gauss
+        om = []                         # one loop, the draws in WHEELS order
+        for w, pw in zip(WHEELS, (p.omega_fl, p.omega_fr, p.omega_rl, p.omega_rr)):
+            if lifted:
+                pw = lifted.get(w, pw)
+            om.append(pw + g(0.0, en) if en else pw + 0.0)
         self.drives.set_wheel_speeds(miswire.wheel_speeds(self.miswire, om) if self.miswire.encoders else om)
 
     def set_wrenches(self) -> None:
