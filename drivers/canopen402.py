@@ -15,7 +15,7 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Mapping, NamedTuple, Sequence
+from typing import Callable, Iterator, Mapping, NamedTuple, Sequence
 
 import can
 
@@ -105,8 +105,8 @@ class DriveReadings:
 
 
 # --------------------------------------------------------------------------- driver
-_TPDO, _HEARTBEAT, _EMCY = 1, 2, 3
 _FRESH, _INVALID = Freshness.FRESH, Freshness.INVALID
+_INFINITIES = (math.inf, -math.inf)
 _MAX_FRAMES_PER_POLL = 2000       # bound on one drain (a flooding bus must not stall the loop)
 
 
@@ -208,11 +208,13 @@ class DriveBus(Driver):
         drives = sorted(cfg.drives, key=lambda d: order[d.wheel])
         self._nodes = tuple(_Node(d, cfg.heartbeat_timeout_factor) for d in drives)
         self.wheels = tuple(d.wheel for d in self._nodes)       # order of sequence commands
-        self._rx = {}
+        # COB-ID -> (the handler of its frames, the drive): resolved once, one lookup per frame
+        # (the class's functions, not bound methods: no reference cycle through the table)
+        self._rx: dict[int, tuple[Callable[[DriveBus, _Node, bytearray, float], None], _Node]] = {}
         for d in self._nodes:
-            self._rx[node_cob_id(COB_TPDO1, d.node_id)] = (_TPDO, d)
-            self._rx[node_cob_id(COB_HEARTBEAT, d.node_id)] = (_HEARTBEAT, d)
-            self._rx[node_cob_id(COB_EMCY, d.node_id)] = (_EMCY, d)
+            self._rx[node_cob_id(COB_TPDO1, d.node_id)] = (DriveBus._on_tpdo, d)
+            self._rx[node_cob_id(COB_HEARTBEAT, d.node_id)] = (DriveBus._on_heartbeat, d)
+            self._rx[node_cob_id(COB_EMCY, d.node_id)] = (DriveBus._on_emcy, d)
         self._sdo_replies = {node_cob_id(COB_SDO_TX, d.node_id) for d in self._nodes}
         self._sync_msg = can.Message(arbitration_id=COB_SYNC, data=b"", is_extended_id=False)
         self._hb_msg = can.Message(arbitration_id=node_cob_id(COB_HEARTBEAT, runtime_node_id),
@@ -493,7 +495,7 @@ class DriveBus(Driver):
         if x is None:
             c["missing_commands"] += 1
             x = 0.0
-        elif x != x or x in (math.inf, -math.inf):
+        elif x != x or x in _INFINITIES:
             c["nan_commands"] += 1
             x = 0.0
         if not self._want_enabled:
@@ -623,13 +625,8 @@ class DriveBus(Driver):
                 if msg.arbitration_id not in self._sdo_replies:
                     c["foreign_frames"] += 1
                 continue
-            kind, d = entry
-            if kind == _TPDO:
-                self._on_tpdo(d, msg.data, now)
-            elif kind == _HEARTBEAT:
-                self._on_heartbeat(d, msg.data, now)
-            else:
-                self._on_emcy(d, msg.data)
+            on_frame, d = entry
+            on_frame(self, d, msg.data, now)
         else:
             c["rx_overflow"] += 1
         c["rx_frames"] += n
@@ -664,7 +661,7 @@ class DriveBus(Driver):
         d.hb_t = now
         d.counters["heartbeat"] += 1
 
-    def _on_emcy(self, d: _Node, data: bytearray) -> None:
+    def _on_emcy(self, d: _Node, data: bytearray, now: float) -> None:
         if len(data) != EMCY.size:
             d.bad_frames += 1
             return

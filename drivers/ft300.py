@@ -10,7 +10,7 @@ Modules by job (no one imports one that imports it back):
 * :mod:`drivers.ft_process` (``process``), :mod:`drivers.ft_pollers` (``thread``,
   ``inline``) — where the polling runs, chosen by ``devices.ft.poller``;
 * this module — the driver: starts the poller, and turns what it published into one
-  :class:`FTReading` (wrench, t, age, health) per sensor in ``poll(now)``, never waiting.
+  :class:`FTReading` (wrench, t, health) per sensor in ``poll(now)``, never waiting.
   It reports what the sensor and the link said; how old a sample may be is the supervisor's
   rule (``limits.ft_stale_s``), judged from ``t``.
 
@@ -19,7 +19,6 @@ Written against pymodbus 3.16 for RTU (``device_id=`` keyword, ``trace_packet`` 
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable
 from typing import NamedTuple, Optional
 
@@ -39,32 +38,30 @@ _FRESH, _INVALID = Freshness.FRESH, Freshness.INVALID
 
 
 class FTReading(NamedTuple):
-    """What :meth:`FTSensorSet.poll` reports for one sensor (a new object per call; its
-    ``health`` is the same object between calls while nothing changed). ``health.timeouts``
-    and ``health.bad_frames`` count unanswered and garbled transactions, ``errors`` the
-    exception responses and saturated samples, all since configure."""
+    """What :meth:`FTSensorSet.poll` reports for one sensor: one object per publication (the
+    same object poll after poll while nothing new was published; its ``health`` likewise).
+    ``health.timeouts`` and ``health.bad_frames`` count unanswered and garbled transactions,
+    ``errors`` the exception responses and saturated samples, all since configure. How old
+    ``t`` may be is the supervisor's rule (``limits.ft_stale_s``), judged from ``t``."""
 
     wrench: Optional[Wrench]    # latest sample (kept after failures; a saturated one is
                                 # passed on with health INVALID); None before the first
     t: float                    # time the sample was received (nan if none; -inf: read at open by
                                 # the inline poller, before any time was given)
-    age: float                  # now - t (inf if none): an observation, judged by the supervisor
     health: Health
 
 
 class _View:
-    """A sensor's latest publication, its sample's saturation (:attr:`Wrench.saturation`,
-    worked out once per publication) and the health built from them and the poller's
-    failure (``dead``), kept until one of them changes."""
+    """A sensor's latest publication, the poller's failure (``dead``) it was judged with and
+    the reading built from them, kept until one of them changes."""
 
-    __slots__ = ("name", "pub", "saturation", "health", "dead")
+    __slots__ = ("name", "pub", "dead", "reading")
 
     def __init__(self, name: str) -> None:
         self.name = name
         self.pub: Optional[Published] = None
-        self.saturation = ""
-        self.health: Optional[Health] = None
         self.dead = ""
+        self.reading: Optional[FTReading] = None
 
 
 class FTSensorSet(Driver):
@@ -85,6 +82,7 @@ class FTSensorSet(Driver):
         else:
             self._poller = POLLERS[cfg.poller](cfg, endpoints, reconnect_s)
         self._views = tuple(_View(n) for n in self._poller.names)
+        self._out: dict[str, FTReading] = {}
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -110,29 +108,29 @@ class FTSensorSet(Driver):
 
     # ------------------------------------------------------------------ cycle side
     def poll(self, now: float) -> dict[str, FTReading]:
-        """Latest sample of every sensor with its age and health; never waits (the inline
-        poller does its non-blocking I/O here)."""
-        out = {}
+        """Latest sample of every sensor with its time and health; never waits (the inline
+        poller does its non-blocking I/O here). The same mapping as the previous poll while
+        no sensor published anything new (a returned mapping is never changed afterwards)."""
         dead = self._poller.failure()       # once per poll (a system call in process mode)
+        changed = False
         for v, p in zip(self._views, self._poller.latest(now)):
-            h = v.health
-            if p is not v.pub or dead != v.dead or h is None:   # else: the same health again
-                if p is not v.pub:
-                    v.saturation = p.wrench.saturation if p.wrench is not None else ""
-                    v.pub = p
-                v.dead = dead
-                state, cause = self._classify(p, v.saturation, dead)
-                h = v.health = health(h, state, cause, p.bad_frames, p.timeouts, p.errors)
-            age = now - p.t if p.wrench is not None else math.inf
-            out[v.name] = FTReading(p.wrench, p.t, age, h)
-        return out
+            if p is not v.pub or dead != v.dead:
+                v.pub, v.dead = p, dead
+                state, cause = self._classify(p, dead)
+                r = v.reading
+                h = health(r.health if r is not None else None, state, cause, p.bad_frames, p.timeouts, p.errors)
+                v.reading = FTReading(p.wrench, p.t, h)
+                changed = True
+        if changed:
+            self._out = {v.name: v.reading for v in self._views}
+        return self._out
 
-    def _classify(self, p: Published, saturation: str, dead: str) -> tuple[Freshness, str]:
+    def _classify(self, p: Published, dead: str) -> tuple[Freshness, str]:
         """State and cause of one sensor, from what the sensor and the link said: INVALID
         while the latest reply is a Modbus exception, the poll process is dead (``dead``: why), the link is
         down (lost, or the reconnect failed) or the latest sample has an axis at an INT16
-        limit (``saturation``: not a measurement); else FRESH, with the latest outcome as a
-        note (a timeout, a garbled reply: counted, and judged by the supervisor with the age)."""
+        limit (``p.saturation``: not a measurement); else FRESH, with the latest outcome as a
+        note (a timeout, a garbled reply: counted, and judged by the supervisor with the time)."""
         if p.exc_code is not None:
             return _INVALID, p.cause
         if dead:
@@ -141,6 +139,6 @@ class FTSensorSet(Driver):
             return _INVALID, p.cause
         if p.wrench is None:
             return _FRESH, f"no sample yet ({p.cause})"
-        if saturation:
-            return _INVALID, saturation
+        if p.saturation:
+            return _INVALID, p.saturation
         return _FRESH, p.cause

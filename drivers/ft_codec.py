@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Sequence
-from dataclasses import dataclass
+from typing import NamedTuple
 
 __all__ = [
     "REG_START", "REG_COUNT", "DEFAULT_UNIT_ID", "FORCE_COUNTS_PER_N", "TORQUE_COUNTS_PER_NM",
@@ -28,15 +28,16 @@ TORQUE_COUNTS_PER_NM = 1000.0   # 1 count = 0.001 N·m
 INT16_MIN, INT16_MAX = -32768, 32767
 _SCALES = (FORCE_COUNTS_PER_N,) * 3 + (TORQUE_COUNTS_PER_NM,) * 3
 AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
-# per axis: the values an INT16 limit decodes to (lowest, highest), and how a value is shown
-_LIMITS = tuple((INT16_MIN / s, INT16_MAX / s) for s in _SCALES)
-_SHOW = ("{:+.2f} N",) * 3 + ("{:+.3f} N·m",) * 3
+# per axis: its name, the values an INT16 limit decodes to (lowest, highest), how a value is shown
+_AXIS_LIMITS = tuple((a, INT16_MIN / s, INT16_MAX / s, show) for a, s, show in
+                     zip(AXES, _SCALES, ("{:+.2f} N",) * 3 + ("{:+.3f} N·m",) * 3))
 _U16x6, _I16x6 = struct.Struct("=6H"), struct.Struct("=6h")   # two's complement by reinterpretation
 
 
-@dataclass(frozen=True, slots=True)
-class Wrench:
-    """Forces (N) and moments (N·m) in the sensor frame."""
+class Wrench(NamedTuple):
+    """Forces (N) and moments (N·m) in the sensor frame. Immutable; a named tuple rather
+    than a frozen dataclass because one is made per sample at both ends of the wire (a
+    third of the cost to build)."""
 
     fx: float = 0.0
     fy: float = 0.0
@@ -54,9 +55,12 @@ class Wrench:
         at an INT16 limit (what a register of +32767 or −32768 decodes to, or beyond), e.g.
         ``"Fz saturated at +327.67 N (int16 limit)"``. Computed from the values, so it
         survives any hand-off that carries the six floats (the poll process's shared memory)."""
-        out = [f"{a} saturated at {fmt.format(v)}"
-               for a, v, (lo, hi), fmt in zip(AXES, self.as_tuple(), _LIMITS, _SHOW)
-               if v >= hi or v <= lo]
+        out = None                      # a loop, not a comprehension: no frame per call (one per sample)
+        for v, (a, lo, hi, fmt) in zip(self, _AXIS_LIMITS):      # fx, fy, fz, mx, my, mz
+            if v >= hi or v <= lo:
+                if out is None:
+                    out = []
+                out.append(f"{a} saturated at {fmt.format(v)}")
         return ", ".join(out) + " (int16 limit)" if out else ""
 
 
@@ -78,7 +82,7 @@ def registers_from_wrench(w: Wrench) -> list[int]:
     """Encode a :class:`Wrench` as the six registers a sensor would hold (rounded to the
     nearest count, saturated at the INT16 range; NaN is refused)."""
     out = []
-    for value, counts_per_unit in zip((w.fx, w.fy, w.fz, w.mx, w.my, w.mz), _SCALES):
+    for value, counts_per_unit in zip(w, _SCALES):       # fx, fy, fz, mx, my, mz
         counts = value * counts_per_unit
         if counts >= INT16_MAX:
             n = INT16_MAX

@@ -52,6 +52,22 @@ EXCEPTION_NAMES = {
 _REQ = struct.Struct(">HHHBBHH")        # MBAP + fc + start + quantity (12 bytes)
 _MBAP = struct.Struct(">HHHB")
 _EXC = struct.Struct(">HHHBBB")
+_regs_structs: dict[int, struct.Struct] = {}     # quantity -> the registers' layout (built once each)
+_response_structs: dict[int, struct.Struct] = {}     # quantity -> a normal response's layout
+
+
+def _regs_struct(count: int) -> struct.Struct:
+    st = _regs_structs.get(count)
+    if st is None:
+        st = _regs_structs[count] = struct.Struct(f">{count}H")
+    return st
+
+
+def _response_struct(count: int) -> struct.Struct:
+    st = _response_structs.get(count)
+    if st is None:
+        st = _response_structs[count] = struct.Struct(f">HHHBBB{count}H")
+    return st
 
 
 def exception_text(code: int) -> str:
@@ -106,7 +122,7 @@ def decode_read_response(frame: bytes | bytearray, tid: int, unit: int, count: i
     if nbytes != 2 * count or length != 3 + 2 * count:
         raise ValueError(f"byte count {nbytes} in a frame of length {length}, expected {2 * count} "
                          f"for {count} registers")
-    return struct.unpack_from(f">{count}H", frame, MBAP_LEN + 2), None
+    return _regs_struct(count).unpack_from(frame, MBAP_LEN + 2), None
 
 
 # --------------------------------------------------------------------------- server side
@@ -122,8 +138,7 @@ def decode_request(frame: bytes | bytearray) -> tuple[int, int, int, bytes]:
 def encode_read_response(tid: int, unit: int, registers: list[int] | tuple[int, ...]) -> bytes:
     """Normal response to a Read Holding Registers request (registers 0..65535)."""
     n = len(registers)
-    return struct.pack(f">HHHBBB{n}H", tid & 0xFFFF, 0, 3 + 2 * n, unit, FC_READ_HOLDING, 2 * n,
-                       *registers)
+    return _response_struct(n).pack(tid & 0xFFFF, 0, 3 + 2 * n, unit, FC_READ_HOLDING, 2 * n, *registers)
 
 
 def encode_exception(tid: int, unit: int, fc: int, code: int) -> bytes:

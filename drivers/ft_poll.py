@@ -31,8 +31,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from typing import Any, Optional
+from typing import Any, NamedTuple, Optional
 
 from rig_runtime import wires
 from rig_runtime.clock import as_background_thread
@@ -51,10 +50,10 @@ _OPEN_ATTEMPTS = 3              # requests per sensor at open() before it counts
 
 
 # --------------------------------------------------------------------------- publication
-@dataclass(frozen=True, slots=True)
-class Published:
+class Published(NamedTuple):
     """Immutable outcome of a sensor's latest transaction: all the driver's ``poll()`` reads.
-    Every publication increments one count (a sample, timeout, error, …)."""
+    Every publication increments one count (a sample, timeout, error, …). A named tuple: one
+    is made per transaction (a third of a frozen dataclass's cost to build)."""
 
     wrench: Optional[Wrench]    # latest sample (kept after failures; a saturated one too, see
                                 # Wrench.saturation); None before the first
@@ -66,6 +65,7 @@ class Published:
     bad_frames: int
     counters: tuple[tuple[str, int], ...]
     link_down: bool = False     # the latest outcome was a lost connection or a failed connect
+    saturation: str = ""        # ``wrench.saturation``, worked out once where the wrench was decoded
 
 
 NOT_POLLED = Published(None, math.nan, "not polled yet", None, 0, 0, 0, ())
@@ -81,6 +81,7 @@ class Sensor:
         self.device = f"ft {cfg.name} ({_endpoint_text(cfg, host, port)})"
         self.wrench: Optional[Wrench] = None
         self.t = math.nan
+        self.saturation = ""            # the wrench's (Wrench.saturation), kept with it
         self.timeouts = self.errors = self.bad_frames = 0
         self.counters = dict.fromkeys(COUNTER_NAMES, 0)
         self.pub = NOT_POLLED
@@ -88,7 +89,7 @@ class Sensor:
 
     def publish(self, cause: str, exc_code: Optional[int] = None, link_down: bool = False) -> None:
         self.pub = p = Published(self.wrench, self.t, cause, exc_code, self.timeouts, self.errors,
-                                 self.bad_frames, tuple(self.counters.items()), link_down)
+                                 self.bad_frames, tuple(self.counters.items()), link_down, self.saturation)
         if self.sink is not None:
             self.sink(p)
 
@@ -509,8 +510,8 @@ class PollCore:
         reading, published like a sample (the driver's health marks it INVALID, see
         :attr:`Wrench.saturation`) but counted in ``errors``, not ``samples``."""
         w = wrench_from_registers(regs)
-        s.wrench, s.t = w, t
         cause = w.saturation
+        s.wrench, s.t, s.saturation = w, t, cause
         if cause:
             s.errors += 1
         else:
@@ -565,7 +566,7 @@ class Poller(abc.ABC):
     def start(self) -> None: ...
 
     def latest(self, now: float) -> tuple[Published, ...]:
-        return tuple(s.pub for s in self.core.sensors)
+        return tuple([s.pub for s in self.core.sensors])
 
     def failure(self) -> str:
         """"" while the poller works; otherwise why samples stopped (asked every poll)."""

@@ -55,6 +55,7 @@ class InlinePoller(Poller):
         self._timeout_s = cfg.timeout_s
         self._due = -math.inf
         self._queues: list[list[Sensor]] = [[] for _ in self.core.links]
+        self._busy = False              # a link has a request or connect in flight or sensors queued
 
     def _clock(self) -> float:
         return self._now
@@ -71,10 +72,18 @@ class InlinePoller(Poller):
         if new_round:                   # no catch-up burst after a gap
             nxt = self._due + self._period
             self._due = nxt if now < nxt - _EPS else now + self._period
+        elif not self._busy:            # nothing in flight, nothing to send: nothing can be new
+            return super().latest(now)
+        busy = False
         for link, queue in zip(self.core.links, self._queues):
             if new_round:               # unfinished sensors of the last round go first
-                queue.extend(s for s in link.sensors if s not in queue)
+                for s in link.sensors:
+                    if s not in queue:
+                        queue.append(s)
             self._step(link, queue, now)        # type: ignore[arg-type]
+            if queue or link.pending is not None or link.connecting:    # type: ignore[attr-defined]
+                busy = True
+        self._busy = busy
         return super().latest(now)
 
     def _step(self, link: TcpLink, queue: list[Sensor], now: float) -> None:

@@ -108,7 +108,12 @@ class SlotReader:
 
 
 def _make_pub(w6: Optional[tuple], *rest: Any) -> Published:
-    return Published(None if w6 is None else Wrench(*w6), *rest)
+    """The parent's :class:`Published` from a slot (the saturation worked out from the six
+    floats again: the slot does not carry it)."""
+    if w6 is None:
+        return Published(None, *rest)
+    w = Wrench(*w6)
+    return Published(w, *rest, w.saturation)
 
 
 class ProcessPoller(Poller):

@@ -7,7 +7,9 @@ bus on the channel: receivers must not modify received messages, which neither
 python-can's listeners nor canopen do. ``send_owned`` skips even that copy for a sender
 that gives its message up. ``recv(timeout)`` blocks like any bus, so canopen's notifier
 threads work on it during start-up; ``recv`` without filters skips ``BusABC.recv``'s
-filter and logging layer (the lockstep cycle drains with ``recv(0)``).
+filter and logging layer (the lockstep cycle drains with ``recv(0)``). Each bus keeps the
+list of the buses a frame it sends goes to, updated when a bus joins or leaves the channel
+(not worked out per frame).
 """
 
 from __future__ import annotations
@@ -33,6 +35,13 @@ def _received_copy(msg: can.Message, channel: str, timestamp: float) -> can.Mess
                     msg.is_fd, True, msg.bitrate_switch, msg.error_state_indicator)
 
 
+def _update_receivers(peers: "list[LockstepBus]") -> None:
+    """Each bus of a channel: the buses its frames go to (the others, itself too with
+    ``receive_own_messages``), in the order they joined. Caller holds ``_lock``."""
+    for bus in peers:
+        bus._receivers = [b for b in peers if b is not bus or bus._own]
+
+
 class LockstepBus(can.BusABC):
     def __init__(self, channel: str = "lockstep", receive_own_messages: bool = False, **kwargs: Any):
         self._waiting = 0               # receivers blocked in recv(timeout > 0)
@@ -43,9 +52,11 @@ class LockstepBus(can.BusABC):
         self._queue: collections.deque = collections.deque()
         self._cond = threading.Condition()
         self._open = True
+        self._receivers: list[LockstepBus] = []     # the buses a frame sent here goes to
         with _lock:
-            _channels.setdefault(channel, []).append(self)
-            self._peers = _channels[channel]
+            peers = _channels.setdefault(channel, [])
+            peers.append(self)
+            _update_receivers(peers)
 
     def send(self, msg: can.Message, timeout: Optional[float] = None) -> None:
         if not self._open:
@@ -81,15 +92,13 @@ class LockstepBus(can.BusABC):
             deliver(msg)
 
     def _deliver(self, msg: can.Message) -> None:
-        own = self._own
-        for bus in self._peers:
-            if bus is not self or own:
-                bus._queue.append(msg)
-                # a receiver counts itself under the lock before it checks the queue, so a
-                # zero here means it will see this frame without being woken
-                if bus._waiting:
-                    with bus._cond:
-                        bus._cond.notify()
+        for bus in self._receivers:
+            bus._queue.append(msg)
+            # a receiver counts itself under the lock before it checks the queue, so a
+            # zero here means it will see this frame without being woken
+            if bus._waiting:
+                with bus._cond:
+                    bus._cond.notify()
 
     def recv(self, timeout: Optional[float] = None) -> Optional[can.Message]:
         if self._filters is None:
@@ -126,6 +135,8 @@ class LockstepBus(can.BusABC):
                 peers = _channels.get(self._channel, [])
                 if self in peers:
                     peers.remove(self)
+                self._receivers = []
+                _update_receivers(peers)
                 if not peers:
                     _channels.pop(self._channel, None)
         super().shutdown()

@@ -53,6 +53,7 @@ from .virtual_laser import LaserGroup, VirtualLaser
 
 _channel_ids = itertools.count()
 _NO_FORCES = (0.0, 0.0, 0.0, 0.0)
+_NO_WRENCH = (0.0,) * 6
 
 
 class SimulatedRig:
@@ -92,6 +93,10 @@ class SimulatedRig:
         self._lifted_by_setup = tuple(c for c in ("front", "rear") if c == lifted or not self.plant.rolling(c))
         self._update_lifted()
         self._events = self._schedule()
+        # the disturbances and the non-stall faults with their index, picked out once: step looks at them
+        self._dists = [(t0, t1, d) for t0, t1, kind, d in self._events if kind == "dist"]
+        self._fault_events = [(i, t0, t1, f) for i, (t0, t1, kind, f) in enumerate(self._events)
+                              if kind == "fault" and f.kind != "stall"]
         self._active_faults: set[int] = set()
         self._stalls_done: set[int] = set()
         # the scenario's stall faults (index, fault), picked out once: advance looks at them each cycle
@@ -191,6 +196,8 @@ class SimulatedRig:
         if self.ft is not None:
             self._closers.append(self.ft.close)
         self.ft_period = 1.0 / (sc.ft_rate_hz or cfg.devices.ft.poll_hz)
+        # (sensor name, the wheel whose plant reading it carries: its name's last two letters)
+        self._ft_wheels = tuple((s.name, s.name[-2:]) for s in cfg.devices.ft.sensors)
         self.set_laser_distances()
         self._laser_group.emit(0.0)
         self.set_wheel_speeds()
@@ -278,9 +285,11 @@ class SimulatedRig:
         self.t_run0 = math.nan
 
     def _forces(self, tau: float) -> tuple[float, float, float, float]:
+        if not self._dists:
+            return _NO_FORCES
         Ff = Fr = Mf = Mr = 0.0
-        for t0, t1, kind, d in self._events:
-            if kind == "dist" and t0 <= tau < t1:
+        for t0, t1, d in self._dists:
+            if t0 <= tau < t1:
                 if d.carrier == "front":
                     Ff += d.F_y; Mf += d.M_z
                 else:
@@ -288,9 +297,7 @@ class SimulatedRig:
         return Ff, Fr, Mf, Mr
 
     def _update_faults(self, tau: float) -> None:
-        for i, (t0, t1, kind, f) in enumerate(self._events):
-            if kind != "fault" or f.kind == "stall":
-                continue
+        for i, t0, t1, f in self._fault_events:
             on = t0 <= tau < t1
             if on and i not in self._active_faults:
                 self._active_faults.add(i)
@@ -321,6 +328,8 @@ class SimulatedRig:
 
     def _update_drifts(self, tau: float) -> None:
         """Each active drift fault's bias at scenario time ``tau``: rate × time since it began."""
+        if not self._active_faults:
+            return
         for i in self._active_faults:
             t0, _, kind, f = self._events[i]
             if f.kind == "drift":
@@ -462,22 +471,31 @@ class SimulatedRig:
         """The wheel speeds — the plant's, a lifted wheel's own (``lifted_wheels``) — with
         encoder noise, to the virtual drives."""
         p = self.plant
-        g = self._rng.gauss
-        en = self.sc.encoder_noise_rad_s
         lifted = self.lifted_wheels.omega
-        om = [lifted.get(w, pw) + (g(0.0, en) if en else 0.0)
-              for w, pw in zip(WHEELS, (p.omega_fl, p.omega_fr, p.omega_rl, p.omega_rr))]
+        en = self.sc.encoder_noise_rad_s
+        g = self._rng.gauss
+        om = []                         # one loop, the draws in WHEELS order
+        for w, pw in zip(WHEELS, (p.omega_fl, p.omega_fr, p.omega_rl, p.omega_rr)):
+            if lifted:
+                pw = lifted.get(w, pw)
+            om.append(pw + g(0.0, en) if en else pw + 0.0)
         self.drives.set_wheel_speeds(miswire.wheel_speeds(self.miswire, om) if self.miswire.encoders else om)
 
     def set_wrenches(self) -> None:
-        """The plant's force–torque readings, with noise on the forces, to the Modbus servers."""
+        """The plant's force–torque readings, with noise on the forces (fx, fy, fz drawn in
+        that order per sensor), to the Modbus servers."""
         fr = self.plant.ft_readings()
         g = self._rng.gauss
         n = self.sc.ft_noise_N
-        for s in self.cfg.devices.ft.sensors:
-            vals6 = fr.get(s.name[-2:], (0.0,) * 6)
-            self.ft.set_wrench(s.name, Wrench(*(v + (g(0.0, n) if n and k < 3 else 0.0)
-                                                for k, v in enumerate(vals6))))
+        for name, wheel in self._ft_wheels:
+            fx, fy, fz, mx, my, mz = fr.get(wheel, _NO_WRENCH)
+            if n:
+                fx += g(0.0, n)
+                fy += g(0.0, n)
+                fz += g(0.0, n)
+            else:
+                fx += 0.0; fy += 0.0; fz += 0.0
+            self.ft.set_wrench(name, Wrench(fx, fy, fz, mx + 0.0, my + 0.0, mz + 0.0))
 
     def close(self) -> None:
         """Close every transport and device (ptys, servers, buses). Idempotent."""

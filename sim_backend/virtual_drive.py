@@ -314,6 +314,12 @@ class VirtualDrive:
         self.owner._tx(cob, data, self)
 
     # ------------------------------------------------------------------ frames in
+    def rx_sdo(self, cob: int, data: bytearray, t: float) -> None:
+        """An SDO request to this drive off the bus (lost to an injected bus error, or served)."""
+        if "bus_error" in self.faults and self.owner._dropped(self, "rx_dropped"):
+            return
+        self.node.sdo.on_request(cob, data, t)
+
     def on_sync(self, t: float) -> None:
         if self.node.nmt._state != NMT_OPERATIONAL:
             return
@@ -332,7 +338,10 @@ class VirtualDrive:
         if self.sync_count % every == 0:
             self._send_tpdo()
 
-    def on_rpdo(self, data: bytearray, t: float) -> None:
+    def on_rpdo(self, cob: int, data: bytearray, t: float) -> None:
+        """An RPDO1 to this drive off the bus (lost to an injected bus error, or taken)."""
+        if "bus_error" in self.faults and self.owner._dropped(self, "rx_dropped"):
+            return
         if self.node.nmt._state != NMT_OPERATIONAL:
             return
         if self._cfg_dirty:
@@ -526,10 +535,11 @@ class VirtualDriveSet:
     def set_wheel_speeds(self, omegas: Sequence[float]) -> None:
         """All four wheel speeds (rad/s) at once, in ``WHEELS`` order (the lockstep
         simulator's call every step)."""
+        set_omega = self._set_omega
         for w, d, om in zip(WHEELS, self._wheel_order, omegas):
             if d is None:
                 raise KeyError(f"no virtual drive for wheel {w!r}")
-            self._set_omega(d, om)
+            set_omega(d, om)
 
     @staticmethod
     def _set_omega(d: VirtualDrive, omega_rad_s: float) -> None:
@@ -671,49 +681,49 @@ class VirtualDriveSet:
             except can.CanError:
                 self.tx_errors += 1
 
-    def _route_table(self) -> dict[int, tuple[int, VirtualDrive]]:
-        """COB-ID -> (kind, drive) for the frames a single drive consumes."""
+    def _route_table(self) -> dict[int, Callable[[int, bytearray, float], None]]:
+        """COB-ID -> the handler of its frames ``(cob, data, t)``, resolved once per
+        configuration (rebuilt after a drive's PDO configuration changed): the SDO requests
+        and RPDO1 of each drive, then SYNC, NMT and every heartbeat COB-ID (which win over a
+        PDO configured onto them)."""
         if self._routes_dirty:
             self._routes_dirty = False
-            routes: dict[int, tuple[int, VirtualDrive]] = {}
+            routes: dict[int, Callable[[int, bytearray, float], None]] = {}
             for d in self.drives.values():
-                routes[node_cob_id(COB_SDO_RX, d.node_id)] = (0, d)
+                routes[node_cob_id(COB_SDO_RX, d.node_id)] = d.rx_sdo
                 if d.rpdo_cob is not None:
-                    routes[d.rpdo_cob] = (1, d)
+                    routes[d.rpdo_cob] = d.on_rpdo
+            routes[COB_SYNC] = self._rx_sync
+            routes[COB_NMT] = self._rx_nmt
+            for node in range(1, 0x80):
+                routes[COB_HEARTBEAT + node] = self._rx_heartbeat
             self._routes = routes
         return self._routes
 
     def _handle(self, msg: can.Message, t: float) -> None:
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             return
-        cob, data = msg.arbitration_id, msg.data
-        if cob == COB_SYNC:
+        cob = msg.arbitration_id
+        handler = (self._route_table() if self._routes_dirty else self._routes).get(cob)
+        if handler is not None:
+            handler(cob, msg.data, t)
+
+    def _rx_sync(self, cob: int, data: bytearray, t: float) -> None:
+        for d in self._drive_list:
+            if not ("bus_error" in d.faults and self._dropped(d, "rx_dropped")):
+                d.on_sync(t)
+
+    def _rx_nmt(self, cob: int, data: bytearray, t: float) -> None:
+        if len(data) == 2:
             for d in self._drive_list:
-                if not ("bus_error" in d.faults and self._dropped(d, "rx_dropped")):
-                    d.on_sync(t)
-            return
-        if cob == COB_NMT:
-            if len(data) == 2:
-                for d in self.drives.values():
-                    if not self._dropped(d, "rx_dropped"):
-                        d.on_nmt(data, t)
-            return
-        if COB_HEARTBEAT < cob <= COB_HEARTBEAT + 0x7F:
-            for d in self.drives.values():
-                d._load_config()
-                if cob - COB_HEARTBEAT == d.consumer_node and not self._dropped(d, "rx_dropped"):
-                    d.on_consumer_heartbeat(t)
-            return
-        entry = self._route_table().get(cob)
-        if entry is None:
-            return
-        kind, d = entry
-        if "bus_error" in d.faults and self._dropped(d, "rx_dropped"):
-            return
-        if kind == 0:
-            d.node.sdo.on_request(cob, data, t)
-        else:
-            d.on_rpdo(data, t)
+                if not self._dropped(d, "rx_dropped"):
+                    d.on_nmt(data, t)
+
+    def _rx_heartbeat(self, cob: int, data: bytearray, t: float) -> None:
+        for d in self._drive_list:
+            d._load_config()
+            if cob - COB_HEARTBEAT == d.consumer_node and not self._dropped(d, "rx_dropped"):
+                d.on_consumer_heartbeat(t)
 
     def _drain_and_tick(self, t: float) -> None:
         self._now = t

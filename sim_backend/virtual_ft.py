@@ -45,7 +45,6 @@ import threading
 import time
 import tty
 from collections.abc import Mapping, Sequence
-from dataclasses import fields, replace
 from typing import TYPE_CHECKING, Any, Optional
 
 from rig_runtime import wires
@@ -67,7 +66,7 @@ from drivers.ft_modbus import (
 __all__ = ["VirtualFTServer", "FAULT_KINDS"]
 
 FAULT_KINDS = ("dropout", "corrupt", "stuck", "offset", "out_of_range")
-_WRENCH_FIELDS = tuple(f.name for f in fields(Wrench))
+_WRENCH_FIELDS = Wrench._fields
 _START_TIMEOUT_S = 5.0
 _WRITE_FCS = (0x05, 0x06, 0x0F, 0x10, 0x17)
 _GATEWAY_NO_RESPONSE = 11
@@ -223,7 +222,7 @@ class VirtualFTServer:
             w = self._wrenches[name]
             if "offset" in faults:
                 off = faults["offset"]
-                w = replace(w, **{k: getattr(w, k) + off.get(k, 0.0) for k in _WRENCH_FIELDS})
+                w = w._replace(**{k: getattr(w, k) + off.get(k, 0.0) for k in _WRENCH_FIELDS})
             regs = registers_from_wrench(w)
         self._regs[name] = regs
         return regs
@@ -435,16 +434,18 @@ class _MemServer:
         end = conn.end
         rx = conn.rx
         rx += end.read()
-        if end.hung_up and not rx:
-            self._drop(conn)
+        if not rx:
+            if end.hung_up:
+                self._drop(conn)
             return 0
+        answer, name = self._owner._answer, conn.name
         n_req = 0
         while True:
             try:
                 n = frame_length(rx)
                 if n is None or len(rx) < n:
                     break
-                reply = self._owner._answer(conn.name, rx[:n])
+                reply = answer(name, rx[:n])
             except ValueError:                          # not Modbus TCP: hang up, like a device would
                 self._drop(conn)
                 return n_req

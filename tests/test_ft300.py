@@ -29,7 +29,7 @@ from drivers.ft300 import FTSensorSet
 from drivers.ft_codec import AXES, REG_COUNT, REG_START, Wrench, registers_from_wrench, wrench_from_registers
 from drivers.ft_modbus import decode_read_response, encode_read_request, frame_length
 from drivers.ft_poll import Published
-from drivers.ft_process import SLOT_SIZE, SlotReader, SlotWriter
+from drivers.ft_process import SLOT_SIZE, SlotReader, SlotWriter, _make_pub
 from rig_runtime.config import FTBus, FTSensor
 from rig_runtime.errors import ConfigError, DeviceInitError
 from sim_backend.virtual_ft import VirtualFTServer
@@ -235,7 +235,7 @@ def test_values_arrive_fresh(server, patient_driver):
     assert r["right"].wrench == Wrench(fz=100.0)
     for reading in r.values():
         assert reading.health.state is Freshness.FRESH and reading.health.cause == ""
-        assert math.isfinite(reading.t) and reading.age >= 0.0
+        assert math.isfinite(reading.t) and reading.t <= time.monotonic()
     server.set_wrench("left", Wrench(fy=-1.0))
     wait_for(lambda: driver.poll(time.monotonic())["left"].wrench == Wrench(fy=-1.0))
 
@@ -249,7 +249,7 @@ def test_dropout_counts_timeouts_keeps_t_and_recovers(server, driver):
     assert r.health.state is Freshness.FRESH and "timeout" in r.health.cause
     assert r.health.errors == 0 and r.health.bad_frames == 0
     later = wait_for(lambda: (x := driver.poll(time.monotonic())["left"]).health.timeouts >= 3 and x)
-    assert later.t == r.t and later.age > r.age    # keeps counting; no new sample, age grows
+    assert later.t == r.t                          # keeps counting; no new sample, the same time
     assert later.health.state is Freshness.FRESH and "timeout" in later.health.cause
     assert driver.poll(time.monotonic())["right"].health.cause == ""       # unaffected
     server.clear("left", "dropout")
@@ -810,3 +810,15 @@ def test_modbus_tcp_codec_checks_what_it_decodes():
         decode_read_response(reply[:8] + b"\xff" + reply[9:], 0x1234, 9, 6)
     with pytest.raises(ValueError, match="length field"):
         frame_length(bytes.fromhex("1234 0000 0000"))
+
+
+def test_the_process_hand_off_carries_the_saturation_of_its_six_floats():
+    """The slot carries the six floats, not the saturation text: the parent's Published
+    gets it from them again, the text the child's PollCore.sample published."""
+    counters = (("samples", 0), ("connects", 1), ("connect_failures", 0), ("disconnects", 0))
+    rest = (1.0, "", None, 0, 1, 0, counters, False)
+    w = wrench_from_registers([0, 0, 32767, 0, 0, 0])
+    p = _make_pub(tuple(w), *rest)
+    assert p.saturation == w.saturation == "Fz saturated at +327.67 N (int16 limit)"
+    assert _make_pub(W_LEFT.as_tuple(), *rest).saturation == ""
+    assert _make_pub(None, *rest).saturation == "" and _make_pub(None, *rest).wrench is None
