@@ -19,6 +19,7 @@ from . import coupled
 from .config import PIPDGains, RigConfig
 from .control import DiscreteLaw, PIPDLaw, PLaw, law_of
 from .coupled import Instability
+from .damping import YawDamping
 from .errors import ConfigError
 
 
@@ -134,7 +135,7 @@ def sampled_closed_loop(cfg: RigConfig, D: float | None = None) -> np.ndarray:
     damping ``D``, default D_min) held over h, the Tustin PI-PD of ``control.py`` (its
     :class:`~rig_runtime.control.DiscreteLaw`); returned as ln(z)/h (1/s)."""
     c = cfg.controller
-    return _sampled(cfg, PIPDLaw.of(pipd_gains(cfg), c.h).discrete(), D)
+    return _sampled(cfg, PIPDLaw.of(pipd_gains(cfg), c.h, _yaw(cfg)).discrete(D=D), D)
 
 
 def _continuous(z: np.ndarray, h: float) -> np.ndarray:
@@ -152,7 +153,12 @@ def sampled_p_loop(cfg: RigConfig, D: float | None = None) -> np.ndarray:
 
 def sampled_loop(cfg: RigConfig, D: float | None = None) -> np.ndarray:
     """The sampled closed loop of the configured law (``controller.law``), as implemented."""
-    return _sampled(cfg, law_of(cfg.controller).discrete(), D)
+    return _sampled(cfg, law_of(cfg.controller, yaw=_yaw(cfg)).discrete(D=D), D)
+
+
+def _yaw(cfg: RigConfig) -> YawDamping:
+    """The rear carrier's yaw parameters (plant (10)'s carrier): a law scheduled on its damping needs them."""
+    return YawDamping.of(cfg.plant.carrier("rear"))
 
 
 class UnstableLoopError(ConfigError):
