@@ -210,9 +210,10 @@ SINGLE_CARRIER_ONLY = ("complete closed loop (19)", "slowest_outer_eigenvalue")
 def tune_failures(cfg: RigConfig, r: "TuneResult") -> list[str]:
     """What makes ``rig tune`` fail: a loop of (15), (16), (19) or the sampled loop as
     implemented with an eigenvalue Re >= 0, or a design check of Sec. 5.2.3 that fails.
-    On a vehicle config (:func:`coupled.applies`) the coupled loop at every analysed speed
-    replaces (19) and the outer-loop criterion of (17), which assume the rear carrier alone
-    with its stable lateral pole (the vehicle's lateral pair has a double pole at 0)."""
+    On a vehicle config (:func:`coupled.applies`) the coupled loop at every analysed speed and
+    every D_min/D_max combination (continuous and sampled) replaces (19) and the outer-loop
+    criterion of (17), which assume the rear carrier alone with its stable lateral pole (the
+    vehicle's lateral pair has a double pole at 0)."""
     vehicle = coupled.applies(cfg)
     out = []
     for name, ev in (("inner loop (15)", r.inner), ("inner loop with differentiator (16)", r.inner_filtered),
@@ -225,10 +226,12 @@ def tune_failures(cfg: RigConfig, r: "TuneResult") -> list[str]:
         where = bad.where().replace("plant (10) with ", "")
         out.append(f"sampled loop as implemented ({cfg.controller.law}, {where}) unstable: "
                    f"eigenvalue at {ev_text(bad.s)}")
-    if vehicle:
+    if vehicle:       # continuous, at every D_min/D_max combination (the sampled one is the gate's, above)
         for p in coupled.analyse(cfg).points:
-            if not p.stable:
-                out.append(f"coupled loop at v = {p.v:+g} m/s unstable: eigenvalue at {ev_text(p.least_damped)}")
+            if not (p.stable and p.rightmost.real < 0):
+                ev, D = (p.least_damped, None) if not p.stable else (p.rightmost, p.rightmost_D)
+                Ds = "" if D is None else " (" + ", ".join(f"D_{c} = {d:g}" for c, d in D.items()) + ")"
+                out.append(f"coupled loop at v = {p.v:+g} m/s{Ds} unstable: eigenvalue at {ev_text(ev)}")
                 break
     for k, c in r.checks.items():
         if not c["ok"] and not (vehicle and k in SINGLE_CARRIER_ONLY):

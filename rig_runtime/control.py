@@ -506,10 +506,13 @@ class PIPDController:
             psi_ref = self._psi_hold * (1.0 - k / self._hold_n) if k < self._hold_n else 0.0
         elif self._reseed:                  # resumed: ψ_ref goes on from the held value
             self._reseed = False
-            dI = 0.0
             target = st.psi_ref if self._psi_target is None else self._psi_target
-            self._psi_target = None
             x_I = law.seed(g, e_y, target + self._w)
+            dI = 0.0
+            if self._psi_target is not None:    # the yaw gains moved (D̂): integrate on as usual
+                dI = law.half_h * g * (e_y + self._e_y_prev)
+                x_I += dI
+            self._psi_target = None
             psi_ref = law.psi_ref(g, e_y, x_I) - self._w
         else:
             dI, x_I, psi_ref = law.outer(g, e_y, self._e_y_prev, st.x_I)
