@@ -477,7 +477,7 @@ class PIPDController:
         """Bumpless start: choose x_I so that ψ_ref = ψ (no proportional jump) and seed the
         differentiator with the current error (no derivative kick)."""
         e_y = y_ref - y
-        if self._damp is not None:          # at rest before the start: D̂ = D_max
+        if self._damp is not None:          # D̂ = D_min for the first command (damping.InputDamping.start)
             self._damp.start(u0)
             self._D = self._damp.now
         kpp, kappa = self.law.yaw_gains(self._D)

@@ -65,9 +65,12 @@ class InputDamping:
         self.start(u0)
 
     def start(self, u0: float) -> None:
-        """At rest with input u0 held: the filter settled, D̂ = D_max."""
+        """The law starts from input u0 (the filter settled on it) and takes D̂ = D_min for its
+        first command: a closed loop's first commands move the current (the plant's D drops to
+        D_min with them), and gains at D_max for one period would kick the current by up to σ
+        times the P term (docs/vehicle.md §3). From the first :meth:`hold` on, D̂ is (7)'s."""
         self.e, self.u = 0.0, u0
-        self.now = self.m.D_max
+        self.now = self.m.D_min
 
     def hold(self, u: float) -> None:
         """Input ``u`` held over the next period: the residual jumps by the change, decays over h."""

@@ -399,8 +399,8 @@ def test_the_damping_schedule_keeps_the_law_at_d_min_and_raises_the_yaw_gain_abo
 
 
 def test_a_change_of_the_damping_estimate_does_not_kick_the_current(cfg):
-    """The first step after the start is at D̂ = D_max (the current was still); once the law's
-    current moves D̂ drops to D_min and the gains with it: the P term is kept across the change
+    """The law starts at D̂ = D_min; while its current is still (ψ, y still: the first step is
+    bumpless) D̂ rises to D_max and the gains with it; the P term is kept across each change
     (x_I re-seeded as on a resume), so u moves only by what the new error asks."""
     import dataclasses
     c = dataclasses.replace(cfg.controller, pipd=dataclasses.replace(cfg.controller.pipd, D_sched=2.0))
@@ -408,9 +408,12 @@ def test_a_change_of_the_damping_estimate_does_not_kick_the_current(cfg):
     m = _yaw(cfg)
     ctrl.start(0.0, 0.0, 2e-3)
     u0 = ctrl.step(0.0, 0.0, 2e-3)
-    assert ctrl.D_hat == m.D_max and u0 == pytest.approx(0.0, abs=1e-12)
-    u1 = ctrl.step(0.0, 0.0, 2e-3 + 1e-6)          # ψ moved: the D_max gains move u: D̂ → D_min
-    assert ctrl.D_hat == m.D_max and abs(u1) > 1e-3
-    u2 = ctrl.step(0.0, 0.0, 2e-3 + 1e-6)
+    assert ctrl.D_hat == m.D_min and u0 == pytest.approx(0.0, abs=1e-12)
+    u1 = ctrl.step(0.0, 0.0, 2e-3)                 # the current was still: D̂ = D_max, no jump
+    assert ctrl.D_hat == m.D_max and u1 == pytest.approx(u0, abs=1e-9)
+    u2 = ctrl.step(0.0, 0.0, 2e-3 + 1e-6)          # ψ moved: the D_max gains move u (σ K_P,ψ Δψ)
+    kp = ctrl.law.yaw_gains(m.D_max)[0]
+    assert ctrl.D_hat == m.D_max and u2 - u1 == pytest.approx(-kp * 1e-6, rel=0.05)
+    u3 = ctrl.step(0.0, 0.0, 2e-3 + 1e-6)          # the current moved: D̂ = D_min, the P term kept
     assert ctrl.D_hat == m.D_min
-    assert u2 == pytest.approx(u1, abs=1e-3)       # no jump from the schedule itself
+    assert u3 == pytest.approx(u2, abs=1e-2 * abs(u2 - u1))   # (the D term decays on; a kick would be ~σ × it)

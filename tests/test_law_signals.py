@@ -136,7 +136,7 @@ def test_vehicle_log_has_the_law_signals_with_the_values_the_law_computed(vcfg, 
         # the inner PD on ψ_ref (with w subtracted): u before saturation, K_P,ψ as scheduled at the logged D̂
         own = DecoupledLaw.of(vcfg.controller.decoupled, vcfg.controller.h, k, YawDamping.of(vcfg.plant.carrier(k)))
         kp = np.array([own.yaw_gains(D)[0] for D in c[f"{k}_D_hat"][i]])
-        assert np.all(c[f"{k}_D_hat"][i][1:] == vcfg.plant.carrier(k).D_min)     # D_max only before the first move
+        assert np.all(c[f"{k}_D_hat"][i] == vcfg.plant.carrier(k).D_min)     # the current moves every cycle
         u = kp * c[f"{k}_e_psi"][i] + law.K_D_psi * c[f"{k}_de_psi"][i]
         np.testing.assert_allclose(c[f"{k}_u_unsat"][i], u, rtol=0, atol=1e-12)
     # the front's 2 mm step at 1 s moves its feed term by K_P,y (1 − b_y) Δy_ref
@@ -151,9 +151,7 @@ def test_yaw_integrator_gets_a_column_when_the_law_has_one(vcfg, tmp_path):
         c0, decoupled=dataclasses.replace(c0.decoupled, K_I_psi=20.0)))
     c = lockstep(cfg, 1.5, tmp_path / "ki.h5")["columns"]
     law = DecoupledLaw.of(cfg.controller.decoupled, cfg.controller.h)
-    # from the second step on: the first is at D̂ = D_max (the damping schedule's gains; the law
-    # rescales its yaw error's memory when D̂ drops to D_min)
-    i = np.flatnonzero(c["state"] == RUNNING)[1:]
+    i = np.flatnonzero(c["state"] == RUNNING)     # the damping schedule at D̂ = D_min throughout
     for k in ("front", "rear"):
         assert np.all(c[f"{k}_D_hat"][i] == cfg.plant.carrier(k).D_min)
         x = c[f"{k}_x_I_psi"][i]
