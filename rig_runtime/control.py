@@ -385,6 +385,15 @@ def law_of(cfg: ControllerConfig, carrier: str | None = None, yaw: YawDamping | 
 
 
 # --------------------------------------------------------------------------- the runtime
+#: s: how long D̂ of (7) must stay above D_min before the damping schedule's gains follow it. In
+#: closed loop the current moves by more than (7)'s ~0.5 µA a cycle nearly always; a cycle in which
+#: it does not (measured: 2 of 14400 carrier-cycles of a lockstep run) is a blip of D̂ that the
+#: gains need not follow — followed, the P term kept across the blip turned one cycle's ψ noise,
+#: times σ, into a lasting ψ_ref offset (a held carrier moved 17 % of the other's step). Still
+#: currents that last (saturation, a still loop) are followed; the frozen analysis is unaffected.
+DAMPING_PERSIST_S = 0.1
+
+
 @dataclass(slots=True)
 class PIPDInternals:
     """What one step computed, for the recorder."""
@@ -421,6 +430,8 @@ class PIPDController:
         self._yaw = yaw
         self._damp = InputDamping(yaw, cfg.h) if self.law.scheduled_on_damping else None   # D̂ of (7) from u
         self._D = None          # the D̂ the last step's yaw gains were at (None: D_min, no schedule)
+        self._above = 0         # cycles D̂ has been above D_min in a row
+        self._persist = max(1, round(DAMPING_PERSIST_S / cfg.h))
         self._psi_target = None     # ψ_ref the next re-seed continues from (None: the last step's)
         self.h = cfg.h
         self.u_max = u_max
@@ -480,6 +491,7 @@ class PIPDController:
         if self._damp is not None:          # D̂ = D_min for the first command (damping.InputDamping.start)
             self._damp.start(u0)
             self._D = self._damp.now
+            self._above = 0
         kpp, kappa = self.law.yaw_gains(self._D)
         psi_ref = (psi + u0 / kpp) / kappa
         x_I = self.law.seed(self.g, e_y, psi_ref + self._w)
@@ -497,8 +509,16 @@ class PIPDController:
         law = self.law
         e_y = y_ref - y
         g = self.g
-        if self._damp is not None and self._damp.now != self._D:
-            self._rescale(*law.yaw_gains(self._D), self._damp.now)
+        if self._damp is not None:
+            D = self._damp.now
+            if D > law.yaw.D_min:
+                self._above += 1
+                if self._above < self._persist:   # a blip of (7) (one still cycle): the gains stay
+                    D = law.yaw.D_min
+            else:
+                self._above = 0
+            if D != self._D:
+                self._rescale(*law.yaw_gains(self._D), D)
         if self.held:                       # standstill: integrator frozen, ψ_ref ramps to 0
             dI = 0.0
             x_I = st.x_I

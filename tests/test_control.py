@@ -399,17 +399,22 @@ def test_the_damping_schedule_keeps_the_law_at_d_min_and_raises_the_yaw_gain_abo
 
 
 def test_a_change_of_the_damping_estimate_does_not_kick_the_current(cfg):
-    """The law starts at D̂ = D_min; while its current is still (ψ, y still: the first step is
-    bumpless) D̂ rises to D_max and the gains with it; the P term is kept across each change
-    (x_I re-seeded as on a resume), so u moves only by what the new error asks."""
+    """The law starts at D̂ = D_min. A still current for one cycle (a blip of (7)) leaves the gains
+    alone; still for DAMPING_PERSIST_S, the gains follow D̂ (D_max) — without a jump of u; then ψ
+    moves, the D_max gains move u by σ K_P,ψ Δψ, D̂ drops to D_min with the moved current and the
+    P term is kept across the change (x_I re-seeded as on a resume): no kick from the schedule."""
     import dataclasses
+    from rig_runtime.control import DAMPING_PERSIST_S
     c = dataclasses.replace(cfg.controller, pipd=dataclasses.replace(cfg.controller.pipd, D_sched=2.0))
     ctrl = make_controller(c, 1e9, None, "rear", _yaw(cfg))
     m = _yaw(cfg)
     ctrl.start(0.0, 0.0, 2e-3)
     u0 = ctrl.step(0.0, 0.0, 2e-3)
     assert ctrl.D_hat == m.D_min and u0 == pytest.approx(0.0, abs=1e-12)
-    u1 = ctrl.step(0.0, 0.0, 2e-3)                 # the current was still: D̂ = D_max, no jump
+    u1 = ctrl.step(0.0, 0.0, 2e-3)                 # one still cycle: D̂ = D_max, the gains stay
+    assert ctrl.D_hat == m.D_min and u1 == pytest.approx(u0, abs=1e-9)
+    for _ in range(round(DAMPING_PERSIST_S / cfg.controller.h)):
+        u1 = ctrl.step(0.0, 0.0, 2e-3)             # still on: the gains follow D̂, u does not jump
     assert ctrl.D_hat == m.D_max and u1 == pytest.approx(u0, abs=1e-9)
     u2 = ctrl.step(0.0, 0.0, 2e-3 + 1e-6)          # ψ moved: the D_max gains move u (σ K_P,ψ Δψ)
     kp = ctrl.law.yaw_gains(m.D_max)[0]
