@@ -283,3 +283,13 @@ def test_every_damping_combination_is_reported_and_the_trailing_term_makes_it_st
     alone = dataclasses.replace(following, controller=dataclasses.replace(
         following.controller, decoupled=dataclasses.replace(g, K_t_y=0.0)))
     assert max(q.every_damping_radius for q in coupled.analyse(alone).points) > 1.0
+
+
+def test_ctl_set_of_the_damping_schedule_is_judged_by_the_same_gate():
+    """D_sched is a live gain of law decoupled like the others (rig ctl set, tuning.check): too
+    little of the schedule leaves a leading carrier at D_max unstable — refused, naming it."""
+    v = config.load(config.CONFIG_DIR / "vehicle.yaml")
+    c = dataclasses.replace(v, controller=dataclasses.replace(v.controller, tuning={"D_sched": (0.01, 3.0)}))
+    assert tuning.check(c, "D_sched", 2.5).new == 2.5
+    with pytest.raises(TuningError, match=r"D_sched = 0.01 would make the sampled closed loop unstable .*D_front = "):
+        tuning.check(c, "D_sched", 0.01)
