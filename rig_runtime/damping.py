@@ -19,8 +19,11 @@ import math
 from dataclasses import dataclass
 
 
-def damping(rho: float, D_min: float, D_max: float) -> float:
-    """(7) at ρ = |u̇| / c_udot_max: D_min from ρ = 1 on, rising linearly to D_max at ρ = 0."""
+def damping(rho, D_min: float, D_max: float, select=None):
+    """(7) at ρ = |u̇| / c_udot_max: D_min from ρ = 1 on, rising linearly to D_max at ρ = 0.
+    ``select(cond, a, b)`` (e.g. numpy.where) evaluates it for an array of ρ, the same line."""
+    if select is not None:
+        return select(rho >= 1.0, D_min, D_max - rho * (D_max - D_min))
     return D_min if rho >= 1.0 else D_max - rho * (D_max - D_min)
 
 

@@ -986,7 +986,7 @@ class Plant:
             psi, p, z, ue = x[i], x[i + 1], x[i + 2], x[i + 3]
             udot = ue / car.tau
             rho = absf(udot) / car.cmax
-            D = select(rho >= 1.0, car.Dmin, car.Dmax - rho * car.dD)
+            D = damping(rho, car.Dmin, car.Dmax, select)
             if car.hyst:
                 R = car.a * psi + car.oma * z
                 az = absf(z)

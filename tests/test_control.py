@@ -360,7 +360,7 @@ def _yaw(cfg):
 def test_the_law_knows_the_damping_the_plant_has(cfg):
     """D̂ of (7) from the law's own commands (damping.InputDamping) is the simulated plant's D at
     the end of every period (the same filter and the same function), through D_min, the linear
-    part of (7) and D_max."""
+    part of (7) and D_max, and when a limit downstream applied another current (``correct``)."""
     from rig_runtime.damping import InputDamping
     from sim_backend.plant import Plant
     h = cfg.controller.h
@@ -373,6 +373,9 @@ def test_the_law_knows_the_damping_the_plant_has(cfg):
         # moves of 1 A (D_min), of 1e-7 A (|u̇| below c_udot_max: between), and none (back to D_max)
         u += (1.0 if k % 150 == 0 else 0.0) + (rng.normal(0, 1e-7) if 300 <= k < 450 else 0.0)
         est.hold(u)
+        if k % 150 == 10:                       # a limit downstream applied less (limit_feedback)
+            u = 0.5 * u
+            est.correct(u)
         pl.step(h, 0.0, u)
         assert est.now == pytest.approx(pl.D_r, rel=1e-9)
         seen.add("min" if est.now == P.D_min else "max" if est.now > P.D_max - 1e-3 else "between")
