@@ -29,8 +29,8 @@ def damping(rho, D_min: float, D_max: float, select=None):
 
 @dataclass(frozen=True)
 class YawDamping:
-    """A carrier's yaw parameters a law needs to know its damping and to cancel what exceeds
-    D_min (the model values of the config, ``plant.carrier(c)``): ω0, K of (6) and (7)'s."""
+    """A carrier's yaw parameters a law needs to know its damping and schedule its yaw loop on it
+    (the model values of the config, ``plant.carrier(c)``): ω0, K of (6) and (7)'s."""
 
     omega0: float
     K: float
@@ -47,11 +47,6 @@ class YawDamping:
     @property
     def tau(self) -> float:
         return 1.0 / (2.0 * math.pi * self.u_filter_hz)
-
-    def excess_gain(self, D: float) -> float:
-        """The current per yaw rate (A s/rad) whose moment K ω0² · it · ψ̇ equals the damping
-        moment 2 (D − D_min) ω0 ψ̇ above D_min: 2 (D − D_min) / (K ω0)."""
-        return 2.0 * (D - self.D_min) / (self.K * self.omega0)
 
 
 class InputDamping:
