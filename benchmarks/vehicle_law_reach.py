@@ -91,7 +91,7 @@ def radius(cfg, laws_at, every_damping=False):
                  else coupled.damping_cases(cfg, v, lay))
         for D in cases:
             Ad, Bd = coupled.held(cfg, v, D, lay)
-            M = coupled.close(Ad, Bd, lay, laws_at(v))
+            M = coupled.close(Ad, Bd, lay, laws_at(v, D))
             with np.errstate(all="ignore"):
                 r = max(r, float(np.max(np.abs(np.linalg.eigvals(M)))))
     return r
@@ -141,8 +141,10 @@ FAMILIES = {
 
 
 def laws_of(cfg):
+    """v, D (None: each carrier's D_min) -> each controlled carrier's law there (a law scheduled on
+    its damping at the gains it has at D)."""
     lay = coupled.layout(cfg)
-    return lambda v: {c: coupled.law_at(cfg, c, v) for c in lay.controlled}
+    return lambda v, D=None: {c: coupled.law_at(cfg, c, v, D=None if D is None else D[c]) for c in lay.controlled}
 
 
 def main(argv=None) -> int:

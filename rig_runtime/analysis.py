@@ -19,6 +19,7 @@ from . import coupled
 from .config import PIPDGains, RigConfig
 from .control import DiscreteLaw, PIPDLaw, PLaw, law_of
 from .coupled import Instability
+from .damping import YawDamping
 from .errors import ConfigError
 
 
@@ -134,7 +135,7 @@ def sampled_closed_loop(cfg: RigConfig, D: float | None = None) -> np.ndarray:
     damping ``D``, default D_min) held over h, the Tustin PI-PD of ``control.py`` (its
     :class:`~rig_runtime.control.DiscreteLaw`); returned as ln(z)/h (1/s)."""
     c = cfg.controller
-    return _sampled(cfg, PIPDLaw.of(pipd_gains(cfg), c.h).discrete(), D)
+    return _sampled(cfg, PIPDLaw.of(pipd_gains(cfg), c.h, _yaw(cfg)).discrete(D=D), D)
 
 
 def _continuous(z: np.ndarray, h: float) -> np.ndarray:
@@ -152,7 +153,12 @@ def sampled_p_loop(cfg: RigConfig, D: float | None = None) -> np.ndarray:
 
 def sampled_loop(cfg: RigConfig, D: float | None = None) -> np.ndarray:
     """The sampled closed loop of the configured law (``controller.law``), as implemented."""
-    return _sampled(cfg, law_of(cfg.controller).discrete(), D)
+    return _sampled(cfg, law_of(cfg.controller, yaw=_yaw(cfg)).discrete(D=D), D)
+
+
+def _yaw(cfg: RigConfig) -> YawDamping:
+    """The rear carrier's yaw parameters (plant (10)'s carrier): a law scheduled on its damping needs them."""
+    return YawDamping.of(cfg.plant.carrier("rear"))
 
 
 class UnstableLoopError(ConfigError):
@@ -204,9 +210,10 @@ SINGLE_CARRIER_ONLY = ("complete closed loop (19)", "slowest_outer_eigenvalue")
 def tune_failures(cfg: RigConfig, r: "TuneResult") -> list[str]:
     """What makes ``rig tune`` fail: a loop of (15), (16), (19) or the sampled loop as
     implemented with an eigenvalue Re >= 0, or a design check of Sec. 5.2.3 that fails.
-    On a vehicle config (:func:`coupled.applies`) the coupled loop at every analysed speed
-    replaces (19) and the outer-loop criterion of (17), which assume the rear carrier alone
-    with its stable lateral pole (the vehicle's lateral pair has a double pole at 0)."""
+    On a vehicle config (:func:`coupled.applies`) the coupled loop at every analysed speed and
+    every D_min/D_max combination (continuous and sampled) replaces (19) and the outer-loop
+    criterion of (17), which assume the rear carrier alone with its stable lateral pole (the
+    vehicle's lateral pair has a double pole at 0)."""
     vehicle = coupled.applies(cfg)
     out = []
     for name, ev in (("inner loop (15)", r.inner), ("inner loop with differentiator (16)", r.inner_filtered),
@@ -219,10 +226,12 @@ def tune_failures(cfg: RigConfig, r: "TuneResult") -> list[str]:
         where = bad.where().replace("plant (10) with ", "")
         out.append(f"sampled loop as implemented ({cfg.controller.law}, {where}) unstable: "
                    f"eigenvalue at {ev_text(bad.s)}")
-    if vehicle:
+    if vehicle:       # continuous, at every D_min/D_max combination (the sampled one is the gate's, above)
         for p in coupled.analyse(cfg).points:
-            if not p.stable:
-                out.append(f"coupled loop at v = {p.v:+g} m/s unstable: eigenvalue at {ev_text(p.least_damped)}")
+            if not (p.stable and p.rightmost.real < 0):
+                ev, D = (p.least_damped, None) if not p.stable else (p.rightmost, p.rightmost_D)
+                Ds = "" if D is None else " (" + ", ".join(f"D_{c} = {d:g}" for c, d in D.items()) + ")"
+                out.append(f"coupled loop at v = {p.v:+g} m/s{Ds} unstable: eigenvalue at {ev_text(ev)}")
                 break
     for k, c in r.checks.items():
         if not c["ok"] and not (vehicle and k in SINGLE_CARRIER_ONLY):

@@ -170,6 +170,7 @@ class PIPDGains:
     K_P_psi: float        # inner PD, A/rad
     K_D_psi: float        # A s/rad
     T_f_psi: float = check(positive)   # differentiator time constant, s
+    D_sched: float = check(nonneg, default=0.0)  # the yaw loop scheduled on D̂ of (7) (control.PIPDLaw): K_P,ψ's raise, in units of the one that keeps the slow pole; 0 off
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -185,7 +186,7 @@ class DecoupledGains(PIPDGains):
 
 
 PIPD_GAINS = ("K_P_y", "K_I_y", "K_P_psi", "K_D_psi", "T_f_psi")   # the PI-PD law's gains (PIPDGains)
-DECOUPLED_GAINS = PIPD_GAINS + ("b_y", "K_x_y", "K_I_psi", "T_x_y", "K_t_y")                   # the decoupled law's (DecoupledGains)
+DECOUPLED_GAINS = PIPD_GAINS + ("b_y", "K_x_y", "K_I_psi", "T_x_y", "K_t_y", "D_sched")                   # the decoupled law's (DecoupledGains)
 P_GAINS = ("K_P",)                                                  # the P law's (Controller.K_P)
 TUNABLE_GAINS = DECOUPLED_GAINS + P_GAINS                           # what `rig ctl set` may change
 

@@ -27,6 +27,7 @@ from typing import Mapping, Sequence
 
 from .config import DECOUPLED_GAINS, PIPD_GAINS, DecoupledGains, PIPDGains
 from .config import Controller as ControllerConfig
+from .damping import InputDamping, YawDamping
 
 Matrix = tuple[tuple[float, ...], ...]
 
@@ -96,7 +97,14 @@ def _describe(law: str, h: float, g: float, inputs: tuple[str, ...], states: tup
                        tuple(tuple(f.v[:ns]) for f in out), tuple(tuple(f.v[ns:]) for f in out), scheduled)
 
 
-def _without(law: DiscreteLaw, state: str) -> DiscreteLaw:
+def _without(law: DiscreteLaw, *names: str) -> DiscreteLaw:
+    """``law`` without states that no output and no other kept state depends on."""
+    for state in names:
+        law = _without1(law, state)
+    return law
+
+
+def _without1(law: DiscreteLaw, state: str) -> DiscreteLaw:
     """``law`` without a state that no output and no other state depends on."""
     i = law.states.index(state)
     keep = [j for j in range(len(law.states)) if j != i]
@@ -113,12 +121,23 @@ class PIPDLaw:
     """The cascaded PI-PD law (11)–(14) with its gains, discretised at h (Tustin):
 
         e_y = y_ref − y,   x_I⁺ = x_I + (h/2) g (e_y + e_y,prev),   ψ_ref = g K_P,y e_y + K_I,y x_I⁺
-        e_ψ = ψ_ref − ψ,   ê_ψ⁺ = a ê_ψ + b (e_ψ − e_ψ,prev),       u = K_P,ψ e_ψ + K_D,ψ ê_ψ⁺
+        e_ψ = κ ψ_ref − ψ,  ê_ψ⁺ = a ê_ψ + b (e_ψ − e_ψ,prev),      u = σ K_P,ψ e_ψ + K_D,ψ ê_ψ⁺
 
     with a = (2T_f − h)/(2T_f + h), b = 2/(2T_f + h) (Tustin of s/(T_f s + 1)) — computed here
     once. g is the speed schedule's factor on the outer PI (the integrator integrates g·e_y, so
     its share of ψ_ref does not jump when g changes). :meth:`outer` and :meth:`inner` are the
-    arithmetic, in floats for the runtime and in linear forms for :meth:`discrete`."""
+    arithmetic, in floats for the runtime and in linear forms for :meth:`discrete`.
+
+    σ = κ = 1 but with the damping schedule (``D_sched`` > 0; docs/vehicle.md §5): the law knows
+    the damping D̂ of (7) its own commanded current gives (:class:`rig_runtime.damping.InputDamping`:
+    the same filter and (7) as the plant) and schedules the yaw loop on it. At D̂ = D_min σ = κ = 1;
+    above, σ = 1 + D_sched (σ₁ − 1), σ₁ the raise of K_P,ψ that keeps the yaw loop's slow pole in
+    its first-order estimate ω0² (1 + K σK_P,ψ)/(2 D̂ ω0 + K ω0² K_D,ψ) at its D_min value (the
+    estimate is low at D_min, where the loop is not far overdamped: D_sched = 2 puts the coupled
+    loop at D_max where it is at D_min, docs/vehicle.md §5), and κ keeps the yaw loop's static
+    gain K σK_P,ψ κ/(1 + K σK_P,ψ) at D_min's. D̂ is a
+    schedule variable like g: the description is at a frozen D̂ (``D`` of :meth:`discrete`), and the
+    analysis takes the plant's D there. The yaw parameters are the carrier's (``yaw``)."""
 
     K_P_y: float
     K_I_y: float
@@ -126,6 +145,8 @@ class PIPDLaw:
     K_D_psi: float
     T_f_psi: float
     h: float
+    D_sched: float = 0.0
+    yaw: YawDamping | None = None     # the carrier's yaw parameters (needed with D_sched > 0)
     half_h: float = field(init=False)
     a: float = field(init=False)
     b: float = field(init=False)
@@ -142,10 +163,30 @@ class PIPDLaw:
         object.__setattr__(self, "half_h", 0.5 * self.h)
         object.__setattr__(self, "a", (2.0 * self.T_f_psi - self.h) / den)
         object.__setattr__(self, "b", 2.0 / den)
+        if self.D_sched and self.yaw is None:
+            raise ValueError("D_sched > 0 needs the carrier's yaw parameters (yaw)")
 
     @classmethod
-    def of(cls, gains: PIPDGains, h: float) -> "PIPDLaw":
-        return cls(gains.K_P_y, gains.K_I_y, gains.K_P_psi, gains.K_D_psi, gains.T_f_psi, h)
+    def of(cls, gains: PIPDGains, h: float, yaw: YawDamping | None = None) -> "PIPDLaw":
+        """The law with ``gains``; without the carrier's ``yaw`` the law at D_min (no damping schedule)."""
+        return cls(gains.K_P_y, gains.K_I_y, gains.K_P_psi, gains.K_D_psi, gains.T_f_psi, h,
+                   gains.D_sched if yaw is not None else 0.0, yaw if gains.D_sched else None)
+
+    @property
+    def scheduled_on_damping(self) -> bool:
+        """Whether the yaw loop is scheduled on D̂ (D_sched > 0)."""
+        return bool(self.D_sched)
+
+    def yaw_gains(self, D: float | None) -> tuple[float, float]:
+        """(σ K_P,ψ, κ) at D̂ = D; (K_P,ψ, 1) without the schedule, for D = None and D <= D_min."""
+        m = self.yaw
+        if not self.D_sched or D is None or D <= m.D_min:
+            return self.K_P_psi, 1.0
+        kk = m.K * self.K_P_psi
+        kd = m.K * m.omega0 ** 2 * self.K_D_psi
+        full = ((1.0 + kk) * (2.0 * D * m.omega0 + kd) / (2.0 * m.D_min * m.omega0 + kd) - 1.0) / kk
+        sigma = 1.0 + self.D_sched * (full - 1.0)
+        return self.K_P_psi * sigma, (1.0 + kk * sigma) / ((1.0 + kk) * sigma)
 
     def psi_ref(self, g, e_y, x_I):
         """The outer PI's output from the error and the integrator's (updated) state."""
@@ -162,34 +203,43 @@ class PIPDLaw:
         x_I = x_I_prev + dI
         return dI, x_I, self.psi_ref(g, e_y, x_I)
 
-    def inner(self, psi_ref, psi, e_psi_prev, de_prev):
-        """The inner PD's step on e_ψ with the Tustin differentiator: (e_ψ, ê_ψ⁺, u)."""
-        e_psi = psi_ref - psi
+    def inner(self, psi_ref, psi, e_psi_prev, de_prev, D=None):
+        """The inner PD's step on e_ψ with the Tustin differentiator at D̂ = D: (e_ψ, ê_ψ⁺, u)."""
+        if D is None:
+            e_psi = psi_ref - psi
+            kp = self.K_P_psi
+        else:
+            kp, kappa = self.yaw_gains(D)
+            e_psi = kappa * psi_ref - psi
         de = self.a * de_prev + self.b * (e_psi - e_psi_prev)
-        return e_psi, de, self.K_P_psi * e_psi + self.K_D_psi * de
+        return e_psi, de, kp * e_psi + self.K_D_psi * de
+
+    DAMPING_SIGNAL = MappingProxyType({"D_hat": "1"})   # D̂ of (7), the yaw gains' (with D_sched > 0)
 
     @property
     def signals(self) -> Mapping[str, str]:
-        """The signals this law (with these gains) computes: ``SIGNALS``."""
-        return self.SIGNALS
+        """The signals this law (with these gains) computes: ``SIGNALS`` (and D̂ with the damping schedule)."""
+        return MappingProxyType({**self.SIGNALS, **self.DAMPING_SIGNAL}) if self.D_sched else self.SIGNALS
 
-    def discrete(self, g: float = 1.0) -> DiscreteLaw:
-        """The linear law as the runtime steps it (:class:`DiscreteLaw`), at factor g."""
+    def discrete(self, g: float = 1.0, D: float | None = None) -> DiscreteLaw:
+        """The linear law as the runtime steps it (:class:`DiscreteLaw`), at factor g and at
+        D̂ = D (None: D_min)."""
         x_I, e_y0, e_psi0, de0, y_ref, y, psi = _basis(7)
         e_y = y_ref - y
         _, x_I1, psi_ref = self.outer(g, e_y, e_y0, x_I)
-        e_psi, de, u = self.inner(psi_ref, psi, e_psi0, de0)
+        e_psi, de, u = self.inner(psi_ref, psi, e_psi0, de0, D)
         return _describe("pipd", self.h, g, LAW_INPUTS, self.STATES, ("u",),
                          (x_I1, e_y, e_psi, de), (u,), self.SCHEDULED)
 
-    def continuous(self, g: float = 1.0) -> DiscreteLaw:
+    def continuous(self, g: float = 1.0, D: float | None = None) -> DiscreteLaw:
         """The law as designed (11)–(14), continuous (h = 0): states x_I (ẋ_I = g e_y) and the
-        differentiator's x_f (ê_ψ = (e_ψ − x_f)/T_f = ẋ_f)."""
+        differentiator's x_f (ê_ψ = (e_ψ − x_f)/T_f = ẋ_f); at D̂ = D."""
         x_I, x_f, y_ref, y, psi = _basis(5)
         e_y = y_ref - y
-        e_psi = self.psi_ref(g, e_y, x_I) - psi
+        kp, kappa = self.yaw_gains(D)
+        e_psi = kappa * self.psi_ref(g, e_y, x_I) - psi
         de = (e_psi - x_f) / self.T_f_psi
-        u = self.K_P_psi * e_psi + self.K_D_psi * de
+        u = kp * e_psi + self.K_D_psi * de
         return _describe("pipd", 0.0, g, LAW_INPUTS, ("x_I", "x_f"), ("u",), (g * e_y, de), (u,),
                          self.SCHEDULED)
 
@@ -241,14 +291,16 @@ class DecoupledLaw(PIPDLaw):
 
     @property
     def signals(self) -> Mapping[str, str]:
-        """``SIGNALS``; without x_I_psi when K_I,ψ = 0 (then no part of the law, as in :meth:`discrete`)."""
-        return self.SIGNALS if self.K_I_psi else MappingProxyType(
-            {n: u for n, u in self.SIGNALS.items() if n != "x_I_psi"})
+        """``SIGNALS``; without x_I_psi when K_I,ψ = 0 (then no part of the law, as in :meth:`discrete`);
+        with D̂ under the damping schedule."""
+        own = {n: u for n, u in self.SIGNALS.items() if self.K_I_psi or n != "x_I_psi"}
+        return MappingProxyType({**own, **(self.DAMPING_SIGNAL if self.D_sched else {})})
 
     @classmethod
-    def of(cls, gains: DecoupledGains, h: float, carrier: str | None = None) -> "DecoupledLaw":
+    def of(cls, gains: DecoupledGains, h: float, carrier: str | None = None,
+           yaw: YawDamping | None = None) -> "DecoupledLaw":
         return cls(gains.K_P_y, gains.K_I_y, gains.K_P_psi, gains.K_D_psi, gains.T_f_psi, h,
-                   b_y=gains.b_y, K_x_y=gains.K_x_y, K_I_psi=gains.K_I_psi, T_x_y=gains.T_x_y,
+                   gains.D_sched if yaw is not None else 0.0, yaw if gains.D_sched else None, b_y=gains.b_y, K_x_y=gains.K_x_y, K_I_psi=gains.K_I_psi, T_x_y=gains.T_x_y,
                    K_t_y=gains.K_t_y, carrier=carrier)
 
     def trailing(self, g) -> bool:
@@ -265,32 +317,33 @@ class DecoupledLaw(PIPDLaw):
         w = self.K_P_y * g * (1.0 - self.b_y) * y_ref + self.K_x_y * (d + self.T_x_y * dd)
         return w - self.K_t_y * abs(g) * d if self.K_t_y and self.trailing(g) else w
 
-    def inner_i(self, psi_ref, psi, e_psi_prev, de_prev, x_Ip_prev):
-        """The inner PID's step: (e_ψ, ê_ψ⁺, the integration done, x_Iψ⁺, u)."""
-        e_psi, de, u = self.inner(psi_ref, psi, e_psi_prev, de_prev)
+    def inner_i(self, psi_ref, psi, e_psi_prev, de_prev, x_Ip_prev, D=None):
+        """The inner PID's step at D̂ = D: (e_ψ, ê_ψ⁺, the integration done, x_Iψ⁺, u)."""
+        e_psi, de, u = self.inner(psi_ref, psi, e_psi_prev, de_prev, D)
         dIp = self.half_h * (e_psi + e_psi_prev)
         x_Ip = x_Ip_prev + dIp
         return e_psi, de, dIp, x_Ip, u + self.K_I_psi * x_Ip
 
-    def discrete(self, g: float = 1.0) -> DiscreteLaw:
+    def discrete(self, g: float = 1.0, D: float | None = None) -> DiscreteLaw:
         x_I, e_y0, e_psi0, de0, x_Ip, d0, dd0, y_ref, y, psi, yf, yr = _basis(12)
         e_y = y_ref - y
         _, x_I1, psi_ref = self.outer(g, e_y, e_y0, x_I)
         d, dd = self.cross(yf, yr, d0, dd0)
-        e_psi, de, _, x_Ip1, u = self.inner_i(psi_ref - self.feed(g, y_ref, d, dd), psi, e_psi0, de0, x_Ip)
+        e_psi, de, _, x_Ip1, u = self.inner_i(psi_ref - self.feed(g, y_ref, d, dd), psi, e_psi0, de0, x_Ip, D)
         law = _describe("decoupled", self.h, g, self.INPUTS, self.STATES, ("u",),
                         (x_I1, e_y, e_psi, de, x_Ip1, d, dd), (u,), self.SCHEDULED)
         # K_I,ψ = 0: the yaw integrator acts on nothing (a pole at z = 1 that no output sees): not part of the law
         return law if self.K_I_psi else _without(law, "x_I_psi")
 
-    def continuous(self, g: float = 1.0) -> DiscreteLaw:
+    def continuous(self, g: float = 1.0, D: float | None = None) -> DiscreteLaw:
         x_I, x_f, x_Ip, x_d, y_ref, y, psi, yf, yr = _basis(9)
         e_y = y_ref - y
         d = yf - yr
         dd = (d - x_d) / self.T_f_psi                  # s/(T_f s + 1) d, as the PD's differentiator
-        e_psi = self.psi_ref(g, e_y, x_I) - self.feed(g, y_ref, d, dd) - psi
+        kp, kappa = self.yaw_gains(D)
+        e_psi = kappa * (self.psi_ref(g, e_y, x_I) - self.feed(g, y_ref, d, dd)) - psi
         de = (e_psi - x_f) / self.T_f_psi
-        u = self.K_P_psi * e_psi + self.K_D_psi * de + self.K_I_psi * x_Ip
+        u = kp * e_psi + self.K_D_psi * de + self.K_I_psi * x_Ip
         law = _describe("decoupled", 0.0, g, self.INPUTS, ("x_I", "x_f", "x_I_psi", "x_d"), ("u",),
                         (g * e_y, de, e_psi, dd), (u,), self.SCHEDULED)
         return law if self.K_I_psi else _without(law, "x_I_psi")
@@ -312,24 +365,35 @@ class PLaw:
     def u(self, g, e):
         return self.K_P * g * e
 
-    def discrete(self, g: float = 1.0) -> DiscreteLaw:
+    def discrete(self, g: float = 1.0, D: float | None = None) -> DiscreteLaw:
+        """At factor g (the law has no yaw loop: D plays no part)."""
         y_ref, y, psi = _basis(3)
         return _describe("p", self.h, g, LAW_INPUTS, (), ("u",), (), (self.u(g, y_ref - y),), ("K_P",))
 
-    def continuous(self, g: float = 1.0) -> DiscreteLaw:
+    def continuous(self, g: float = 1.0, D: float | None = None) -> DiscreteLaw:
         return replace(self.discrete(g), h=0.0)
 
 
-def law_of(cfg: ControllerConfig, carrier: str | None = None) -> "PIPDLaw | PLaw":
-    """The configured law (``controller.law``) with its gains (with ``carrier``: that carrier's)."""
+def law_of(cfg: ControllerConfig, carrier: str | None = None, yaw: YawDamping | None = None) -> "PIPDLaw | PLaw":
+    """The configured law (``controller.law``) with its gains (with ``carrier``: that carrier's;
+    ``yaw``: that carrier's yaw parameters, which a law scheduled on its damping needs)."""
     if cfg.law == "p":
         return PLaw(cfg.K_P, cfg.h)
     if cfg.law == "decoupled":
-        return DecoupledLaw.of(cfg.decoupled, cfg.h, carrier)
-    return PIPDLaw.of(cfg.gains(carrier) if carrier is not None else cfg.pipd, cfg.h)
+        return DecoupledLaw.of(cfg.decoupled, cfg.h, carrier, yaw)
+    return PIPDLaw.of(cfg.gains(carrier) if carrier is not None else cfg.pipd, cfg.h, yaw)
 
 
 # --------------------------------------------------------------------------- the runtime
+#: s: how long D̂ of (7) must stay above D_min before the damping schedule's gains follow it. In
+#: closed loop the current moves by more than (7)'s ~0.5 µA a cycle nearly always; a cycle in which
+#: it does not (measured: 2 of 14400 carrier-cycles of a lockstep run) is a blip of D̂ that the
+#: gains need not follow — followed, the P term kept across the blip turned one cycle's ψ noise,
+#: times σ, into a lasting ψ_ref offset (a held carrier moved 17 % of the other's step). Still
+#: currents that last (saturation, a still loop) are followed; the frozen analysis is unaffected.
+DAMPING_PERSIST_S = 0.1
+
+
 @dataclass(slots=True)
 class PIPDInternals:
     """What one step computed, for the recorder."""
@@ -361,8 +425,14 @@ class PIPDController:
     """
 
     def __init__(self, cfg: ControllerConfig, u_max: float, psi_ref_max: float | None = None,
-                 gains: PIPDGains | None = None):
-        self.law = PIPDLaw.of(gains if gains is not None else cfg.pipd, cfg.h)
+                 gains: PIPDGains | None = None, yaw: YawDamping | None = None):
+        self.law = PIPDLaw.of(gains if gains is not None else cfg.pipd, cfg.h, yaw)
+        self._yaw = yaw
+        self._damp = InputDamping(yaw, cfg.h) if self.law.scheduled_on_damping else None   # D̂ of (7) from u
+        self._D = None          # the D̂ the last step's yaw gains were at (None: D_min, no schedule)
+        self._above = 0         # cycles D̂ has been above D_min in a row
+        self._persist = max(1, round(DAMPING_PERSIST_S / cfg.h))
+        self._psi_target = None     # ψ_ref the next re-seed continues from (None: the last step's)
         self.h = cfg.h
         self.u_max = u_max
         self.psi_ref_max = psi_ref_max
@@ -389,6 +459,7 @@ class PIPDController:
         """Forget all history; the next step starts bumplessly."""
         self.st = PIPDInternals()
         self._e_y_prev = self._e_psi_prev = self._dI = 0.0
+        self._psi_target = None
         self._started = False
         self.held = self._reseed = False
 
@@ -411,18 +482,25 @@ class PIPDController:
         if self.held:
             self.held = False
             self._reseed = True
+            self._psi_target = None
 
     def start(self, y_ref: float, y: float, psi: float, u0: float = 0.0) -> None:
         """Bumpless start: choose x_I so that ψ_ref = ψ (no proportional jump) and seed the
         differentiator with the current error (no derivative kick)."""
         e_y = y_ref - y
-        kpp = self.law.K_P_psi
-        x_I = self.law.seed(self.g, e_y, psi + u0 / kpp + self._w)
-        self.st = PIPDInternals(e_y=e_y, x_I=x_I, psi_ref=psi + u0 / kpp, u=u0, u_unsat=u0)
+        if self._damp is not None:          # D̂ = D_min for the first command (damping.InputDamping.start)
+            self._damp.start(u0)
+            self._D = self._damp.now
+            self._above = 0
+        kpp, kappa = self.law.yaw_gains(self._D)
+        psi_ref = (psi + u0 / kpp) / kappa
+        x_I = self.law.seed(self.g, e_y, psi_ref + self._w)
+        self.st = PIPDInternals(e_y=e_y, x_I=x_I, psi_ref=psi_ref, u=u0, u_unsat=u0)
         self._e_y_prev = e_y
         self._e_psi_prev = u0 / kpp
         self._started = True
         self.held = self._reseed = False
+        self._psi_target = None
 
     def step(self, y_ref: float, y: float, psi: float) -> float:
         if not self._started:
@@ -431,6 +509,16 @@ class PIPDController:
         law = self.law
         e_y = y_ref - y
         g = self.g
+        if self._damp is not None:
+            D = self._damp.now
+            if D > law.yaw.D_min:
+                self._above += 1
+                if self._above < self._persist:   # a blip of (7) (one still cycle): the gains stay
+                    D = law.yaw.D_min
+            else:
+                self._above = 0
+            if D != self._D:
+                self._rescale(*law.yaw_gains(self._D), D)
         if self.held:                       # standstill: integrator frozen, ψ_ref ramps to 0
             dI = 0.0
             x_I = st.x_I
@@ -438,8 +526,13 @@ class PIPDController:
             psi_ref = self._psi_hold * (1.0 - k / self._hold_n) if k < self._hold_n else 0.0
         elif self._reseed:                  # resumed: ψ_ref goes on from the held value
             self._reseed = False
+            target = st.psi_ref if self._psi_target is None else self._psi_target
+            x_I = law.seed(g, e_y, target + self._w)
             dI = 0.0
-            x_I = law.seed(g, e_y, st.psi_ref + self._w)
+            if self._psi_target is not None:    # the yaw gains moved (D̂): integrate on as usual
+                dI = law.half_h * g * (e_y + self._e_y_prev)
+                x_I += dI
+            self._psi_target = None
             psi_ref = law.psi_ref(g, e_y, x_I) - self._w
         else:
             dI, x_I, psi_ref = law.outer(g, e_y, self._e_y_prev, st.x_I)
@@ -464,14 +557,36 @@ class PIPDController:
         self._dI = dI
         self._e_y_prev = e_y
         self._e_psi_prev = e_psi
+        if self._damp is not None:
+            self._damp.hold(u)              # D̂ of the next step, from what this one commanded
         return u
 
     GAIN_NAMES = PIPD_GAINS
     law_name = "PI-PD"
 
+    @property
+    def D_hat(self) -> float:
+        """The damping D̂ of (7) the last step's yaw gains were at (the law's signal ``D_hat``)."""
+        return self._D if self._D is not None else math.nan
+
     def _inner(self, law, psi_ref, psi):
-        """The inner loop's step on this cycle's ψ_ref: (e_ψ, ê_ψ, u before saturation)."""
-        return law.inner(psi_ref, psi, self._e_psi_prev, self.st.de_psi)
+        """The inner loop's step on this cycle's ψ_ref at D̂: (e_ψ, ê_ψ, u before saturation)."""
+        return law.inner(psi_ref, psi, self._e_psi_prev, self.st.de_psi, self._D)
+
+    def _rescale(self, kp0: float, kappa0: float, D: float) -> None:
+        """The yaw gains move from (kp0, κ0) to those at D̂ = D between two steps: the last step's
+        ψ (κ0 ψ_ref − e_ψ) and its P term kp0 e_ψ are kept — the next step re-seeds x_I so that
+        ψ_ref continues from there, as a resume does (no jump of the current from the schedule
+        itself). In the hold ψ_ref ramps on; only the yaw error's memory is rescaled."""
+        st = self.st
+        kp1, kappa1 = self.law.yaw_gains(D)
+        psi = kappa0 * st.psi_ref - st.e_psi
+        e1 = kp0 * st.e_psi / kp1
+        self._e_psi_prev = e1
+        self._D = D
+        if self._started and not self.held and self.law.K_I_y:
+            self._psi_target = (psi + e1) / kappa1
+            self._reseed = True
 
     def gains(self) -> dict[str, float]:
         """The gains in force, by their config names."""
@@ -508,10 +623,25 @@ class PIPDController:
             st.x_I = new.seed(self.g, st.e_y, psi_ref)
         self.law = new
 
+    def _schedule(self, fraction: float) -> None:
+        """Set D_sched between two steps (bumpless as a D̂ change is: :meth:`_rescale`)."""
+        if fraction and self._yaw is None:
+            raise ValueError("D_sched: this controller was built without the carrier's yaw parameters")
+        old = self.law.yaw_gains(self._D)
+        self.law = replace(self.law, D_sched=fraction, yaw=self._yaw if fraction else None)
+        if fraction and self._damp is None:
+            self._damp = InputDamping(self._yaw, self.h, self.st.u)
+        elif not fraction:
+            self._damp = None
+        D = self._damp.now if self._damp is not None else None
+        self._rescale(*old, D)
+
     def limit_feedback(self, u_applied: float) -> None:
         """The safety layer applied ``u_applied`` instead of the last output: undo this
         cycle's integration if it pushed toward the limit."""
         st = self.st
+        if self._damp is not None:
+            self._damp.correct(u_applied)
         if u_applied != st.u and self._dI != 0.0 and (self._dI > 0) == (st.u > u_applied):
             st.x_I -= self._dI
             self._dI = 0.0
@@ -528,9 +658,10 @@ class DecoupledController(PIPDController):
     law_name = "decoupled"
 
     def __init__(self, cfg: ControllerConfig, u_max: float, psi_ref_max: float | None = None,
-                 gains: DecoupledGains | None = None, carrier: str | None = None):
-        super().__init__(cfg, u_max, psi_ref_max, cfg.pipd)
-        self.law = DecoupledLaw.of(gains if gains is not None else cfg.decoupled, cfg.h, carrier)
+                 gains: DecoupledGains | None = None, carrier: str | None = None, yaw: YawDamping | None = None):
+        super().__init__(cfg, u_max, psi_ref_max, cfg.pipd, yaw)
+        self.law = DecoupledLaw.of(gains if gains is not None else cfg.decoupled, cfg.h, carrier, yaw)
+        self._damp = InputDamping(yaw, cfg.h) if self.law.scheduled_on_damping else None
         self.pair = None          # the cross-lane stage (lanes.LateralPair); None: the other carrier at 0
         self._fed = (0.0, 0.0, 0.0)   # y_ref, d, d̂' of the last feed term
         self.d_y = self.dd_y = 0.0    # the carriers' difference (last step) and its filtered derivative
@@ -539,7 +670,7 @@ class DecoupledController(PIPDController):
 
     def _inner(self, law, psi_ref, psi):
         e_psi, de, self._dIp, self.x_I_psi, u = law.inner_i(psi_ref, psi, self._e_psi_prev, self.st.de_psi,
-                                                            self.x_I_psi)
+                                                            self.x_I_psi, self._D)
         return e_psi, de, u
 
     def reset(self) -> None:
@@ -600,6 +731,9 @@ class DecoupledController(PIPDController):
         if name not in self.GAIN_NAMES:
             raise ValueError(f"{name!r} is not a gain of the decoupled law ({', '.join(self.GAIN_NAMES)})")
         v = _positive(name, value) if name != "b_y" else _unit(name, value)
+        if name == "D_sched":
+            self._schedule(v)
+            return
         old, new = self.law, replace(self.law, **{name: v})
         st = self.st
         if name == "K_I_psi" and self._started and v:    # the integral term's share of u stays
@@ -680,13 +814,14 @@ def _unit(name: str, value: float) -> float:
 
 
 def make_controller(cfg: ControllerConfig, u_max: float, psi_ref_max: float | None = None,
-                    carrier: str | None = None):
-    """The configured control law (with ``carrier``: that carrier's gains, ``cfg.gains``)."""
+                    carrier: str | None = None, yaw: YawDamping | None = None):
+    """The configured control law (with ``carrier``: that carrier's gains, ``cfg.gains``; ``yaw``:
+    its yaw parameters, which the damping schedule needs)."""
     if cfg.law == "p":
         return PController(cfg, u_max)
     if cfg.law == "decoupled":
-        return DecoupledController(cfg, u_max, psi_ref_max, carrier=carrier)
-    return PIPDController(cfg, u_max, psi_ref_max, cfg.gains(carrier) if carrier is not None else None)
+        return DecoupledController(cfg, u_max, psi_ref_max, carrier=carrier, yaw=yaw)
+    return PIPDController(cfg, u_max, psi_ref_max, cfg.gains(carrier) if carrier is not None else None, yaw)
 
 
 # --------------------------------------------------------------------------- open loop

@@ -41,6 +41,7 @@ import numpy as np
 from . import control
 from .config import RigConfig
 from .control import DiscreteLaw
+from .damping import YawDamping
 
 GRID_STEP = 0.05        # m/s: the largest spacing of the analysed speeds over schedule.v_range
 
@@ -100,15 +101,15 @@ def lateral_open_loop_stable(cfg: RigConfig, v: float, lay: "Layout") -> bool:
 def damping_cases(cfg: RigConfig, v: float, lay: "Layout") -> list[dict[str, float]]:
     """The damping cases the gate checks at speed v (the rule, written once):
 
-    - every carrier at its D_min — always (the damping the loop runs at: any input change
-      faster than c_udot_max = 3e-5 A/s gives D_min, Sec. 4.3.3);
-    - every carrier at its D_max — where the carriers' lateral dynamics are stable open loop
-      (:func:`lateral_open_loop_stable`). There a loop at rest may sit at D_max indefinitely:
-      the paper's set-up keeps today's gate (plant (10) at D_min, then D_max). Where they are
-      not (both carriers in contact; a leading carrier alone), holding y needs a moving input,
-      and a mode growing at σ with input amplitude |u| has |u̇| ≈ σ|u|: it leaves D_max (7) at
-      |u| ≈ c_udot_max/σ, a fraction of a mA (docs/vehicle.md). These cases, and the
-      mixed ones (one carrier at D_max), are computed and reported by ``rig tune``, not gated."""
+    - a vehicle config (:func:`applies`): every combination of the carriers' D_min and D_max
+      (:func:`all_damping_cases`). (7) gives D_max only while a carrier's current is still, and
+      any combination can occur; a law that knows its damping (``D_sched``, D̂ of (7) from its own
+      commanded current: control.PIPDLaw) is analysed with the gains it has at each;
+    - the paper's set-up: its carrier at D_min — always (the damping a loop that moves its input
+      runs at, Sec. 4.3.3) — and at D_max where its lateral dynamics are stable open loop
+      (:func:`lateral_open_loop_stable`: v > 0, plant (10) at D_min, then D_max, as before)."""
+    if applies(cfg):
+        return all_damping_cases(cfg, lay.carriers)
     lo = {c: cfg.plant.carrier(c).D_min for c in lay.carriers}
     hi = {c: cfg.plant.carrier(c).D_max for c in lay.carriers}
     return [lo] if hi == lo or not lateral_open_loop_stable(cfg, v, lay) else [lo, hi]
@@ -195,12 +196,20 @@ def held(cfg: RigConfig, v: float, D: Mapping[str, float], lay: Layout) -> tuple
 
 
 # --------------------------------------------------------------------------- the loops
-def law_at(cfg: RigConfig, carrier: str, v: float, continuous: bool = False) -> DiscreteLaw:
+def law_at(cfg: RigConfig, carrier: str, v: float, continuous: bool = False,
+           D: Optional[float] = None) -> DiscreteLaw:
     """The carrier's configured law (:mod:`rig_runtime.control`) at the schedule's factor for
-    speed v: as implemented (sampled), or as designed (``continuous``)."""
-    law = control.law_of(cfg.controller, carrier)
+    speed v and at the carrier's damping D (a law that knows its damping, D̂ of (7) from its own
+    current, is at D̂ = D there; None: D_min): as implemented (sampled), or as designed
+    (``continuous``)."""
+    law = law_of(cfg, carrier)
     g = gain_factor(cfg, v)
-    return law.continuous(g) if continuous else law.discrete(g)
+    return law.continuous(g, D) if continuous else law.discrete(g, D)
+
+
+def law_of(cfg: RigConfig, carrier: str):
+    """The carrier's configured law with its gains and its yaw parameters."""
+    return control.law_of(cfg.controller, carrier, YawDamping.of(cfg.plant.carrier(carrier)))
 
 
 @dataclass(frozen=True)
@@ -285,7 +294,7 @@ def continuous_matrix(cfg: RigConfig, v: float, D: Mapping[str, float],
     as designed (PI-PD: x_I, the differentiator's x_f; P: none)]."""
     lay = layout(cfg) if lay is None else lay
     A, B = plant_matrices(cfg, v, D, lay)
-    return close(A, B, lay, {c: law_at(cfg, c, v, continuous=True) for c in lay.controlled})
+    return close(A, B, lay, {c: law_at(cfg, c, v, continuous=True, D=D[c]) for c in lay.controlled})
 
 
 def sampled_matrix(cfg: RigConfig, v: float, D: Mapping[str, float],
@@ -294,7 +303,7 @@ def sampled_matrix(cfg: RigConfig, v: float, D: Mapping[str, float],
     carrier's law states (PI-PD: x_I, e_y, e_ψ, ê_ψ)]; z_{k+1} = Φ z_k."""
     lay = layout(cfg) if lay is None else lay
     Ad, Bd = held(cfg, v, D, lay)
-    return close(Ad, Bd, lay, {c: law_at(cfg, c, v) for c in lay.controlled})
+    return close(Ad, Bd, lay, {c: law_at(cfg, c, v, D=D[c]) for c in lay.controlled})
 
 
 # --------------------------------------------------------------------------- results
@@ -473,7 +482,7 @@ def step_response(cfg: RigConfig, v: float, D: Mapping[str, float], stepped: tup
     lay = layout(cfg)
     Ad, Bd = held(cfg, v, D, lay)
     if laws is None:
-        laws = {c: law_at(cfg, c, v) for c in lay.controlled}
+        laws = {c: law_at(cfg, c, v, D=D[c]) for c in lay.controlled}
     L = closed_loop(Ad, Bd, lay, laws)
     r = np.array([1.0 if c in stepped else 0.0 for c in L.refs])
     n = int(round(t_end / cfg.controller.h)) + 1

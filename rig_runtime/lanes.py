@@ -19,6 +19,7 @@ from typing import Callable, Mapping, Optional, Sequence
 
 from .config import RigConfig, Schedule
 from .control import law_of, make_controller
+from .damping import YawDamping
 from .geometry import Measurement
 from .observer import Observer, ObserverDesign, make_observers
 
@@ -141,7 +142,7 @@ def law_signals(cfg: RigConfig) -> Mapping[str, str]:
     """The configured law's signals by name (SI unit), as the law declares them
     (``law.signals``, :mod:`rig_runtime.control`): every controlled carrier's lane logs them as
     ``{carrier}_{name}`` (the same law on every carrier)."""
-    return law_of(cfg.controller).signals
+    return law_of(cfg.controller, yaw=YawDamping.of(cfg.plant.carrier(cfg.controlled[0]))).signals
 
 
 def signal_getter(controller, names: Sequence[str]) -> Callable[[object], tuple[float, ...]]:
@@ -181,7 +182,8 @@ def make_lanes(cfg: RigConfig, reference: Callable[[float], float] | Mapping[str
     lanes = []
     for carrier in carriers:
         controlled = carrier in cfg.controlled
-        ctrl = make_controller(cfg.controller, lim.u_max, lim.psi_ref_max, carrier) if controlled else None
+        ctrl = make_controller(cfg.controller, lim.u_max, lim.psi_ref_max, carrier,
+                               YawDamping.of(cfg.plant.carrier(carrier))) if controlled else None
         ref = refs.get(carrier, _zero) if refs is not None else reference
         lanes.append(Lane(carrier, ctrl, ref, ol_input if carrier in ol_carriers else None,
                           observers.get(carrier) if controlled else None, sch, v_design))

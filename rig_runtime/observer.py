@@ -57,6 +57,8 @@ import math
 from dataclasses import dataclass
 from typing import Optional
 
+from .damping import damping
+
 MEASUREMENTS = ("lat", "psi", "dw")       # the filter's measurements, in gain-column order
 LOG_FIELDS = ("y_hat", "psi_hat", "psi_rate_hat", "nu_lat", "nu_psi", "nu_dw",
               "T_lat", "T_psi", "T_dw", "lat_used", "degraded", "sigma_y")
@@ -124,7 +126,7 @@ class _YawState:
     (and, once :meth:`bind` has been given the model, its constants as plain floats: the cycle
     reads them here instead of on the model)."""
 
-    __slots__ = ("z", "e", "u", "acc", "_m", "_gain", "_ef", "_irm", "_kmin", "_c", "_top", "_dD")
+    __slots__ = ("z", "e", "u", "acc", "_m", "_gain", "_ef", "_irm", "_kmin", "_c")
 
     def __init__(self) -> None:
         self.z = self.e = self.u = self.acc = 0.0
@@ -139,7 +141,6 @@ class _YawState:
         self._gain, self._ef, self._irm = m.gain, m.ef, m.irc * m.mid
         self._c = 2.0 * m.w0 * m.h
         self._kmin = math.exp(-self._c * (m.D_min - m.D0))    # D = D_min (the input moves)
-        self._top, self._dD = m.D_max - m.D0, m.D_max - m.D_min
 
     def start(self, psi: float, u: float) -> None:
         self.z, self.e, self.u = psi, 0.0, u     # at rest: z = ψ (the plant's rest state), filter settled
@@ -156,7 +157,7 @@ class _YawState:
         rho = (r if r >= 0.0 else -r) * self._irm
         if rho >= 1.0:
             return self._gain * (psi - self.z), self._kmin
-        x = self._c * (self._top - rho * self._dD)
+        x = self._c * (damping(rho, self._m.D_min, self._m.D_max) - self._m.D0)
         return self._gain * (psi - self.z), (math.exp(-x) if x < 40.0 else 0.0)
 
     def follow(self, m: YawModel, dpsi: float) -> None:

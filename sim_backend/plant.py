@@ -56,6 +56,7 @@ from typing import Any, Callable, Optional, Sequence
 import numpy as np
 
 from rig_runtime.config import Plant as PlantParams
+from rig_runtime.damping import damping
 
 __all__ = ["PlantState", "Plant", "LiftedCarrier", "WHEEL_LOAD_N", "STATE_NAMES"]
 
@@ -262,7 +263,7 @@ class _Carrier:
     def damping(self) -> float:
         """D of (7) for the current filter state and held input."""
         rho = abs(self.e) / (self.tau * self.cmax)
-        return self.Dmin if rho >= 1.0 else self.Dmax - rho * self.dD
+        return damping(rho, self.Dmin, self.Dmax)
 
     def accel(self, D: float) -> float:
         """psi'' at the current state with damping D (held input and moment)."""
@@ -445,8 +446,8 @@ class _Carrier:
         if n is None:
             n = 1
             if vary:
-                d0 = self.Dmin if rho >= 1.0 else self.Dmax - rho * self.dD
-                d1 = self.Dmax - rho * ef * self.dD
+                d0 = damping(rho, self.Dmin, self.Dmax)
+                d1 = damping(rho * ef, self.Dmin, self.Dmax)
                 n = max(1, min(_MAX_SUB, ceil(log(d1 / d0) / _TOL_D)))
         if not self.hyst and not vary and n == 1:  # fast path: linear, constant damping
             self._sub(h, 2.0 * D * w0, ueq)
@@ -941,7 +942,7 @@ class Plant:
         phi, w00, w10, w01, w11 = wh
         du = car.du
         rho0 = abs(e0) / (car.tau * car.cmax)               # right limit at the step start
-        D0 = car.Dmin if rho0 >= 1.0 else car.Dmax - rho0 * car.dD
+        D0 = damping(rho0, car.Dmin, car.Dmax)
         ueq = car.K * du + car.psi_off + car.M * car.inv_Jw2
         acc0 = -2.0 * D0 * car.w0 * p0 + car.w02 * (ueq - (psi0 - car.oma * (psi0 - z0)))
         acc1 = car.accel(car.damping())
@@ -985,7 +986,7 @@ class Plant:
             psi, p, z, ue = x[i], x[i + 1], x[i + 2], x[i + 3]
             udot = ue / car.tau
             rho = absf(udot) / car.cmax
-            D = select(rho >= 1.0, car.Dmin, car.Dmax - rho * car.dD)
+            D = damping(rho, car.Dmin, car.Dmax, select)
             if car.hyst:
                 R = car.a * psi + car.oma * z
                 az = absf(z)

@@ -349,3 +349,79 @@ def test_rig_ctl_set_judges_the_decoupled_law_with_the_same_gate():
     bad = dataclasses.replace(vcfg, controller=dataclasses.replace(vcfg.controller, decoupled=soft))
     with pytest.raises(analysis.UnstableLoopError, match="controller.decoupled"):
         analysis.stability_gate(bad)
+
+
+# ------------------------------------------------------------------ the damping schedule (D_sched)
+def _yaw(cfg):
+    from rig_runtime.damping import YawDamping
+    return YawDamping.of(cfg.plant.carrier("rear"))
+
+
+def test_the_law_knows_the_damping_the_plant_has(cfg):
+    """D̂ of (7) from the law's own commands (damping.InputDamping) is the simulated plant's D at
+    the end of every period (the same filter and the same function), through D_min, the linear
+    part of (7) and D_max, and when a limit downstream applied another current (``correct``)."""
+    from rig_runtime.damping import InputDamping
+    from sim_backend.plant import Plant
+    h = cfg.controller.h
+    P = cfg.plant
+    pl = Plant(P)
+    est = InputDamping(_yaw(cfg), h)
+    rng = np.random.default_rng(4)
+    u, seen = 0.0, set()
+    for k in range(600):
+        # moves of 1 A (D_min), of 1e-7 A (|u̇| below c_udot_max: between), and none (back to D_max)
+        u += (1.0 if k % 150 == 0 else 0.0) + (rng.normal(0, 1e-7) if 300 <= k < 450 else 0.0)
+        est.hold(u)
+        if k % 150 == 10:                       # a limit downstream applied less (limit_feedback)
+            u = 0.5 * u
+            est.correct(u)
+        pl.step(h, 0.0, u)
+        assert est.now == pytest.approx(pl.D_r, rel=1e-9)
+        seen.add("min" if est.now == P.D_min else "max" if est.now > P.D_max - 1e-3 else "between")
+    assert seen == {"min", "max", "between"}
+
+
+def test_the_damping_schedule_keeps_the_law_at_d_min_and_raises_the_yaw_gain_above(cfg):
+    """At D̂ = D_min (and without the schedule) the law is the PI-PD bit for bit; above, K_P,ψ is
+    raised so that the yaw loop's slow pole (first-order estimate) stays, and κ keeps its static gain."""
+    import dataclasses
+    from rig_runtime.control import PIPDLaw
+    m = _yaw(cfg)
+    plain = PIPDLaw.of(cfg.controller.pipd, cfg.controller.h)
+    law = PIPDLaw.of(dataclasses.replace(cfg.controller.pipd, D_sched=1.0), cfg.controller.h, m)
+    assert law.yaw_gains(m.D_min) == (law.K_P_psi, 1.0) == plain.yaw_gains(m.D_max)
+    assert law.discrete(1.0, m.D_min) == plain.discrete(1.0)
+    kp, kappa = law.yaw_gains(m.D_max)
+    kk, kd = m.K * law.K_P_psi, m.K * m.omega0 ** 2 * law.K_D_psi
+    pole = lambda D, k: m.omega0 ** 2 * (1 + m.K * k) / (2 * D * m.omega0 + kd)      # noqa: E731
+    assert pole(m.D_max, kp) == pytest.approx(pole(m.D_min, law.K_P_psi), rel=1e-12)
+    assert m.K * kp * kappa / (1 + m.K * kp) == pytest.approx(kk / (1 + kk), rel=1e-12)
+    twice = dataclasses.replace(law, D_sched=2.0).yaw_gains(m.D_max)[0]
+    assert twice - law.K_P_psi == pytest.approx(2 * (kp - law.K_P_psi), rel=1e-12)
+
+
+def test_a_change_of_the_damping_estimate_does_not_kick_the_current(cfg):
+    """The law starts at D̂ = D_min. A still current for one cycle (a blip of (7)) leaves the gains
+    alone; still for DAMPING_PERSIST_S, the gains follow D̂ (D_max) — without a jump of u; then ψ
+    moves, the D_max gains move u by σ K_P,ψ Δψ, D̂ drops to D_min with the moved current and the
+    P term is kept across the change (x_I re-seeded as on a resume): no kick from the schedule."""
+    import dataclasses
+    from rig_runtime.control import DAMPING_PERSIST_S
+    c = dataclasses.replace(cfg.controller, pipd=dataclasses.replace(cfg.controller.pipd, D_sched=2.0))
+    ctrl = make_controller(c, 1e9, None, "rear", _yaw(cfg))
+    m = _yaw(cfg)
+    ctrl.start(0.0, 0.0, 2e-3)
+    u0 = ctrl.step(0.0, 0.0, 2e-3)
+    assert ctrl.D_hat == m.D_min and u0 == pytest.approx(0.0, abs=1e-12)
+    u1 = ctrl.step(0.0, 0.0, 2e-3)                 # one still cycle: D̂ = D_max, the gains stay
+    assert ctrl.D_hat == m.D_min and u1 == pytest.approx(u0, abs=1e-9)
+    for _ in range(round(DAMPING_PERSIST_S / cfg.controller.h)):
+        u1 = ctrl.step(0.0, 0.0, 2e-3)             # still on: the gains follow D̂, u does not jump
+    assert ctrl.D_hat == m.D_max and u1 == pytest.approx(u0, abs=1e-9)
+    u2 = ctrl.step(0.0, 0.0, 2e-3 + 1e-6)          # ψ moved: the D_max gains move u (σ K_P,ψ Δψ)
+    kp = ctrl.law.yaw_gains(m.D_max)[0]
+    assert ctrl.D_hat == m.D_max and u2 - u1 == pytest.approx(-kp * 1e-6, rel=0.05)
+    u3 = ctrl.step(0.0, 0.0, 2e-3 + 1e-6)          # the current moved: D̂ = D_min, the P term kept
+    assert ctrl.D_hat == m.D_min
+    assert u3 == pytest.approx(u2, abs=1e-2 * abs(u2 - u1))   # (the D term decays on; a kick would be ~σ × it)

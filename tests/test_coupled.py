@@ -173,15 +173,28 @@ def test_ctl_set_is_judged_over_the_range(tmp_path):
 
 
 def test_the_gates_damping_cases(cfg, veh):
-    """D_max is gated where the lateral dynamics are stable open loop (the paper's set-up at
-    v > 0: unchanged), not with the double pole at 0 of both carriers nor a leading carrier."""
+    """The paper's set-up: D_max gated where the lateral dynamics are stable open loop (v > 0:
+    unchanged). A vehicle config: every D_min/D_max combination is gated (none left ungated)."""
     P = cfg.plant
     assert coupled.damping_cases(cfg, 1.0, coupled.layout(cfg)) == [{"rear": P.D_min}, {"rear": P.D_max}]
     assert coupled.damping_cases(cfg, -1.0, coupled.layout(cfg)) == [{"rear": P.D_min}]
     for v in (1.0, -1.0):
-        assert coupled.damping_cases(veh, v, coupled.layout(veh)) == [{"front": P.D_min, "rear": P.D_min}]
+        cases = coupled.damping_cases(veh, v, coupled.layout(veh))
+        assert cases == coupled.all_damping_cases(veh, ("front", "rear")) and len(cases) == 4
     p = coupled.at_speed(veh, 1.0)
-    assert p.ungated_radius is not None and len(coupled.all_damping_cases(veh, ("front", "rear"))) == 4
+    assert p.ungated_radius is None and p.sampled_stable
+
+
+def test_without_the_damping_schedule_the_vehicle_is_refused(veh):
+    """The test vehicle's PI-PD without D_sched: unstable with a leading carrier at D_max (the
+    combination the gate now judges); with it (D_sched 2) stable at every combination."""
+    from rig_runtime import gains
+    plain = gains.with_gains(veh, {})
+    plain = dataclasses.replace(plain, controller=dataclasses.replace(
+        plain.controller, pipd=dataclasses.replace(plain.controller.pipd, D_sched=0.0)))
+    bad = coupled.instability(plain)
+    assert bad is not None and sorted(bad.D.values())[-1] == veh.plant.D_max
+    assert coupled.instability(veh) is None
 
 
 # ------------------------------------------------------------------ the scenario against the config
@@ -249,18 +262,34 @@ def test_step_response_of_the_decoupled_law_holds_the_other_carrier():
 
 def test_every_damping_combination_is_reported_and_the_trailing_term_makes_it_stable():
     """rig tune's every-D report (coupled.SpeedResult.rightmost / every_damping_radius): the shipped
-    vehicle set is unstable with the leading carrier at D_max (docs/vehicle.md §3); gains of law
-    decoupled with the trailing carrier following (K_t_y, found by benchmarks/vehicle_law_reach.py
-    decoupled-t --radius-only) are stable at every combination, the same gains without it are not."""
+    vehicle set, its yaw loop scheduled on D̂ (D_sched), is stable at every combination over the
+    range; without the schedule it is unstable with the leading carrier at D_max (docs/vehicle.md
+    §3). Unscheduled gains with the trailing carrier following (K_t_y, found by
+    benchmarks/vehicle_law_reach.py decoupled-t --radius-only) are stable at every combination, the
+    same gains without it are not."""
     vcfg = config.load(config.CONFIG_DIR / "vehicle.yaml")
-    p = coupled.at_speed(vcfg, 1.5)
-    assert p.sampled_stable and p.every_damping_radius > 1.0 and p.rightmost.real > 0
+    assert vcfg.controller.decoupled.D_sched > 0
+    assert all(q.every_damping_radius < 1.0 and q.rightmost.real < 0 for q in coupled.analyse(vcfg).points)
+    plain = dataclasses.replace(vcfg, controller=dataclasses.replace(
+        vcfg.controller, decoupled=dataclasses.replace(vcfg.controller.decoupled, D_sched=0.0)))
+    p = coupled.at_speed(plain, 1.5)
+    assert p.every_damping_radius > 1.0 and p.rightmost.real > 0
     assert p.rightmost_D == {"front": vcfg.plant.carrier("front").D_max, "rear": vcfg.plant.carrier("rear").D_min}
     g = dataclasses.replace(vcfg.controller.decoupled, K_P_y=0.405, K_I_y=0.00798, K_P_psi=29.05, K_D_psi=1.697,
-                            b_y=0.169, K_x_y=2.3985, T_x_y=0.6777, K_I_psi=0.0, K_t_y=12.5886)
+                            b_y=0.169, K_x_y=2.3985, T_x_y=0.6777, K_I_psi=0.0, K_t_y=12.5886, D_sched=0.0)
     following = dataclasses.replace(vcfg, controller=dataclasses.replace(vcfg.controller, decoupled=g))
     res = coupled.analyse(following)
     assert all(q.every_damping_radius < 1.0 and q.rightmost.real < 0 for q in res.points)
     alone = dataclasses.replace(following, controller=dataclasses.replace(
         following.controller, decoupled=dataclasses.replace(g, K_t_y=0.0)))
     assert max(q.every_damping_radius for q in coupled.analyse(alone).points) > 1.0
+
+
+def test_ctl_set_of_the_damping_schedule_is_judged_by_the_same_gate():
+    """D_sched is a live gain of law decoupled like the others (rig ctl set, tuning.check): too
+    little of the schedule leaves a leading carrier at D_max unstable — refused, naming it."""
+    v = config.load(config.CONFIG_DIR / "vehicle.yaml")
+    c = dataclasses.replace(v, controller=dataclasses.replace(v.controller, tuning={"D_sched": (0.01, 3.0)}))
+    assert tuning.check(c, "D_sched", 2.5).new == 2.5
+    with pytest.raises(TuningError, match=r"D_sched = 0.01 would make the sampled closed loop unstable .*D_front = "):
+        tuning.check(c, "D_sched", 0.01)

@@ -21,6 +21,7 @@ from rig_runtime import config
 from rig_runtime.app.dryrun import run_lockstep
 from rig_runtime.app.export import read_log
 from rig_runtime.app.telemetry import UdpTelemetry
+from rig_runtime.damping import YawDamping
 from rig_runtime.control import DecoupledLaw, PIPDLaw, PLaw, make_controller
 from rig_runtime.lanes import law_signals, signal_getter
 from rig_runtime.logformat import LAW_SIGNALS_ATTR
@@ -108,10 +109,11 @@ def test_vehicle_log_has_the_law_signals_with_the_values_the_law_computed(vcfg, 
     c, attrs = log["columns"], log["attrs"]
     law = DecoupledLaw.of(vcfg.controller.decoupled, vcfg.controller.h)
     assert vcfg.controller.decoupled.K_I_psi == 0.0
-    declared = dict(law.signals)
+    declared = dict(law_signals(vcfg))
+    assert "D_hat" in declared and "D_hat" not in law.signals     # the damping schedule's D̂ (needs the yaw parameters)
     assert json.loads(attrs[LAW_SIGNALS_ATTR]) == declared == dict(law_signals(vcfg))
     for k in ("front", "rear"):
-        cols = [x for x in c if x.startswith(f"{k}_") and x[len(k) + 1:] in {*DecoupledLaw.SIGNALS, *LANE_FIELDS}]
+        cols = [x for x in c if x.startswith(f"{k}_") and x[len(k) + 1:] in {*declared, *LANE_FIELDS}]
         assert cols == [f"{k}_{n}" for n in (*declared, *LANE_FIELDS)]
         assert f"{k}_x_I_psi" not in c                      # the shipped law has no yaw integrator
     i = np.flatnonzero(c["state"] == RUNNING)
@@ -131,8 +133,11 @@ def test_vehicle_log_has_the_law_signals_with_the_values_the_law_computed(vcfg, 
         np.testing.assert_allclose(c[f"{k}_w_cross"][i], cross, rtol=0, atol=1e-12)
         w = law.K_P_y * c[f"{k}_g"][i] * (1.0 - law.b_y) * c[f"{k}_y_ref"][i] + cross
         np.testing.assert_allclose(c[f"{k}_w"][i], w, rtol=0, atol=1e-12)
-        # the inner PD on ψ_ref (with w subtracted): u before saturation
-        u = law.K_P_psi * c[f"{k}_e_psi"][i] + law.K_D_psi * c[f"{k}_de_psi"][i]
+        # the inner PD on ψ_ref (with w subtracted): u before saturation, K_P,ψ as scheduled at the logged D̂
+        own = DecoupledLaw.of(vcfg.controller.decoupled, vcfg.controller.h, k, YawDamping.of(vcfg.plant.carrier(k)))
+        kp = np.array([own.yaw_gains(D)[0] for D in c[f"{k}_D_hat"][i]])
+        assert np.all(c[f"{k}_D_hat"][i] == vcfg.plant.carrier(k).D_min)     # the current moves every cycle
+        u = kp * c[f"{k}_e_psi"][i] + law.K_D_psi * c[f"{k}_de_psi"][i]
         np.testing.assert_allclose(c[f"{k}_u_unsat"][i], u, rtol=0, atol=1e-12)
     # the front's 2 mm step at 1 s moves its feed term by K_P,y (1 − b_y) Δy_ref
     j = np.searchsorted(c["t_run"][i], 1.0)
@@ -146,8 +151,9 @@ def test_yaw_integrator_gets_a_column_when_the_law_has_one(vcfg, tmp_path):
         c0, decoupled=dataclasses.replace(c0.decoupled, K_I_psi=20.0)))
     c = lockstep(cfg, 1.5, tmp_path / "ki.h5")["columns"]
     law = DecoupledLaw.of(cfg.controller.decoupled, cfg.controller.h)
-    i = np.flatnonzero(c["state"] == RUNNING)
+    i = np.flatnonzero(c["state"] == RUNNING)     # the damping schedule at D̂ = D_min throughout
     for k in ("front", "rear"):
+        assert np.all(c[f"{k}_D_hat"][i] == cfg.plant.carrier(k).D_min)
         x = c[f"{k}_x_I_psi"][i]
         assert np.max(np.abs(x)) > 0.0
         # x_Iψ⁺ = x_Iψ + (h/2)(e_ψ + e_ψ,prev) (no saturation here) and u = PD + K_I,ψ x_Iψ⁺

@@ -129,7 +129,8 @@ def to_json(d: Design) -> dict:
 
 
 def _gains(g: PIPDGains) -> dict:
-    return {"K_P_y": g.K_P_y, "K_I_y": g.K_I_y, "K_P_psi": g.K_P_psi, "K_D_psi": g.K_D_psi, "T_f_psi": g.T_f_psi}
+    out = {"K_P_y": g.K_P_y, "K_I_y": g.K_I_y, "K_P_psi": g.K_P_psi, "K_D_psi": g.K_D_psi, "T_f_psi": g.T_f_psi}
+    return {**out, "D_sched": g.D_sched} if g.D_sched else out
 
 
 def controller_yaml(cfg: RigConfig, g: PIPDGains) -> str:
@@ -173,6 +174,7 @@ class VehicleDesign:
     checks: dict
 
 
+D_SCHED_VEHICLE = 2.0   # the vehicle's yaw loop scheduled on D̂ of (7) (control.PIPDLaw; docs/vehicle.md §5)
 KI_Y_VEHICLE = tuple(float(x) for x in np.round(np.geomspace(0.05, 20.0, 28), 4))   # rad/(m s)
 
 
@@ -203,6 +205,8 @@ def design_vehicle(cfg: RigConfig) -> VehicleDesign:
 
     1. inner PD per carrier as Sec. 5.2.3 (``design``'s steps 1, 2 on that carrier's yaw
        parameters): K_P,psi, K_D,psi from the input criterion, T_f,psi by :func:`design_tf`;
+       scheduled on the damping D̂ (``D_SCHED_VEHICLE``: the gate judges every D_min/D_max
+       combination of a vehicle config, and a leading carrier at D_max needs it);
     2. outer PI: one loop gain for all carriers (:func:`vehicle_gains`); over K_P,y within the
        lateral criterion (largest carrier K_P,y · y_design <= psi_ref_design_max) and K_I,y on
        ``KI_Y_VEHICLE``, the pair whose coupled loop at v_design (continuous, D_min) decays
@@ -219,7 +223,8 @@ def design_vehicle(cfg: RigConfig) -> VehicleDesign:
     inner = {}
     for c in lay.controlled:
         own = replace(cfg, plant=cfg.plant.carrier(c))
-        inner[c] = PIPDGains(K_P_y=0.0, K_I_y=0.0, K_P_psi=kp, K_D_psi=kd, T_f_psi=design_tf(own, kp, kd))
+        inner[c] = PIPDGains(K_P_y=0.0, K_I_y=0.0, K_P_psi=kp, K_D_psi=kd, T_f_psi=design_tf(own, kp, kd),
+                             D_sched=D_SCHED_VEHICLE)
     ref = cfg.plant.carrier(lay.controlled[-1]).c_y
     scale_max = max(ref / cfg.plant.carrier(c).c_y for c in lay.controlled)
     kp_y_max = t.psi_ref_design_max / t.y_design / scale_max
@@ -271,7 +276,8 @@ def vehicle_yaml(cfg: RigConfig, gains: dict) -> str:
 
     def block(name: str, g: PIPDGains) -> str:
         return (f"  {name}:\n    K_P_y: {g.K_P_y:.6g}\n    K_I_y: {g.K_I_y:.6g}\n    K_P_psi: {g.K_P_psi:.6g}\n"
-                f"    K_D_psi: {g.K_D_psi:.6g}\n    T_f_psi: {g.T_f_psi:.6g}\n")
+                f"    K_D_psi: {g.K_D_psi:.6g}\n    T_f_psi: {g.T_f_psi:.6g}\n"
+                + (f"    D_sched: {g.D_sched:.6g}\n" if g.D_sched else ""))
     text = ("# Gains designed by `rig tune --design` for the vehicle (coupled loop, rig_runtime/app/design.py)\n"
             f"# for the plant of {cfg.source}\ncontroller:\n  h: {c.h!r}\n  law: pipd\n")
     text += block("pipd", gains.get("rear") or vals[0])

@@ -102,15 +102,16 @@ def _print_coupled(cfg, cr) -> None:
           f"{', '.join(cr.controlled) or 'none'}; " + (f"schedule g = v_d/v, v_d = {cr.v_design:g} m/s" if s
                                                         else f"fixed gains at v = {cfg.plant.v:g} m/s"))
     print("  continuous at each carrier's D_min; sampled (h, Tustin): largest |z| over the gate's damping cases "
-          "(all D_min; all D_max too where the lateral pair is stable open loop); other D cases: reported, not gated "
-          "(other D |z|: sampled; Re max any D: the continuous loop's rightmost pole over every D_min/D_max combination)")
+          "(every D_min/D_max combination; a law scheduled on D̂ at the gains it has there); "
+          "Re max any D: the continuous loop's rightmost pole over every combination (judged as well)")
     print(f"  {'v m/s':>7} {'g':>6}  {'least-damped pole 1/s':<24} {'zeta_min':>8} {'|z| sampled':>12} "
           f"{'ln|z|/h':>9} {'other D |z|':>11} {'Re max any D':>12}  verdict")
     for p in cr.points:
         e = p.least_damped
         pole = f"{e.real:+.3f}" + (f"{e.imag:+.3f}j" if abs(e.imag) > 5e-4 else "")
         mixed = "" if p.ungated_radius is None else f"{p.ungated_radius:.5f}"
-        ok = "stable" if p.stable and p.sampled_stable else ("UNSTABLE" if not p.stable else "UNSTABLE (sampled)")
+        ok = ("stable" if p.stable and p.sampled_stable and p.rightmost.real < 0 else
+              "UNSTABLE (sampled)" if p.stable and p.rightmost.real < 0 else "UNSTABLE")
         rate = math.log(p.spectral_radius) / cfg.controller.h if p.spectral_radius > 0 else -math.inf
         print(f"  {p.v:+7.3f} {p.g:+6.2f}  {pole:<24} {p.zeta_min:8.3f} {p.spectral_radius:12.6f} {rate:+9.4f} "
               f"{mixed:>11} {p.rightmost.real:+12.4f}  {ok}")
@@ -118,7 +119,7 @@ def _print_coupled(cfg, cr) -> None:
     if worst is not None:
         ok = worst.every_damping_radius < 1.0 and all(p.rightmost.real < 0 for p in cr.points)
         print(f"  every D_min/D_max combination: largest |z| {worst.every_damping_radius:.6f} at v = {worst.v:+g} m/s "
-              f"({'stable' if ok else 'NOT stable'} at every combination; reported, not judged: docs/vehicle.md §3)")
+              f"({'stable' if ok else 'NOT stable'} at every combination: docs/vehicle.md §3)")
     if cr.band:
         print(f"  held (lateral loop open, integrator frozen, psi_ref -> 0): |v| < {cr.band[1]:g} m/s")
 
