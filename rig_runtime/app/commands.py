@@ -174,7 +174,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .. import config
     from ..clock import RealtimeClock, apply_realtime
     from ..devices import RigDevices
+    from ..memo import compute_only
     from ..scenario import load_scenario
+    compute_only()          # the gate and the designs that let the power stages on: computed here, never read from disk
     quiet_device_libraries()
     cfg = config.load(args.config or config.CONFIG_DIR / "rig.yaml")
     scenario = load_scenario(args.scenario) if args.scenario else None
