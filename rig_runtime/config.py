@@ -23,6 +23,7 @@ from . import schema
 from .ceilings import HardwareDescription
 from .ceilings import check as check_ceilings
 from .errors import ConfigError
+from .memo import across_processes
 from .schema import check, nonneg, positive, unit_interval
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -571,7 +572,7 @@ def _load_yaml_bounded(text: str) -> Any:
     kept = _PARSED.get(text)
     if kept is not None:
         return pickle.loads(kept)
-    data = _compose_bounded(text)
+    data = _composed_across_processes(text)
     if len(_PARSED) >= _PARSED_MAX:
         del _PARSED[next(iter(_PARSED))]
     _PARSED[text] = pickle.dumps(data, protocol=pickle.HIGHEST_PROTOCOL)
@@ -588,6 +589,16 @@ def _compose_bounded(text: str) -> Any:
         return loader.construct_document(node)
     finally:
         loader.dispose()
+
+
+def _composed(text: str) -> Any:
+    return _compose_bounded(text)
+
+
+# ... and across processes (memo.across_processes: by the text and the code's bytes; plain
+# dicts, lists, strings and numbers only; a refused text is refused each time): a `rig`
+# command's start composes none of the shipped files it read before
+_composed_across_processes = across_processes("yaml-document", _composed)
 
 
 def _read_yaml(path: Path) -> dict[str, Any]:

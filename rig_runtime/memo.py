@@ -14,8 +14,8 @@ frozen dataclasses and tuples).
 (``rig dry-run`` from the shell, a test's ``rig`` process): the gate's verdict and the
 observers' designs need scipy, whose import alone is a third of a dry run's start. The key
 is every input's bytes: the arguments' ``repr``, the function's name, and the code version —
-the bytes of every source file of this package, numpy's and scipy's version files, the
-Python version, the machine (name, architecture) and the BLAS thread settings. An entry
+the bytes of every source file of this package, numpy's, scipy's and PyYAML's version
+files, the Python version, the machine (name, architecture) and the BLAS thread settings. An entry
 holds its whole key text and a SHA-256 of its payload; it is used only if both match and
 its payload unpickles to the allowed classes alone — anything else (missing, corrupt,
 another key, unreadable, an unwritable directory) is ignored and the function computed.
@@ -86,9 +86,9 @@ def cache_dir() -> Optional[Path]:
     return Path(base) / "rig-runtime"
 
 
-def _version_file(package: str) -> bytes:
-    """``package/version.py``'s bytes (numpy's and scipy's carry their full version and
-    build), found without importing the package; empty if it is not installed."""
+def _version_file(package: str, file: str) -> bytes:
+    """``package/file``'s bytes (numpy's and scipy's ``version.py``, PyYAML's ``__init__.py``
+    carry their full version), found without importing the package; empty if not installed."""
     import importlib.util
     try:
         spec = importlib.util.find_spec(package)
@@ -98,7 +98,7 @@ def _version_file(package: str) -> bytes:
         return b""
     for d in spec.submodule_search_locations:
         try:
-            return (Path(d) / "version.py").read_bytes()
+            return (Path(d) / file).read_bytes()
         except OSError:
             continue
     return b""
@@ -116,11 +116,11 @@ def source_digest(root: Path) -> str:
 @functools.lru_cache(maxsize=1)
 def code_version() -> str:
     """SHA-256 of what a cached result's computation could depend on besides its arguments:
-    this package's source (every ``.py`` file, by relative path and bytes), numpy's and
-    scipy's version files, the Python version, the machine and the BLAS thread settings."""
+    this package's source (every ``.py`` file, by relative path and bytes), numpy's,
+    scipy's and PyYAML's version files, the Python version, the machine and the BLAS thread settings."""
     h = hashlib.sha256(source_digest(Path(__file__).resolve().parent).encode())
-    for pkg in ("numpy", "scipy"):
-        h.update(pkg.encode() + b"\0" + _version_file(pkg) + b"\0")
+    for pkg, file in (("numpy", "version.py"), ("scipy", "version.py"), ("yaml", "__init__.py")):
+        h.update(pkg.encode() + b"\0" + _version_file(pkg, file) + b"\0")
     u = os.uname()
     h.update(repr((sys.version, sys.implementation.cache_tag, u.sysname, u.nodename, u.machine,
                    [os.environ.get(v) for v in _BLAS_ENV])).encode())

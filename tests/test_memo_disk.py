@@ -153,3 +153,16 @@ def test_a_run_of_a_config_seen_before_imports_no_scipy(cache, tmp_path):
     out = [subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True,
                           check=True).stdout.strip() for _ in range(2)]
     assert out == ["['scipy']", "[]"]
+
+
+def test_a_config_file_composed_in_another_process_is_read_back_equal(cache, monkeypatch):
+    calls = []
+    compose = config._compose_bounded
+    monkeypatch.setattr(config, "_compose_bounded", lambda text: calls.append(text) or compose(text))
+    monkeypatch.setattr(config, "_PARSED", {})
+    first = config.load(config.CONFIG_DIR / "vehicle.yaml")
+    n = len(calls)
+    assert n >= 2 and len(entries(cache, "yaml-document")) == n
+    monkeypatch.setattr(config, "_PARSED", {})         # a new process: only the disk is left
+    assert config.load(config.CONFIG_DIR / "vehicle.yaml") == first and len(calls) == n
+    assert repr(config.load(config.CONFIG_DIR / "vehicle.yaml")) == repr(first)
