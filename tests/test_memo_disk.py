@@ -139,8 +139,9 @@ def test_designs_and_plan_read_back_equal_the_computed_ones(cache, name):
 
 
 def test_a_run_of_a_config_seen_before_imports_no_scipy(cache, tmp_path):
-    """The first process computes and keeps the gate, the plan and the designs; the second
-    checks and sets up the same run from the disk, without importing scipy."""
+    """The first process composes the files and computes and keeps the gate, the plan and the
+    designs; the second loads, checks and sets up the same run from the disk, without
+    importing scipy or PyYAML."""
     code = ("import sys\n"
             "from rig_runtime import config\n"
             "from rig_runtime.app import preflight, runner\n"
@@ -148,11 +149,11 @@ def test_a_run_of_a_config_seen_before_imports_no_scipy(cache, tmp_path):
             "cfg = config.load(config.CONFIG_DIR / 'vehicle.yaml')\n"
             "preflight.check_run(cfg, load_scenario('single-step'), 0.1)\n"
             "assert runner.observer_designs(cfg)\n"
-            "print(sorted(m for m in sys.modules if m == 'scipy' or m.startswith('scipy.'))[:1])\n")
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'scipy', 'yaml'}))\n")
     env = {**os.environ, "RIG_CACHE_DIR": str(cache)}
     out = [subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True,
                           check=True).stdout.strip() for _ in range(2)]
-    assert out == ["['scipy']", "[]"]
+    assert out == ["['scipy', 'yaml']", "[]"]
 
 
 def test_a_config_file_composed_in_another_process_is_read_back_equal(cache, monkeypatch):
