@@ -132,9 +132,10 @@ def test_designs_and_plan_read_back_equal_the_computed_ones(cache, name):
         cfg = dataclasses.replace(cfg, controller=dataclasses.replace(cfg.controller, schedule=None))
     computed = od.designs(cfg)
     assert computed
-    first, again = runner._designs_kept(cfg), runner._designs_kept(cfg)      # written, then read
+    first, again = runner._designs_on_disk(cfg), runner._designs_on_disk(cfg)      # written, then read
     assert len(entries(cache, "observer-designs")) == 1
     assert first == computed and again == computed and again is not first
+    assert runner.observer_designs(cfg) is runner.observer_designs(cfg)     # in a process: read once
     assert repr(again) == repr(computed)        # every float exactly (repr: the shortest exact text, -0.0 and nan too)
     if name == "vehicle.yaml":     # the joint filter: both carriers share one design, as computed
         assert again["front"].joint is again["rear"].joint

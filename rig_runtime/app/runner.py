@@ -31,7 +31,7 @@ from ..allocation import split
 from ..lanes import law_signals
 from ..logformat import LAW_SIGNALS_ATTR
 from ..loop import ControlLoop, log_columns
-from ..memo import across_processes
+from ..memo import across_processes, by_config
 from ..recorder import Recorder
 from ..scenario import Reference, Scenario, open_loop_input
 from . import preflight
@@ -49,7 +49,8 @@ def _observer_designs(cfg: RigConfig) -> dict:
 #: what a design is made of (rig_runtime/observer.py's frozen dataclasses of plain floats)
 DESIGN_CLASSES = tuple(("rig_runtime.observer", n) for n in
                        ("ObserverDesign", "SpeedTable", "YawModel", "CarrierPart", "JointDesign", "JointCarrier"))
-_designs_kept = across_processes("observer-designs", _observer_designs, DESIGN_CLASSES)
+_designs_on_disk = across_processes("observer-designs", _observer_designs, DESIGN_CLASSES)
+_designs_kept = by_config(_designs_on_disk)     # once per config in a process: a warm worker reads no disk
 
 
 def observer_designs(cfg: RigConfig) -> dict:
