@@ -20,13 +20,17 @@ holds its whole key text and a SHA-256 of its payload; it is used only if both m
 its payload unpickles to the allowed classes alone — anything else (missing, corrupt,
 another key, unreadable, an unwritable directory) is ignored and the function computed.
 A call that raises is never stored. ``RIG_CACHE_DIR`` names the directory (empty: no disk
-cache); default ``$XDG_CACHE_HOME/rig-runtime`` (``~/.cache/rig-runtime``).
-:func:`compute_only` turns the disk off for the process (``rig run`` on the rig: what lets
-the power stages on is computed in the run's own process, never read).
+cache); default ``$XDG_CACHE_HOME/rig-runtime`` (``~/.cache/rig-runtime``). Each function
+keeps at most ``MAX_ON_DISK`` entries, the least recently used removed (a read marks an
+entry used). :func:`compute_only` turns the disk off for the process (``rig run`` on the
+rig: what lets the power stages on is computed in the run's own process, never read);
+:func:`without_disk` for a block of this thread (a campaign's run: a config never seen
+again, its entries would only be written).
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import io
@@ -43,7 +47,9 @@ MAX_KEPT = 32           # configs kept per function, the least recently used dro
 _MAGIC = b"rig-runtime memo 1\n"
 _ENV_DIR = "RIG_CACHE_DIR"
 _BLAS_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+MAX_ON_DISK = 64        # entries per function on disk, the least recently used removed
 _disk_on = True
+_thread = threading.local()     # .off: this thread's block without the disk (without_disk)
 
 
 def by_config(fn: Callable[..., Any], maxsize: int = MAX_KEPT) -> Callable[..., Any]:
@@ -75,9 +81,21 @@ def compute_only() -> None:
     _disk_on = False
 
 
+@contextlib.contextmanager
+def without_disk():
+    """In this block this thread reads and writes no disk cache (every call computes)."""
+    was = getattr(_thread, "off", False)
+    _thread.off = True
+    try:
+        yield
+    finally:
+        _thread.off = was
+
+
 def cache_dir() -> Optional[Path]:
-    """The disk cache's directory, None when turned off (``RIG_CACHE_DIR`` empty, :func:`compute_only`)."""
-    if not _disk_on:
+    """The disk cache's directory, None when turned off (``RIG_CACHE_DIR`` empty,
+    :func:`compute_only`, :func:`without_disk`)."""
+    if not _disk_on or getattr(_thread, "off", False):
         return None
     d = os.environ.get(_ENV_DIR)
     if d is not None:
@@ -158,6 +176,10 @@ def _read(path: Path, key: str, allowed: frozenset[tuple[str, str]]) -> tuple[bo
         return False, None
     if stored_key != key:
         return False, None
+    try:
+        os.utime(path)              # used: the last to be removed
+    except OSError:
+        pass
     return True, value
 
 
@@ -175,8 +197,26 @@ def _write(path: Path, key: str, value: Any) -> None:
         except BaseException:
             os.unlink(tmp)
             raise
+        _prune(path.parent)
     except (OSError, pickle.PicklingError, TypeError, AttributeError):
         pass
+
+
+def _prune(d: Path) -> None:
+    """At most ``MAX_ON_DISK`` entries in ``d``: the least recently used removed."""
+    found = []
+    for p in d.iterdir():
+        if not p.name.startswith("."):
+            try:
+                found.append((p.stat().st_mtime_ns, p))
+            except OSError:
+                continue
+    if len(found) > MAX_ON_DISK:
+        for _, p in sorted(found)[:len(found) - MAX_ON_DISK]:
+            try:
+                p.unlink()
+            except OSError:
+                pass
 
 
 def across_processes(name: str, fn: Callable[..., Any], allowed: Iterable[tuple[str, str]] = ()) -> Callable[..., Any]:

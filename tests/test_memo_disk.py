@@ -172,3 +172,34 @@ def test_a_config_file_composed_in_another_process_is_read_back_equal(cache, mon
     monkeypatch.setattr(config, "_PARSED", {})         # a new process: only the disk is left
     assert config.load(config.CONFIG_DIR / "vehicle.yaml") == first and len(calls) == n
     assert repr(config.load(config.CONFIG_DIR / "vehicle.yaml")) == repr(first)
+
+
+def test_entries_are_bounded_the_least_recently_used_removed(cache, monkeypatch):
+    monkeypatch.setattr(memo, "MAX_ON_DISK", 3)
+    f, calls = counted()
+    g = memo.across_processes("t", f)
+    g(0)
+    (first,) = entries(cache, "t")
+    g(1), g(2)
+    os.utime(first, ns=(1, 1))          # g(0)'s entry the least recently used ...
+    g(0)                                # ... until read: marked used
+    g(3)                                # a fourth: one removed
+    assert len(entries(cache, "t")) == 3 and first.exists()
+    n = len(calls)
+    g(0), g(3)
+    assert len(calls) == n
+
+
+def test_without_disk_is_this_block_and_this_thread_only(cache):
+    import threading
+    f, calls = counted()
+    g = memo.across_processes("t", f)
+    seen = []
+    with memo.without_disk():
+        g(1), g(1)
+        t = threading.Thread(target=lambda: seen.append(memo.cache_dir()))
+        t.start()
+        t.join()
+    assert len(calls) == 2 and entries(cache, "t") == [] and seen == [cache]
+    g(1), g(1)
+    assert len(calls) == 3 and len(entries(cache, "t")) == 1
