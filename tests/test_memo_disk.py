@@ -203,3 +203,17 @@ def test_without_disk_is_this_block_and_this_thread_only(cache):
     assert len(calls) == 2 and entries(cache, "t") == [] and seen == [cache]
     g(1), g(1)
     assert len(calls) == 3 and len(entries(cache, "t")) == 1
+
+
+def test_rig_check_and_rig_run_neither_read_nor_write_the_disk(tmp_path):
+    """``rig check`` writes nothing; ``rig run`` computes what lets the power stages on in its
+    own process (here refused at the scenario, after its config was loaded)."""
+    env = {**os.environ, "RIG_CACHE_DIR": str(tmp_path / "cache")}
+    rig = [sys.executable, "-m", "rig_runtime"]
+    ok = subprocess.run(rig + ["check", "--scenario", "single-step"], cwd=ROOT, env=env, capture_output=True,
+                        text=True)
+    assert ok.returncode == 0, ok.stderr
+    bad = subprocess.run(rig + ["run", "--config", str(config.CONFIG_DIR / "sim.yaml"), "--scenario", "no-such"],
+                         cwd=ROOT, env=env, capture_output=True, text=True)
+    assert bad.returncode == 2 and "no-such" in bad.stderr, bad.stderr
+    assert not (tmp_path / "cache").exists()
