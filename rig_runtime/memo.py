@@ -39,6 +39,7 @@ import pickle
 import sys
 import tempfile
 import threading
+import time
 from collections import OrderedDict
 from pathlib import Path
 from typing import Any, Callable, Iterable, Optional
@@ -202,21 +203,32 @@ def _write(path: Path, key: str, value: Any) -> None:
         pass
 
 
+_STALE_TMP_NS = 3600 * 10**9   # a temporary file this old was left by a writer that died
+
+
 def _prune(d: Path) -> None:
-    """At most ``MAX_ON_DISK`` entries in ``d``: the least recently used removed."""
+    """At most ``MAX_ON_DISK`` entries in ``d``: the least recently used removed (and the
+    temporary files of writers that died)."""
     found = []
+    now = time.time_ns()
     for p in d.iterdir():
+        try:
+            mtime = p.stat().st_mtime_ns
+        except OSError:
+            continue
         if not p.name.startswith("."):
-            try:
-                found.append((p.stat().st_mtime_ns, p))
-            except OSError:
-                continue
-    if len(found) > MAX_ON_DISK:
-        for _, p in sorted(found)[:len(found) - MAX_ON_DISK]:
-            try:
-                p.unlink()
-            except OSError:
-                pass
+            found.append((mtime, p))
+        elif p.name.startswith(".tmp-") and now - mtime > _STALE_TMP_NS:
+            found.append((-1, p))           # removed below, first
+    entries = sum(1 for m, _ in found if m >= 0)
+    drop = [p for m, p in found if m < 0]
+    if entries > MAX_ON_DISK:
+        drop += [p for _, p in sorted(x for x in found if x[0] >= 0)[:entries - MAX_ON_DISK]]
+    for p in drop:
+        try:
+            p.unlink()
+        except OSError:
+            pass
 
 
 def across_processes(name: str, fn: Callable[..., Any], allowed: Iterable[tuple[str, str]] = ()) -> Callable[..., Any]:

@@ -188,6 +188,12 @@ def test_entries_are_bounded_the_least_recently_used_removed(cache, monkeypatch)
     n = len(calls)
     g(0), g(3)
     assert len(calls) == n
+    stale, fresh = cache / "t" / ".tmp-dead", cache / "t" / ".tmp-writing"     # a writer's left-overs
+    stale.write_bytes(b"x")
+    fresh.write_bytes(b"x")
+    os.utime(stale, ns=(1, 1))
+    g(4)
+    assert not stale.exists() and fresh.exists() and len(entries(cache, "t")) == 3
 
 
 def test_without_disk_is_this_block_and_this_thread_only(cache):
