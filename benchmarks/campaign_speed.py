@@ -40,8 +40,9 @@ keep_logs: none
     return path
 
 
-def serial(spec_path: Path, out: Path) -> tuple[float, float]:
-    """Every run one after another through the campaign's task function; (wall s, simulated s)."""
+def serial(spec_path: Path, out: Path) -> tuple[float, float, float]:
+    """Every run one after another through the campaign's task function; (wall s, simulated s,
+    CPU s of this process: what the runs cost whatever else loads the machine)."""
     from rig_runtime.app.campaign import prepare
     from rig_runtime.app.campaign.spec import load_spec
     from rig_runtime.app.campaign.task import Job, run_sample
@@ -49,7 +50,7 @@ def serial(spec_path: Path, out: Path) -> tuple[float, float]:
     store = prepare.create(spec, out)
     hw = (out / "configs" / "hardware.yaml").read_text()
     sim = 0.0
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for i in store.sample_ids():
         s = store.sample(i)
         row = run_sample(Job(run_id=i, config_text=Path(s["config"]).read_text(), hardware_text=hw,
@@ -58,9 +59,9 @@ def serial(spec_path: Path, out: Path) -> tuple[float, float]:
                              no_fault=spec.no_fault, keep_logs="none", audit_path=None))
         assert row["status"] in ("pass", "fail"), row
         sim += row["sim_s"]
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     store.close()
-    return wall, sim
+    return wall, sim, cpu
 
 
 def parallel(spec_path: Path, out: Path, workers: int) -> tuple[float, float]:
@@ -92,9 +93,9 @@ def main() -> int:
         spec = _spec(d / "speed.yaml", a.runs, a.duration)
         res["loadavg_serial"] = os.getloadavg()[0]
         with StealMeter() as m:
-            wall, sim = serial(spec, d / "serial")
+            wall, sim, cpu = serial(spec, d / "serial")
         res["serial"] = {"wall_s": wall, "sim_s": sim, "runs_per_min": 60 * a.runs / wall, "sim_s_per_wall_s": sim / wall,
-                         "cpu_steal_pct": m.percent}
+                         "cpu_s": cpu, "sim_s_per_cpu_s": sim / cpu, "cpu_steal_pct": m.percent}
         res["loadavg_parallel"] = os.getloadavg()[0]
         with StealMeter() as m:
             wall, sim, n = parallel(spec, d / "par", a.workers)
@@ -108,7 +109,8 @@ def main() -> int:
         for k in ("serial", "parallel"):
             r = res[k]
             print(f"{k:<9} {r['wall_s']:7.1f} s wall  {r['runs_per_min']:6.1f} runs/min  "
-                  f"{r['sim_s_per_wall_s']:6.2f} simulated s per wall s  (steal {r['cpu_steal_pct']})")
+                  f"{r['sim_s_per_wall_s']:6.2f} simulated s per wall s  (steal {r['cpu_steal_pct']})"
+                  + (f"  {r['sim_s_per_cpu_s']:6.2f} simulated s per CPU s" if "cpu_s" in r else ""))
         print(f"speed-up {res['speedup']:.2f}x with {a.workers} workers; load average before: "
               f"{res['loadavg_serial']:.1f} / {res['loadavg_parallel']:.1f}")
     return 0

@@ -10,7 +10,10 @@ and CPU time (this process) of the runs after the first (a warm worker's run).
 
 ``--shell N``: instead, ``python -m rig_runtime dry-run --config CONFIG --duration D`` started
 N times from this tree (a fresh interpreter each; after one untimed start that writes the
-bytecode caches): median wall and CPU (user + system of the child) per start.
+bytecode caches and fills a temporary disk cache, ``RIG_CACHE_DIR``: a config seen before):
+median wall and CPU (user + system of the child) per start. ``--no-disk-cache``: every start
+computes the gate and the designs and composes the YAML (``RIG_CACHE_DIR=""``; a config
+never seen, or a tree without the disk cache).
 
     python benchmarks/fixed_cost_per_run.py [--config configs/vehicle.yaml] [--runs 4] [--duration 0.1]
     python benchmarks/fixed_cost_per_run.py --config configs/sim.yaml --shell 5
@@ -74,6 +77,7 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=0.1)
     ap.add_argument("--runs", type=int, default=4)
     ap.add_argument("--shell", type=int, default=0, metavar="N")
+    ap.add_argument("--no-disk-cache", action="store_true")
     a = ap.parse_args()
     if a.shell:
         return shell(a)
@@ -109,6 +113,7 @@ def shell(a) -> int:
     cmd = [sys.executable, "-m", "rig_runtime", "dry-run", "--config", a.config, "--scenario", a.scenario,
            "--duration", str(a.duration)]
     with tempfile.TemporaryDirectory() as d:
+        env["RIG_CACHE_DIR"] = "" if a.no_disk_cache else str(Path(d) / "cache")
         cmd += ["--log", str(Path(d) / "warm.h5")]
         subprocess.run(cmd, cwd=root, env=env, check=True, stdout=subprocess.DEVNULL)
         walls, cpus = [], []
@@ -120,7 +125,8 @@ def shell(a) -> int:
             walls.append(time.perf_counter() - t)
             r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
             cpus.append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
-    print(f"rig dry-run --duration {a.duration:g} ({Path(a.config).name}) from the shell, {a.shell} starts: "
+    print(f"rig dry-run --duration {a.duration:g} ({Path(a.config).name}) from the shell, {a.shell} starts, "
+          f"disk cache {'off' if a.no_disk_cache else 'warm'}: "
           f"median wall {statistics.median(walls):.3f} s (min {min(walls):.3f}), median CPU "
           f"{statistics.median(cpus):.3f} s; load average {os.getloadavg()[0]:.1f}")
     return 0

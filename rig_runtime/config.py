@@ -10,6 +10,7 @@ Units are SI (m, rad, s, A) unless a key says otherwise (``*_mm``, ``*_hz``, ``*
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import pickle
 import re
@@ -17,12 +18,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Optional
 
-import yaml
-
 from . import schema
 from .ceilings import HardwareDescription
 from .ceilings import check as check_ceilings
 from .errors import ConfigError
+from .memo import across_processes
 from .schema import check, nonneg, positive, unit_interval
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -502,34 +502,39 @@ class _TooBig(Exception):
     """A YAML document beyond the loader's bounds."""
 
 
-class _Loader(yaml.SafeLoader):
-    """safe_load, but ``1.0e5`` is a float (YAML 1.2 style), as engineers write it; nesting
-    is bounded while composing (``MAX_YAML_DEPTH``)."""
+@functools.lru_cache(maxsize=1)
+def _loader_class():
+    """The loader: safe_load, but ``1.0e5`` is a float (YAML 1.2 style), as engineers write
+    it; nesting is bounded while composing (``MAX_YAML_DEPTH``). PyYAML is imported here, when
+    a text is composed: a start whose files were composed before (the disk cache) needs none."""
+    import yaml
 
-    _depth = 0
+    class _Loader(yaml.SafeLoader):
+        _depth = 0
 
-    def compose_node(self, parent, index):  # noqa: D102 - PyYAML hook
-        self._depth += 1
-        try:
-            if self._depth > MAX_YAML_DEPTH:
-                raise _TooBig(f"nesting deeper than {MAX_YAML_DEPTH} levels")
-            return super().compose_node(parent, index)
-        finally:
-            self._depth -= 1
+        def compose_node(self, parent, index):  # noqa: D102 - PyYAML hook
+            self._depth += 1
+            try:
+                if self._depth > MAX_YAML_DEPTH:
+                    raise _TooBig(f"nesting deeper than {MAX_YAML_DEPTH} levels")
+                return super().compose_node(parent, index)
+            finally:
+                self._depth -= 1
+
+    _Loader.add_implicit_resolver(
+        "tag:yaml.org,2002:float",
+        re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+        |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+        |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+        |[-+]?\.(?:inf|Inf|INF)
+        |\.(?:nan|NaN|NAN))$""", re.X),
+        list("-+0123456789."),
+    )
+    return _Loader
 
 
-_Loader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
-    |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
-    |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
-    |[-+]?\.(?:inf|Inf|INF)
-    |\.(?:nan|NaN|NAN))$""", re.X),
-    list("-+0123456789."),
-)
-
-
-def _node_children(node: yaml.Node) -> list[yaml.Node]:
+def _node_children(node) -> list:
+    import yaml
     if isinstance(node, yaml.MappingNode):
         return [n for kv in node.value for n in kv]
     if isinstance(node, yaml.SequenceNode):
@@ -537,12 +542,12 @@ def _node_children(node: yaml.Node) -> list[yaml.Node]:
     return []
 
 
-def _check_expansion(root: yaml.Node) -> None:
+def _check_expansion(root) -> None:
     """Refuse a node graph whose alias expansion exceeds ``MAX_YAML_NODES`` or that refers
     to itself (each shared node is sized once: milliseconds, whatever it expands to)."""
     size: dict[int, int] = {}
     active: set[int] = set()
-    stack: list[tuple[yaml.Node, bool]] = [(root, False)]
+    stack: list[tuple[Any, bool]] = [(root, False)]
     while stack:
         node, done = stack.pop()
         k = id(node)
@@ -572,7 +577,7 @@ def _load_yaml_bounded(text: str) -> Any:
     kept = _PARSED.get(text)
     if kept is not None:
         return pickle.loads(kept)
-    data = _compose_bounded(text)
+    data = _composed_across_processes(text)
     if len(_PARSED) >= _PARSED_MAX:
         del _PARSED[next(iter(_PARSED))]
     _PARSED[text] = pickle.dumps(data, protocol=pickle.HIGHEST_PROTOCOL)
@@ -580,7 +585,7 @@ def _load_yaml_bounded(text: str) -> Any:
 
 
 def _compose_bounded(text: str) -> Any:
-    loader = _Loader(text)
+    loader = _loader_class()(text)
     try:
         node = loader.get_single_node()
         if node is None:
@@ -589,6 +594,16 @@ def _compose_bounded(text: str) -> Any:
         return loader.construct_document(node)
     finally:
         loader.dispose()
+
+
+def _composed(text: str) -> Any:
+    return _compose_bounded(text)
+
+
+# ... and across processes (memo.across_processes: by the text and the code's bytes; plain
+# dicts, lists, strings and numbers only; a refused text is refused each time): a `rig`
+# command's start composes none of the shipped files it read before
+_composed_across_processes = across_processes("yaml-document", _composed)
 
 
 def _read_yaml(path: Path) -> dict[str, Any]:
@@ -609,7 +624,10 @@ def _read_yaml(path: Path) -> dict[str, Any]:
         data = _load_yaml_bounded(text)
     except _TooBig as e:
         raise ConfigError(str(path), "", f"a YAML file within the loader's bounds ({e})") from None
-    except yaml.YAMLError as e:
+    except Exception as e:          # a PyYAML error (imported with the loader), else not ours
+        import yaml
+        if not isinstance(e, yaml.YAMLError):
+            raise
         mark = getattr(e, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "?"
         raise ConfigError(str(path), "", f"valid YAML (syntax error at {where}: {getattr(e, 'problem', e)})") from e

@@ -1,4 +1,7 @@
+import os
 import pathlib
+import shutil
+import tempfile
 
 import pytest
 from hypothesis import settings
@@ -11,6 +14,17 @@ settings.register_profile("rig", deadline=None)
 settings.load_profile("rig")
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
+
+
+def pytest_configure(config):
+    """The session's own disk cache (rig_runtime/memo.py ``across_processes``), shared by the
+    test process and the ``rig`` processes it starts: no test reads or writes the user's."""
+    config._rig_cache_dir = tempfile.mkdtemp(prefix="rig-test-cache-")
+    os.environ["RIG_CACHE_DIR"] = config._rig_cache_dir
+
+
+def pytest_unconfigure(config):
+    shutil.rmtree(getattr(config, "_rig_cache_dir", ""), ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

@@ -7,6 +7,7 @@ from rig_runtime.errors import ConfigError
 
 
 def test_same_text_parsed_once_each_caller_its_own_copy(monkeypatch):
+    monkeypatch.setenv("RIG_CACHE_DIR", "")     # this process's own copies (the disk's: tests/test_memo_disk.py)
     calls = []
     compose = config._compose_bounded
     monkeypatch.setattr(config, "_compose_bounded", lambda text: calls.append(text) or compose(text))

@@ -174,7 +174,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .. import config
     from ..clock import RealtimeClock, apply_realtime
     from ..devices import RigDevices
+    from ..memo import compute_only
     from ..scenario import load_scenario
+    compute_only()          # the gate and the designs that let the power stages on: computed here, never read from disk
     quiet_device_libraries()
     cfg = config.load(args.config or config.CONFIG_DIR / "rig.yaml")
     scenario = load_scenario(args.scenario) if args.scenario else None
@@ -219,7 +221,9 @@ def cmd_export(args: argparse.Namespace) -> int:
      "real-time limits, devices; default config: configs/rig.yaml); exit 2 if something would keep it from working")
 def cmd_check(args: argparse.Namespace) -> int:
     from .. import config
+    from ..memo import compute_only
     from ..scenario import load_scenario
+    compute_only()          # writes nothing, the user's cache included: every check computed here
     # --machine asks about the rig PC: its default config is the rig's
     cfg = config.load(args.config or (config.CONFIG_DIR / "rig.yaml" if args.machine else None))
     scenario = load_scenario(args.scenario) if args.scenario else None

@@ -22,7 +22,7 @@ from .. import ceilings, coupled
 from ..config import RigConfig
 from ..devices import require_complete
 from ..errors import ConfigError
-from ..memo import by_config
+from ..memo import across_processes, by_config
 from ..scenario import Scenario
 
 # what a fault injection can do to each kind of device (the simulated devices implement
@@ -218,11 +218,26 @@ def _sampled_loop(cfg: RigConfig, damping: float):
     return analysis.sampled_loop(cfg, damping)
 
 
+def _slowest(cfg: RigConfig) -> dict:
+    """``Plan.slowest`` (plain floats): a vehicle config's largest sampled |z| of the coupled
+    analysis, else the slowest sampled eigenvalue at D_min and D_max."""
+    if coupled.applies(cfg):
+        r = coupled_analysis(cfg)
+        worst = max(r.points, key=lambda p: p.spectral_radius)
+        band = tuple(float(b) for b in r.band) if r.band else None
+        return {"coupled": (float(worst.v), float(worst.spectral_radius), len(r.points), band)}
+    return {float(D): float(max(sampled_loop(cfg, D).real)) for D in (cfg.plant.D_min, cfg.plant.D_max)}
+
+
 # Pure functions of the config, once per config in a process (rig_runtime/memo.py): a run
 # passes the gate here and again in the runner; a warm worker runs the same config again.
-stability_gate = by_config(_gate)               # analysis.stability_gate
+# The gate's pass and the plan's eigenvalues are also kept on disk for the next process
+# (memo.across_processes: keyed by the config's every value and the code's bytes; a refusal
+# is never kept): a dry run from the shell then imports no scipy for them.
+stability_gate = by_config(across_processes("stability-gate", _gate))     # analysis.stability_gate
 coupled_analysis = by_config(coupled.analyse)
 sampled_loop = by_config(_sampled_loop)         # analysis.sampled_loop(cfg, D)
+slowest = by_config(across_processes("plan-slowest", _slowest))
 
 
 def check_run(cfg: RigConfig, scenario: Optional[Scenario], duration_s: Optional[float], *,
@@ -246,13 +261,7 @@ def check_run(cfg: RigConfig, scenario: Optional[Scenario], duration_s: Optional
         d, src = scenario.duration_s, "the scenario's duration_s"
     else:
         d, src = math.inf, "until SIGINT/SIGTERM"
-    if coupled.applies(cfg):
-        r = coupled_analysis(cfg)
-        worst = max(r.points, key=lambda p: p.spectral_radius)
-        slowest = {"coupled": (worst.v, worst.spectral_radius, len(r.points), r.band)}
-    else:
-        slowest = {D: float(max(sampled_loop(cfg, D).real)) for D in (cfg.plant.D_min, cfg.plant.D_max)}
-    return Plan(cfg, scenario, d, src, Path(log) if log is not None else None, slowest)
+    return Plan(cfg, scenario, d, src, Path(log) if log is not None else None, slowest(cfg))
 
 
 def describe(plan: Plan) -> list[str]:

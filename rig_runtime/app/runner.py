@@ -31,6 +31,7 @@ from ..allocation import split
 from ..lanes import law_signals
 from ..logformat import LAW_SIGNALS_ATTR
 from ..loop import ControlLoop, log_columns
+from ..memo import across_processes, by_config
 from ..recorder import Recorder
 from ..scenario import Reference, Scenario, open_loop_input
 from . import preflight
@@ -40,11 +41,24 @@ from .signals import StopSignals
 EXIT_OK, EXIT_CRASH, EXIT_SETUP, EXIT_FAULT = 0, 1, 2, 3
 
 
-def observer_designs(cfg: RigConfig) -> dict:
-    """The observers' designs (``observer_design.designs``; scipy's Riccati solver),
-    imported here, when a run is set up: the commands that start no run import no scipy."""
+def _observer_designs(cfg: RigConfig) -> dict:
     from .observer_design import designs
     return designs(cfg)
+
+
+#: what a design is made of (rig_runtime/observer.py's frozen dataclasses of plain floats)
+DESIGN_CLASSES = tuple(("rig_runtime.observer", n) for n in
+                       ("ObserverDesign", "SpeedTable", "YawModel", "CarrierPart", "JointDesign", "JointCarrier"))
+_designs_on_disk = across_processes("observer-designs", _observer_designs, DESIGN_CLASSES)
+_designs_kept = by_config(_designs_on_disk)     # once per config in a process: a warm worker reads no disk
+
+
+def observer_designs(cfg: RigConfig) -> dict:
+    """The observers' designs (``observer_design.designs``; scipy's Riccati solver),
+    imported here, when a run is set up: the commands that start no run import no scipy.
+    Kept on disk for the next process (``memo.across_processes``: by the config's every value
+    and the code's bytes), so a run whose config was designed before imports no scipy."""
+    return _designs_kept(cfg)
 
 
 def default_log_path(prefix: str) -> Path:

@@ -18,6 +18,7 @@ import yaml
 
 from rig_runtime import config as rig_config
 from rig_runtime.errors import ConfigError
+from rig_runtime.memo import without_disk
 from rig_runtime.scenario import load_scenario
 
 from . import paths
@@ -114,9 +115,10 @@ def check_extremes(spec: Spec, base: Base) -> None:
             for x in p.dist.extremes():
                 cfg, sc = write_run_files(d, base, {p.name: x}, i, spec.scenario)
                 try:
-                    rig_config.load(cfg)
-                    if sc != spec.scenario:
-                        load_scenario(sc)
+                    with without_disk():        # a one-off file: not kept for another process
+                        rig_config.load(cfg)
+                        if sc != spec.scenario:
+                            load_scenario(sc)
                 except ConfigError as e:
                     raise ConfigError(spec.source, f"parameters.{p.name}",
                                       f"a range the config accepts ({e.key_path}: expected {e.expected}; "

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from rig_runtime import config as rig_config
 from rig_runtime.errors import ConfigError
+from rig_runtime.memo import without_disk
 from rig_runtime.scenario import load_scenario
 
 from . import design, materialize
@@ -53,9 +54,10 @@ def _fill(spec: Spec, out: Path, base, samples) -> Store:
         values = samples.row(i)
         cfg, sc = materialize.write_run_files(out.resolve(), base, values, i, base_sc.resolve())
         try:
-            rig_config.load(cfg)
-            if sc != base_sc.resolve():
-                load_scenario(sc)
+            with without_disk():        # each sample's file is read once here: not kept for another process
+                rig_config.load(cfg)
+                if sc != base_sc.resolve():
+                    load_scenario(sc)
         except ConfigError as e:
             store.close()
             raise ConfigError(spec.source, "parameters", f"samples the config accepts (run {i}: {e})") from None

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
+from ...memo import without_disk
 from ..quiet import quiet_device_libraries
 from .outcome import METRICS, verdict
 
@@ -59,6 +60,11 @@ def _audit(job: Job) -> None:
 def run_sample(job: Job) -> dict:
     """The row of one run (without the client's columns: parameters, command, log path).
     ``log_bytes``: the HDF5 log when the spec keeps it (the client writes it into DIR)."""
+    with without_disk():        # a sampled config is run once: nothing of it kept for another process
+        return _run_sample(job)
+
+
+def _run_sample(job: Job) -> dict:
     from rig_runtime import config
     from rig_runtime.app import preflight
     from rig_runtime.analysis import UnstableLoopError

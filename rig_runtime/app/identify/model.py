@@ -30,8 +30,10 @@ REST_S = 0.5        # the rest at the start of a record: its mean is the initial
 
 
 def yaw_params(base: PlantParams, **kw) -> PlantParams:
-    """``base`` with yaw parameters replaced (``bouc_wen=None``: the linear model)."""
-    return replace(base, front_contact=False, **kw)
+    """``base`` with yaw parameters replaced (``bouc_wen=None``: the linear model). No carrier
+    on the rollers: the model is read for the yaw only, which no lateral or wheel-speed state
+    feeds (the plant does not integrate those then; the yaw's floats are the same)."""
+    return replace(base, front_contact=False, rear_contact=False, **kw)
 
 
 def bouc_wen(a: float, beta: float, gamma: float) -> BoucWen:
