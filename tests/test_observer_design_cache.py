@@ -72,3 +72,86 @@ def test_a_speed_table_is_made_of_memoised_designs():
     b = od.speed_table(vcfg, "rear")
     assert all(x is y for x, y in zip(a.table.forward + a.table.backward, b.table.forward + b.table.backward))
     assert a == b
+
+
+# ---------------------------------------------------------------------- the design cache across processes
+@pytest.fixture
+def disk(tmp_path, monkeypatch):
+    """The design cache in a directory of the test's own, nothing of this process's memory."""
+    monkeypatch.setenv(od.CACHE_ENV, str(tmp_path / "designs"))
+    monkeypatch.setattr(od, "_grids", {})
+    return tmp_path / "designs"
+
+
+def _forbid_designing(monkeypatch):
+    """Designing raises from here on (a grid must come from the cache's file)."""
+    import functools
+
+    def forbidden(*a):
+        raise AssertionError("designed again")
+    monkeypatch.setattr(od, "_design", functools.wraps(od._design)(forbidden))
+
+
+def test_a_speed_table_designed_once_is_read_back_by_another_process(disk, monkeypatch):
+    vcfg = config.load("configs/vehicle.yaml")
+    a = od.speed_table(vcfg, "rear")
+    files = list(disk.glob("*.pickle"))
+    assert len(files) == 1
+    monkeypatch.setattr(od, "_grids", {})              # another process: nothing in memory
+    _forbid_designing(monkeypatch)
+    b = od.speed_table(vcfg, "rear")
+    assert b == a and b.table.forward == a.table.forward and b.table.backward == a.table.backward
+
+
+@pytest.mark.parametrize("garble", [b"", b"not a pickle", None])
+def test_a_corrupt_cache_file_is_designed_again(disk, monkeypatch, garble):
+    vcfg = config.load("configs/vehicle.yaml")
+    a = od.speed_table(vcfg, "rear")
+    (f,) = disk.glob("*.pickle")
+    if garble is None:                                  # a valid pickle of the wrong shape
+        import pickle
+        f.write_bytes(pickle.dumps(("x",)))
+    else:
+        f.write_bytes(garble)
+    monkeypatch.setattr(od, "_grids", {})
+    assert od.speed_table(vcfg, "rear") == a
+    assert od._read(f, len(a.table.forward) * 2) is not None     # written again, whole
+
+
+def test_an_unwritable_or_switched_off_cache_is_ignored(tmp_path, monkeypatch):
+    vcfg = config.load("configs/vehicle.yaml")
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    monkeypatch.setattr(od, "_grids", {})
+    monkeypatch.setenv(od.CACHE_ENV, str(blocker / "designs"))     # cannot be a directory
+    a = od.speed_table(vcfg, "rear")
+    monkeypatch.setattr(od, "_grids", {})
+    monkeypatch.setenv(od.CACHE_ENV, "off")
+    assert od.cache_dir() is None
+    assert od.speed_table(vcfg, "rear") == a
+    assert list(tmp_path.iterdir()) == [blocker]
+
+
+def test_the_cache_key_is_every_input_and_the_code_version(cfg, monkeypatch):
+    """Another value of any design input, another speed or another code version: another key."""
+    inputs = od.design_inputs(cfg, "rear")[:-1]
+    speeds = [0.5, 1.0]
+    base = od.cache_key(od._design, inputs, speeds)
+    assert od.cache_key(od._design, inputs, list(speeds)) == base          # the same values: the same key
+    other = {
+        "plant": dataclasses.replace(inputs[1], omega0=inputs[1].omega0 * (1 + 1e-15)),
+        "geometry": dataclasses.replace(inputs[2], d0=inputs[2].d0 * 1.2),
+        "observer": dataclasses.replace(inputs[3], yaw_model=not inputs[3].yaw_model),
+        "h": inputs[4] / 2, "outage_max_s": inputs[5] + 1, "window": inputs[6] + 1, "ft_sensors": (),
+    }
+    keys = {base}
+    for name, value in other.items():
+        i = od.DesignInputs._fields.index(name)
+        k = od.cache_key(od._design, inputs[:i] + (value,) + inputs[i + 1:], speeds)
+        assert k not in keys, name
+        keys.add(k)
+    assert od.cache_key(od._design, ("front",) + inputs[1:], speeds) not in keys
+    assert od.cache_key(od._design, inputs, [0.5, 1.0 + 1e-16 * 2]) != base
+    assert od.cache_key(od._joint, inputs, speeds) != base
+    monkeypatch.setattr(od, "code_version", lambda: "another version")
+    assert od.cache_key(od._design, inputs, speeds) != base

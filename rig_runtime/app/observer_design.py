@@ -20,11 +20,17 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
+import importlib.metadata
 import math
-from typing import NamedTuple
+import os
+import pickle
+import sys
+import tempfile
+from pathlib import Path
+from typing import Callable, NamedTuple
 
 import numpy as np
-from scipy.linalg import expm, solve_discrete_are
 
 from ..config import Observer as ObserverConfig
 from ..config import Geometry, Plant, RigConfig
@@ -108,6 +114,7 @@ def discretise(A: np.ndarray, Bc: np.ndarray, Qc: np.ndarray, h: float) -> tuple
     n, m = A.shape[0], Bc.shape[1]
     M = np.zeros((n + m, n + m))
     M[:n, :n], M[:n, n:] = A, Bc
+    from scipy.linalg import expm
     E = expm(M * h)
     V = expm(np.block([[-A, Qc], [np.zeros((n, n)), A.T]]) * h)
     Ad = E[:n, :n]
@@ -119,6 +126,7 @@ def steady_state(Ad: np.ndarray, C: np.ndarray, Qd: np.ndarray, R: np.ndarray) -
     """Steady-state Kalman gain K, innovation covariance S and predictor covariance P (SI)
     of the discrete Riccati equation (solved in mm/mrad units for conditioning)."""
     s2 = _SCALE ** 2
+    from scipy.linalg import solve_discrete_are
     P = solve_discrete_are(Ad.T, C.T, Qd * s2, R * s2)
     S = C @ P @ C.T + R * s2
     K = P @ C.T @ np.linalg.inv(S)
@@ -276,11 +284,13 @@ def _design(carrier: str, p: Plant, g: Geometry, o: ObserverConfig, h: float, ou
         ft_sensors=ft_sensors, sigma_y_outage=sig, v=v, yaw=yaw_model(p, D, h, o.yaw_model, math.sqrt(r_psi)))
 
 
-def over_speed_grid(cfg: RigConfig, design):
-    """``design(v)`` over the schedule's speed grid, returned as the design at v_d carrying the
-    table (``table``, a :class:`SpeedTable`): |v_k| = |v_d| ρᵏ (v_d = schedule.v_design or
-    plant.v, ρ = ``SPEED_RATIO``) for both signs, from ``SPEED_FLOOR``·v_min (inside the
-    standstill band) to the largest |v| of v_range."""
+def over_speed_grid(cfg: RigConfig, design: Callable, inputs: tuple):
+    """``design(*inputs, v)`` (a pure function of its arguments: ``_design``, ``_joint``) over the
+    schedule's speed grid, returned as the design at v_d carrying the table (``table``, a
+    :class:`SpeedTable`): |v_k| = |v_d| ρᵏ (v_d = schedule.v_design or plant.v, ρ =
+    ``SPEED_RATIO``) for both signs, from ``SPEED_FLOOR``·v_min (inside the standstill band) to
+    the largest |v| of v_range. The grid's designs come from the design cache when it has them
+    (:func:`cached_designs`)."""
     sch = cfg.controller.schedule
     v_d = sch.v_design if sch.v_design is not None else cfg.plant.v
     ref = abs(v_d)
@@ -288,8 +298,8 @@ def over_speed_grid(cfg: RigConfig, design):
     k_lo = math.floor(math.log(SPEED_FLOOR * sch.v_min / ref) / lr)
     k_hi = math.ceil(math.log(max(abs(sch.v_range[0]), abs(sch.v_range[1])) / ref) / lr)
     speeds = [ref * SPEED_RATIO ** k for k in range(k_lo, k_hi + 1)]
-    fw = tuple(design(v) for v in speeds)
-    bw = tuple(design(-v) for v in speeds)
+    both = cached_designs(design, inputs, speeds + [-v for v in speeds])
+    fw, bw = both[:len(speeds)], both[len(speeds):]
     base = (fw if v_d > 0 else bw)[-k_lo]
     table = SpeedTable(v_ref=ref, ratio=SPEED_RATIO, k_lo=k_lo, k_hi=k_hi, forward=fw, backward=bw)
     return dataclasses.replace(base, table=table)
@@ -300,8 +310,7 @@ def speed_table(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None
     "vehicle"): |v_k| = |v_d| ρᵏ (v_d = schedule.v_design or plant.v, ρ = ``SPEED_RATIO``) for
     both signs, from ``SPEED_FLOOR``·v_min (inside the standstill band) to the largest |v| of
     v_range; returned as the design at v_d carrying the table (``ObserverDesign.table``)."""
-    inputs = design_inputs(cfg, carrier, ocfg)
-    return over_speed_grid(cfg, lambda v: _design(*inputs._replace(v=v)))
+    return over_speed_grid(cfg, _design, design_inputs(cfg, carrier, ocfg)[:-1])
 
 
 def _ft_sensors(cfg: RigConfig, wheels: tuple[str, str]) -> tuple[str, ...]:
@@ -380,11 +389,15 @@ def _joint_C(g: Geometry, dw_f, dw_r) -> np.ndarray:
 def joint_design(cfg: RigConfig, ocfg: ObserverConfig | None = None, v: float | None = None):
     """The running gear's filter at speed ``v`` (None: plant.v; docs/observer.md, "One filter
     for the running gear"). Memoised like :func:`design`."""
+    return _joint(*_joint_inputs(cfg, ocfg), cfg.plant.carrier("rear").v if v is None else float(v))
+
+
+def _joint_inputs(cfg: RigConfig, ocfg: ObserverConfig | None) -> tuple:
+    """The arguments of :func:`_joint` but the speed, taken from the config."""
     o = ocfg if ocfg is not None else (cfg.observer or ObserverConfig())
-    pf, pr = cfg.plant.carrier("front"), cfg.plant.carrier("rear")
-    return _joint(pf, pr, cfg.geometry, o, cfg.controller.h, cfg.degraded.max_s, cfg.limits.innovation_window,
-                  _ft_sensors(cfg, CARRIER_WHEELS["front"]), _ft_sensors(cfg, CARRIER_WHEELS["rear"]),
-                  pr.v if v is None else float(v))
+    return (cfg.plant.carrier("front"), cfg.plant.carrier("rear"), cfg.geometry, o, cfg.controller.h,
+            cfg.degraded.max_s, cfg.limits.innovation_window,
+            _ft_sensors(cfg, CARRIER_WHEELS["front"]), _ft_sensors(cfg, CARRIER_WHEELS["rear"]))
 
 
 @functools.lru_cache(maxsize=DESIGN_CACHE_SIZE)
@@ -548,4 +561,93 @@ def _outage_sigma_loop(Ad, Qd, P_full, K_full, C, K_nl, C_nl, R_nl, n_max, i) ->
 def joint_speed_table(cfg: RigConfig, ocfg: ObserverConfig | None = None):
     """The joint design over the schedule's speed grid (as :func:`speed_table`), returned as
     the design at v_d carrying the table."""
-    return over_speed_grid(cfg, lambda v: joint_design(cfg, ocfg, v))
+    return over_speed_grid(cfg, _joint, _joint_inputs(cfg, ocfg))
+
+
+# ---------------------------------------------------------------------- the design cache across processes
+#: where the design cache lives: ``RIG_DESIGN_CACHE`` names a directory, or ``off``; else the
+#: user's cache directory (``$XDG_CACHE_HOME`` or ``~/.cache``)/rig-runtime/observer-designs
+CACHE_ENV = "RIG_DESIGN_CACHE"
+#: speed grids kept per process (each ~4 MB for the vehicle), the oldest dropped
+GRIDS_KEPT = 8
+_grids: dict[str, tuple] = {}
+
+
+def cache_dir() -> Path | None:
+    """The design cache's directory (None: off)."""
+    env = os.environ.get(CACHE_ENV)
+    if env is not None:
+        return None if env.strip().lower() in ("", "0", "off", "no", "false") else Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "rig-runtime" / "observer-designs"
+
+
+@functools.lru_cache(maxsize=1)
+def code_version() -> str:
+    """What the designs are computed by: the bytes of this module and of the module that defines
+    the designs' types (rig_runtime.observer), the numerical libraries' and Python's versions —
+    a change in any of them is another key (nothing designed by other code is read back)."""
+    from .. import observer
+    h = hashlib.sha256()
+    for f in (__file__, observer.__file__):
+        h.update(Path(f).read_bytes())
+    for dist in ("numpy", "scipy"):
+        h.update(f"{dist} {importlib.metadata.version(dist)}".encode())
+    h.update(sys.version.encode())
+    return h.hexdigest()
+
+
+def cache_key(design: Callable, inputs: tuple, speeds: list[float]) -> str:
+    """The key of ``design(*inputs, v)`` over ``speeds``: a hash of every input's exact text (the
+    inputs are frozen dataclasses whose repr shows every field, floats in repr: exact) and of
+    the code version."""
+    text = repr((design.__qualname__, inputs, [float(v) for v in speeds]))
+    return hashlib.sha256(f"{code_version()}\n{text}".encode()).hexdigest()
+
+
+def cached_designs(design: Callable, inputs: tuple, speeds: list[float]) -> tuple:
+    """``design(*inputs, v)`` for every v of ``speeds``: from this process's memory, else from the
+    design cache's file for their key, else designed (and the file written). A cache that cannot
+    be read (missing, corrupt, of another shape) or written (read-only, full) is ignored: the
+    designs are computed as without it."""
+    key = cache_key(design, inputs, speeds)
+    out = _grids.get(key)
+    if out is not None:
+        return out
+    d = cache_dir()
+    path = d / f"{key}.pickle" if d is not None else None
+    out = _read(path, len(speeds)) if path is not None else None
+    if out is None:
+        out = tuple(design(*inputs, v) for v in speeds)
+        if path is not None:
+            _write(path, out)
+    _grids[key] = out
+    while len(_grids) > GRIDS_KEPT:
+        del _grids[next(iter(_grids))]
+    return out
+
+
+def _read(path: Path, n: int) -> tuple | None:
+    from ..observer import JointDesign
+    try:
+        with open(path, "rb") as f:
+            out = pickle.load(f)
+    except Exception:                      # missing, unreadable, truncated, garbled: design again
+        return None
+    ok = isinstance(out, tuple) and len(out) == n and all(isinstance(e, (ObserverDesign, JointDesign)) for e in out)
+    return out if ok else None
+
+
+def _write(path: Path, designs: tuple) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".pickle")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                pickle.dump(designs, f, protocol=pickle.HIGHEST_PROTOCOL)
+            os.replace(tmp, path)          # whole or not at all: a reader never sees half a file
+        except BaseException:
+            os.unlink(tmp)
+            raise
+    except OSError:                        # read-only, full, not a directory: run without the cache
+        pass
