@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import os
 
 import pytest
 
@@ -155,3 +156,15 @@ def test_the_cache_key_is_every_input_and_the_code_version(cfg, monkeypatch):
     assert od.cache_key(od._joint, inputs, speeds) != base
     monkeypatch.setattr(od, "code_version", lambda: "another version")
     assert od.cache_key(od._design, inputs, speeds) != base
+
+
+def test_the_cache_keeps_the_most_recently_used_files(disk, monkeypatch):
+    vcfg = config.load("configs/vehicle.yaml")
+    monkeypatch.setattr(od, "CACHE_FILES_KEPT", 2)
+    disk.mkdir(parents=True)
+    for k, name in enumerate(("old", "older")):
+        (disk / f"{name}.pickle").write_bytes(b"")
+        os.utime(disk / f"{name}.pickle", (1000.0 - k, 1000.0 - k))
+    od.speed_table(vcfg, "rear")
+    names = {f.name for f in disk.glob("*.pickle")}
+    assert len(names) == 2 and "old.pickle" in names          # the new one and the newer of the other two

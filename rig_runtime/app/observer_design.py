@@ -570,6 +570,9 @@ def joint_speed_table(cfg: RigConfig, ocfg: ObserverConfig | None = None):
 CACHE_ENV = "RIG_DESIGN_CACHE"
 #: speed grids kept per process (each ~4 MB for the vehicle), the oldest dropped
 GRIDS_KEPT = 8
+#: files kept in the cache directory (each ~4.6 MB for the vehicle's grid), the least recently
+#: used removed after a write: a campaign over many plants leaves at most this many
+CACHE_FILES_KEPT = 32
 _grids: dict[str, tuple] = {}
 
 
@@ -635,6 +638,11 @@ def _read(path: Path, n: int) -> tuple | None:
     except Exception:                      # missing, unreadable, truncated, garbled: design again
         return None
     ok = isinstance(out, tuple) and len(out) == n and all(isinstance(e, (ObserverDesign, JointDesign)) for e in out)
+    if ok:
+        try:
+            os.utime(path)                 # used now: the last to be removed
+        except OSError:
+            pass
     return out if ok else None
 
 
@@ -649,5 +657,8 @@ def _write(path: Path, designs: tuple) -> None:
         except BaseException:
             os.unlink(tmp)
             raise
+        files = sorted(path.parent.glob("*.pickle"), key=lambda f: f.stat().st_mtime)
+        for f in files[:-CACHE_FILES_KEPT]:
+            f.unlink(missing_ok=True)
     except OSError:                        # read-only, full, not a directory: run without the cache
         pass
