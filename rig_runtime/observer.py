@@ -534,15 +534,18 @@ class CarrierView:
     @property
     def nu_lat(self) -> float:
         """Its lateral laser's innovation (NaN when the step did not use that laser)."""
-        return self.joint.nu[self._m] if self.lat_used else math.nan
+        j = self.joint
+        return j._raw[self._m][j._i - 1] if self.lat_used else math.nan
 
     @property
     def nu_psi(self) -> float:
-        return self.joint.nu[self._m + 2]
+        j = self.joint
+        return j._raw[self._m + 2][j._i - 1]
 
     @property
     def nu_dw(self) -> float:
-        return self.joint.nu[self._m + 4]
+        j = self.joint
+        return j._raw[self._m + 4][j._i - 1]
 
     @property
     def mean_lat(self) -> float:
@@ -565,8 +568,9 @@ class CarrierView:
         self.joint.reset()
 
     def log_values(self) -> tuple[float, ...]:
-        x, nu, o, m = self.joint.x, self.joint.nu, self._o, self._m
-        return (x[o], x[o + 1], x[o + 2], nu[m] if self.lat_used else math.nan, nu[m + 2], nu[m + 4],
+        j, o, m = self.joint, self._o, self._m
+        x, q, i = j.x, j._raw, j._i - 1          # the latest innovations: the window's newest samples
+        return (x[o], x[o + 1], x[o + 2], q[m][i] if self.lat_used else math.nan, q[m + 2][i], q[m + 4][i],
                 self.T_lat, self.T_psi, self.T_dw, self.lat_used, self.degraded, self.sigma_y)
 
 
@@ -614,7 +618,6 @@ class JointObserver:
         self._nfull = 0                          # cycles of the window on all lasers
         self._i = self._n = 0
         self._N_inv = 1.0 / N
-        self.nu = [0.0] * 6
         self._ys_f, self._ys_r = _YawState(), _YawState()
         self.front = CarrierView(self, "front")
         self.rear = CarrierView(self, "rear")
@@ -735,13 +738,6 @@ class JointObserver:
         n3 = psi_r - p4
         n4 = dw_f - (gf0 * p0 + gf1 * p2 + gf2 * u_f)
         n5 = dw_r - (gr0 * p3 + gr1 * p5 + gr2 * u_r)
-        nu = self.nu
-        nu[0] = n0
-        nu[1] = n1
-        nu[2] = n2
-        nu[3] = n3
-        nu[4] = n4
-        nu[5] = n5
         (k0, k1, k2, k3, k4, k5,
          k6, k7, k8, k9, k10, k11,
          k12, k13, k14, k15, k16, k17,
@@ -866,6 +862,13 @@ class JointObserver:
         else:
             car, kind = JOINT_LEAD[j]
             f.lead, r.lead = (kind, "") if car == "front" else ("", kind)
+
+    @property
+    def nu(self) -> list[float]:
+        """The latest innovation of each measurement (``JOINT_MEASUREMENTS`` order; 0 for a laser
+        not used): the window's newest samples."""
+        i = self._i - 1
+        return [q[i] for q in self._raw]
 
     @property
     def T(self) -> list[float]:
