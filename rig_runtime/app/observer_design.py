@@ -332,16 +332,23 @@ def designs(cfg: RigConfig) -> dict:
     none): both carriers on the rollers and controlled — the running gear's joint filter
     (each carrier a ``JointCarrier`` of one design; with a speed schedule its table);
     otherwise per carrier, with a schedule the carrier's speed table, else the single design
-    at plant.v."""
+    at plant.v. Every design through the design cache (:func:`cached_designs`)."""
     if cfg.observer is None:
         return {}
     if joint_applies(cfg):
         from ..observer import JointCarrier
-        j = joint_speed_table(cfg) if cfg.controller.schedule is not None else joint_design(cfg)
+        if cfg.controller.schedule is not None:
+            j = joint_speed_table(cfg)
+        else:
+            (j,) = cached_designs(_joint, _joint_inputs(cfg, None), [cfg.plant.carrier("rear").v])
         return {c: JointCarrier(c, j) for c in ("front", "rear")}
     if cfg.controller.schedule is not None:
         return {c: speed_table(cfg, c) for c in cfg.controlled}
-    return {c: design(cfg, c) for c in cfg.controlled}
+    out = {}
+    for c in cfg.controlled:
+        i = design_inputs(cfg, c)
+        (out[c],) = cached_designs(_design, i[:-1], [i.v])
+    return out
 
 
 def steady_std(d: ObserverDesign) -> dict[str, float]:
