@@ -104,14 +104,23 @@ def test_a_speed_table_designed_once_is_read_back_by_another_process(disk, monke
     assert b == a and b.table.forward == a.table.forward and b.table.backward == a.table.backward
 
 
-@pytest.mark.parametrize("garble", [b"", b"not a pickle", None])
+class _Foreign:
+    def __reduce__(self):
+        return (os.getcwd, ())                          # a pickle that would call something
+
+
+@pytest.mark.parametrize("garble", [b"", b"not a pickle", "shape", "foreign"])
 def test_a_corrupt_cache_file_is_designed_again(disk, monkeypatch, garble):
+    import pickle
     vcfg = config.load("configs/vehicle.yaml")
     a = od.speed_table(vcfg, "rear")
     (f,) = disk.glob("*.pickle")
-    if garble is None:                                  # a valid pickle of the wrong shape
-        import pickle
+    if garble == "shape":                               # a valid pickle of the wrong shape
         f.write_bytes(pickle.dumps(("x",)))
+    elif garble == "foreign":                           # a pickle naming a class that is not a design's
+        f.write_bytes(pickle.dumps((_Foreign(),) * len(a.table.forward) * 2))
+        with open(f, "rb") as fh, pytest.raises(pickle.UnpicklingError):
+            od._DesignUnpickler(fh).load()
     else:
         f.write_bytes(garble)
     monkeypatch.setattr(od, "_grids", {})

@@ -637,12 +637,27 @@ def cached_designs(design: Callable, inputs: tuple, speeds: list[float]) -> tupl
     return out
 
 
+#: the only classes a cache file may name (rig_runtime/observer.py's frozen dataclasses of plain
+#: numbers; the rest of a design is tuples, floats, ints, strings and None)
+CACHE_CLASSES = frozenset(("ObserverDesign", "SpeedTable", "YawModel", "CarrierPart", "JointDesign"))
+
+
+class _DesignUnpickler(pickle.Unpickler):
+    """Unpickles a design and nothing else: any other global in the file is refused (a file
+    that is not what this module wrote is never run)."""
+
+    def find_class(self, module: str, name: str):
+        if module == "rig_runtime.observer" and name in CACHE_CLASSES:
+            return super().find_class(module, name)
+        raise pickle.UnpicklingError(f"{module}.{name} is not a design class")
+
+
 def _read(path: Path, n: int) -> tuple | None:
     from ..observer import JointDesign
     try:
         with open(path, "rb") as f:
-            out = pickle.load(f)
-    except Exception:                      # missing, unreadable, truncated, garbled: design again
+            out = _DesignUnpickler(f).load()
+    except Exception:                      # missing, unreadable, truncated, garbled, foreign: design again
         return None
     ok = isinstance(out, tuple) and len(out) == n and all(isinstance(e, (ObserverDesign, JointDesign)) for e in out)
     if ok:
