@@ -13,7 +13,9 @@ fixed yaw-and-Δω gains run from the full filter's steady state). With a speed 
 the lane picks the nearest grid point of v̂ each cycle); without one it is the single design at
 ``plant.v``. With both carriers controlled, one joint design for the running gear instead
 (:func:`joint_design`, :func:`joint_speed_table`). The result is plain floats (:class:`rig_runtime.observer.ObserverDesign`): the cycle's
-module imports neither this module nor numpy/scipy.
+module imports neither this module nor numpy/scipy. What :func:`designs` returns is kept in a
+design cache across processes (:func:`cached_designs`: a run started from the shell designs
+nothing it designed before, and imports no scipy for it).
 """
 
 from __future__ import annotations
