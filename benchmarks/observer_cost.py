@@ -1,89 +1,113 @@
-"""Cost of the observer's per-cycle work (docs/performance.md): the lane stage's filter
-step (``Observer.step``, one carrier), the supervisor's fitness check of the two lateral
-lasers (``Supervisor.fit``: ARM_RULES on two channels) and the innovation rule; median of
-repeated timings per call, µs. Then the vehicle's running-gear filter (``JointObserver.step``,
-both carriers, vehicle.yaml's speed table) with its per-laser fitness checks, the innovation
-rule on both carriers' views and their log rows: the observer's cost per cycle on the vehicle.
+"""The observer's cost per cycle in a lockstep run (docs/observer.md, "Cost"): the loop's
+``_estimate`` stage — the observer's whole work per cycle: the lateral lasers' and F/T
+sensors' fitness, the forces, the filter step (on the vehicle: the running gear's filter,
+both carriers) and the degraded marks — and, in a run of its own (so that neither timing is
+inside the other), the filter's ``step`` alone; medians per cycle of the thread's CPU time
+(``time.thread_time_ns``: what other processes on a shared machine take is not counted; each
+timing includes one clock read, ~0.2 µs).
 
-    python benchmarks/observer_cost.py [--linear]
+Each run is a fresh process; with ``--base DIR`` (another checkout of the project, e.g. a
+copy of main) the runs alternate between the two trees, so both see the same load:
 
-``--linear``: the vehicle's filter without the hysteresis and damping law in its model
+    python benchmarks/observer_cost.py [--config configs/vehicle.yaml] [--scenario vehicle-steps]
+        [--duration S] [--repeat N] [--base DIR] [--linear]
+
+``--linear``: the filter without the hysteresis and damping law in its model
 (``observer.yaw_model: false``), for the comparison.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import math
+import argparse
+import json
 import os
 import statistics
+import subprocess
 import sys
-import timeit
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from rig_runtime import config  # noqa: E402
-from rig_runtime.app.observer_design import design, joint_speed_table  # noqa: E402
-from rig_runtime.hardware import Freshness, Health  # noqa: E402
-from rig_runtime.observer import JointObserver, Observer  # noqa: E402
-from rig_runtime.safety import Channel, Sample, Supervisor, innovation  # noqa: E402
+HERE = Path(__file__).resolve().parent.parent
 
 
-def per_call_us(fn, n: int = 20000, repeat: int = 7) -> float:
-    return statistics.median(timeit.repeat(fn, number=n, repeat=repeat)) / n * 1e6
+def child(tree: str, config_path: str, scenario: str, duration: float, linear: bool, what: str) -> dict:
+    """One lockstep run with the tree ``tree`` first on sys.path: the median (µs) per cycle of
+    ``what`` (``_estimate``: the loop's stage; ``step``: the observer's step)."""
+    sys.path.insert(0, tree)
+    import dataclasses
+    import tempfile
+    import time
+
+    from rig_runtime import config, observer
+    from rig_runtime.app import dryrun
+    from rig_runtime.loop import ControlLoop
+    from rig_runtime.scenario import load_scenario
+
+    clock = time.thread_time_ns
+    samples: dict[str, list[int]] = {what: []}
+
+    def timed(cls, name, key):
+        f, out = getattr(cls, name), samples[key]
+
+        def call(*a, **k):
+            t = clock()
+            r = f(*a, **k)
+            out.append(clock() - t)
+            return r
+        setattr(cls, name, call)
+
+    cfg = config.load(config_path)
+    if linear:
+        cfg = dataclasses.replace(cfg, observer=dataclasses.replace(cfg.observer, yaw_model=False))
+    if what == "_estimate":
+        timed(ControlLoop, "_estimate", what)
+    else:
+        timed(observer.JointObserver, "step", what)
+        timed(observer.Observer, "step", what)
+    with tempfile.TemporaryDirectory() as d:
+        dryrun.run_lockstep(cfg, load_scenario(scenario), Path(d) / "x.h5", duration_s=duration)
+    return {k: statistics.median(v) / 1e3 for k, v in samples.items() if v} | {
+        "cycles": len(samples[what]), "tree": str(Path(observer.__file__).parent.parent)}
 
 
-def main() -> None:
-    cfg = config.load(config.resolve_config_path("sim-observer.yaml"))
-    o = Observer(design(cfg, "rear"))
-    o.step(1e-3, 1e-3, 0.01, 0.1, 0.0, True)
-    chans = [Channel(n, "laser", 0.0, 1.0, 0.02) for n in ("b_f", "b_r")]
-    sup = Supervisor(cfg.limits, cfg.controller.h, chans, ["rear"], hardware=None)
-    for c in chans:
-        c.observe(Sample(0.07, 1.0, Health(Freshness.FRESH)), 1.0, cfg.controller.h)
-    for _ in range(300):
-        o.step(1e-3, 1e-3, 0.01, 0.1, 0.0, True)
-    res = {
-        "Observer.step (lateral used)": per_call_us(lambda: o.step(1e-3, 1e-3, 0.01, 0.1, 0.0, True)),
-        "Observer.step (lateral not fit)": per_call_us(lambda: o.step(1e-3, 1e-3, 0.01, 0.1, 0.0, False)),
-        "Supervisor.fit(b_r, b_f)": per_call_us(lambda: sup.fit(("b_r", "b_f"), 1.0)),
-        "innovation rule": per_call_us(lambda: innovation(o, cfg.limits)),
-        "log_values": per_call_us(o.log_values),
-    }
-    for k, v in res.items():
-        print(f"{k:34s} {v:6.2f} us")
-    print(f"{'total per observed carrier':34s} {res['Observer.step (lateral used)'] + res['Supervisor.fit(b_r, b_f)'] + res['innovation rule'] + res['log_values']:6.2f} us")
-    assert math.isfinite(o.y)
-
-    vcfg = config.load(config.resolve_config_path("vehicle.yaml"))
-    if "--linear" in sys.argv:              # the hysteresis and damping law left out (observer.yaw_model off)
-        vcfg = dataclasses.replace(vcfg, observer=dataclasses.replace(vcfg.observer, yaw_model=False))
-    print(f"\nvehicle.yaml, observer.yaw_model {vcfg.observer.yaw_model}")
-    j = JointObserver(joint_speed_table(vcfg))
-    j.select(1.0)
-    args = (0.071, 0.0705, True, True, 1e-3, 1e-3, 0.01, 0.01, 0.1, 0.1, 1.0, 1.0)
-    for _ in range(300):
-        j.step(*args)
-    lost = args[:3] + (False,) + args[4:]
-    fit1 = lambda: sup.fit(("b_f",), 1.0)   # noqa: E731 (the loop checks each laser on its own)
-    vres = {
-        "JointObserver.step (both lasers)": per_call_us(lambda: j.step(*args)),
-        "JointObserver.step (b_r lost)": per_call_us(lambda: j.step(*lost)),
-        "Supervisor.fit(b_f), one laser": per_call_us(fit1),
-        "innovation rule, one carrier": per_call_us(lambda: innovation(j.front, vcfg.limits)),
-        "log_values, one carrier": per_call_us(j.front.log_values),
-    }
-    print()
-    for k, v in vres.items():
-        print(f"{k:34s} {v:6.2f} us")
-    total = (vres["JointObserver.step (both lasers)"] + 2 * vres["Supervisor.fit(b_f), one laser"]
-             + 2 * vres["innovation rule, one carrier"] + 2 * vres["log_values, one carrier"])
-    print(f"{'total per cycle, vehicle (joint)':34s} {total:6.2f} us")
-    print(f"{'per-carrier filters, both carriers':34s} {2 * (res['Observer.step (lateral used)'] + res['Supervisor.fit(b_r, b_f)'] + res['innovation rule'] + res['log_values']):6.2f} us")
-    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
-    assert math.isfinite(j.front.y)
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", default=str(HERE / "configs" / "vehicle.yaml"))
+    ap.add_argument("--scenario", default="vehicle-steps")
+    ap.add_argument("--duration", type=float, default=10.0)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--base", help="another tree to measure in alternation (e.g. a copy of main)")
+    ap.add_argument("--linear", action="store_true", help="observer.yaw_model off")
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    ap.add_argument("--what", default="_estimate", help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.child:
+        print(json.dumps(child(a.child, a.config, a.scenario, a.duration, a.linear, a.what)))
+        return 0
+    trees = [str(HERE)] + ([str(Path(a.base).resolve())] if a.base else [])
+    runs: dict[str, dict[str, list[float]]] = {t: {"_estimate": [], "step": []} for t in trees}
+    loads = [os.getloadavg()[0]]
+    cycles = 0
+    for _ in range(a.repeat):
+        for what in ("_estimate", "step"):
+            for t in trees:
+                cmd = [sys.executable, str(Path(__file__).resolve()), "--child", t, "--what", what, "--config",
+                       a.config, "--scenario", a.scenario, "--duration", str(a.duration)] + (["--linear"] if a.linear else [])
+                out = subprocess.run(cmd, capture_output=True, text=True, check=True,
+                                     env=dict(os.environ, OMP_NUM_THREADS="1"))
+                r = json.loads(out.stdout.strip().splitlines()[-1])
+                runs[t][what].append(r[what])
+                cycles = r["cycles"]
+                loads.append(os.getloadavg()[0])
+    print(f"CPU µs per cycle, median per run ({a.scenario}, {a.duration:g} s, {Path(a.config).name}"
+          f"{', yaw_model off' if a.linear else ''}); load average {min(loads):.1f}-{max(loads):.1f} "
+          f"on {os.cpu_count()} cores")
+    for t in trees:
+        est, step = runs[t]["_estimate"], runs[t]["step"]
+        print(f"  {t}\n    _estimate {statistics.median(est):6.2f}  ({' '.join(f'{v:.2f}' for v in est)})"
+              f"\n    step      {statistics.median(step):6.2f}  ({' '.join(f'{v:.2f}' for v in step)})"
+              f"   cycles {cycles}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -54,6 +54,7 @@ too large is the supervisor's rule (``safety.degraded_covariance``).
 from __future__ import annotations
 
 import math
+import operator
 from dataclasses import dataclass
 from typing import Optional
 
@@ -122,14 +123,14 @@ def zmap(z: float, dpsi: float, A: float, beta: float, gamma: float) -> float:
 
 
 class _YawState:
-    """The non-linearities' own state of one carrier: ẑ, the filter residual, the last current
-    (and, once :meth:`bind` has been given the model, its constants as plain floats: the cycle
-    reads them here instead of on the model)."""
+    """The non-linearities' own state of one carrier: ẑ, the estimate's ψ̂ it last followed, the
+    filter residual, the last current (and, once :meth:`bind` has been given the model, its
+    constants as plain floats: the cycle reads them here instead of on the model)."""
 
-    __slots__ = ("z", "e", "u", "acc", "_m", "_gain", "_ef", "_irm", "_kmin", "_c")
+    __slots__ = ("z", "psi", "e", "u", "acc", "_m", "_gain", "_ef", "_irm", "_kmin", "_c", "_dead")
 
     def __init__(self) -> None:
-        self.z = self.e = self.u = self.acc = 0.0
+        self.z = self.psi = self.e = self.u = self.acc = 0.0
         self._m = None
 
     def bind(self, m: YawModel) -> None:
@@ -141,33 +142,37 @@ class _YawState:
         self._gain, self._ef, self._irm = m.gain, m.ef, m.irc * m.mid
         self._c = 2.0 * m.w0 * m.h
         self._kmin = math.exp(-self._c * (m.D_min - m.D0))    # D = D_min (the input moves)
+        self._dead = m.dead
 
     def start(self, psi: float, u: float) -> None:
         self.z, self.e, self.u = psi, 0.0, u     # at rest: z = ψ (the plant's rest state), filter settled
+        self.psi = psi
         self.acc = 0.0
 
     def inputs(self, m: YawModel, psi: float, u: float) -> tuple[float, float]:
-        """(the equivalent current of the hysteresis term, the yaw rate's extra decay) over the
-        period ahead, with the current ``u`` held over it (advances the filter residual)."""
+        """The prediction's known inputs from the estimate ``psi`` (ψ̂ at the period's start):
+        first ẑ follows ψ̂'s change since the last call (the last period's correction) once it
+        is past the dead band; then (the equivalent current of the hysteresis term, the yaw
+        rate's extra decay) over the period ahead, with the current ``u`` held over it (advances
+        the filter residual)."""
         if m is not self._m:
             self.bind(m)
+        g = self._gain
+        if g != 0.0:
+            a = self.acc + (psi - self.psi)
+            self.psi = psi
+            if a >= self._dead or -a >= self._dead:
+                self.z = zmap(self.z, a, m.A, m.beta, m.gamma)
+                a = 0.0
+            self.acc = a
         r = self.e + (u - self.u)
         self.u = u
         self.e = r * self._ef
         rho = (r if r >= 0.0 else -r) * self._irm
         if rho >= 1.0:
-            return self._gain * (psi - self.z), self._kmin
-        x = self._c * (damping(rho, self._m.D_min, self._m.D_max) - self._m.D0)
-        return self._gain * (psi - self.z), (math.exp(-x) if x < 40.0 else 0.0)
-
-    def follow(self, m: YawModel, dpsi: float) -> None:
-        """ẑ after the estimate's change of ψ over the period."""
-        if m.gain != 0.0:
-            a = self.acc + dpsi
-            if a >= m.dead or -a >= m.dead:
-                self.z = zmap(self.z, a, m.A, m.beta, m.gamma)
-                a = 0.0
-            self.acc = a
+            return g * (psi - self.z), self._kmin
+        x = self._c * (damping(rho, m.D_min, m.D_max) - m.D0)
+        return g * (psi - self.z), (math.exp(-x) if x < 40.0 else 0.0)
 
 
 @dataclass(frozen=True)
@@ -341,8 +346,6 @@ class Observer:
             z_lat = 0.0                         # not in the update: no evidence this cycle
             z_psi, z_dw = n_psi * inv[0], n_dw * inv[1]
             self.outage += 1
-        if ym is not None:
-            self._ys.follow(ym, self.psi - p)
         sig = self._sig
         if sig:
             k = self.outage
@@ -491,23 +494,23 @@ class JointCarrier:
 
 class CarrierView:
     """One carrier of the joint filter, by the names the supervisor, the lane and the log read
-    of an :class:`Observer` (the joint filter writes them every step)."""
+    of an :class:`Observer`: what the rules read every cycle (the statistics, ``lat_used``,
+    ``sigma_y``, ``lead``) the joint filter writes here every step; the estimate and the
+    innovations (the log's, and ŷ for a DEGRADED lane) and what only a finding's message reads
+    (the window means, the outage's length) are read from the joint filter when asked."""
 
-    __slots__ = ("joint", "carrier", "d", "y", "psi", "rate", "nu_lat", "nu_psi", "nu_dw", "T_lat", "T_psi",
-                 "T_dw", "lat_used", "mean_lat", "mean_dw", "degraded", "outage", "sigma_y", "window_full",
-                 "started", "lead")
+    __slots__ = ("joint", "carrier", "d", "T_lat", "T_psi", "T_dw", "lat_used", "degraded", "sigma_y",
+                 "window_full", "started", "lead", "_o", "_m")
 
     def __init__(self, joint: "JointObserver", carrier: str):
         self.joint = joint
         self.carrier = carrier
         self.d = joint.d.part(carrier)
-        self.y = self.psi = self.rate = 0.0
-        self.nu_lat = self.nu_psi = self.nu_dw = 0.0
+        self._o = 0 if carrier == "front" else 3      # its first state in the joint filter's x
+        self._m = 0 if carrier == "front" else 1      # its lateral laser's innovation (ψ: +2, Δω: +4)
         self.T_lat = self.T_psi = self.T_dw = 0.0
-        self.mean_lat = self.mean_dw = 0.0
         self.lat_used = 0.0
         self.degraded = 0.0
-        self.outage = 0
         self.sigma_y = 0.0
         self.window_full = False
         self.started = False
@@ -516,6 +519,48 @@ class CarrierView:
         #: (a laser out: each statistic on its own; the rules then judge in their order)
         self.lead: Optional[str] = None
 
+    @property
+    def y(self) -> float:
+        return self.joint.x[self._o]
+
+    @property
+    def psi(self) -> float:
+        return self.joint.x[self._o + 1]
+
+    @property
+    def rate(self) -> float:
+        return self.joint.x[self._o + 2]
+
+    @property
+    def nu_lat(self) -> float:
+        """Its lateral laser's innovation (NaN when the step did not use that laser)."""
+        j = self.joint
+        return j._raw[self._m][j._i - 1] if self.lat_used else math.nan
+
+    @property
+    def nu_psi(self) -> float:
+        j = self.joint
+        return j._raw[self._m + 2][j._i - 1]
+
+    @property
+    def nu_dw(self) -> float:
+        j = self.joint
+        return j._raw[self._m + 4][j._i - 1]
+
+    @property
+    def mean_lat(self) -> float:
+        """The window mean of its lateral laser's innovation (m; read once the window is full)."""
+        return self.joint._rsum[self._m] * (1.0 / self.joint._N)
+
+    @property
+    def mean_dw(self) -> float:
+        """The window mean of its Δω innovation (rad/s; read once the window is full)."""
+        return self.joint._rsum[self._m + 4] * (1.0 / self.joint._N)
+
+    @property
+    def outage(self) -> int:
+        return self.joint.outage
+
     def select(self, v: float) -> None:
         self.joint.select(v)
 
@@ -523,8 +568,26 @@ class CarrierView:
         self.joint.reset()
 
     def log_values(self) -> tuple[float, ...]:
-        return (self.y, self.psi, self.rate, self.nu_lat, self.nu_psi, self.nu_dw,
+        j, o, m = self.joint, self._o, self._m
+        x, q, i = j.x, j._raw, j._i - 1          # the latest innovations: the window's newest samples
+        return (x[o], x[o + 1], x[o + 2], q[m][i] if self.lat_used else math.nan, q[m + 2][i], q[m + 4][i],
                 self.T_lat, self.T_psi, self.T_dw, self.lat_used, self.degraded, self.sigma_y)
+
+
+def _joint_plan(d: JointDesign) -> tuple:
+    """What the step reads of a design, resolved once per design (not per cycle): the held
+    model's entries the step uses (the yaw rows' structural zeros left out, JointDesign), the
+    laser rows, b0, each carrier's Δω row — one flat tuple the step unpacks —, the gain sets,
+    the bias test's weights, each set's inverse innovation standard deviations, the outage
+    tables and the yaw models."""
+    A, Bu, BF, c = d.A, d.Bu, d.BF, d.c
+    (ff, fr), (rf, rr) = d.laser_rows
+    model = ((ff, fr, rf, rr, d.b0)
+             + tuple(A[k] for k in (0, 1, 2, 3, 4, 5, 7, 8, 13, 14, 18, 19, 20, 21, 22, 23, 28, 29, 34, 35))
+             + tuple(Bu[k] for k in (0, 1, 2, 4, 6, 7, 9, 11)) + (BF[0], BF[1], BF[6], BF[7]) + c
+             + d.front.dw_row + d.rear.dw_row)
+    inv = tuple(tuple(1.0 / math.sqrt(s) for s in S) for S in d.S)
+    return d, model, d.K, d.isolation, inv, d.sigma_y, d.front.yaw, d.rear.yaw
 
 
 class JointObserver:
@@ -542,24 +605,29 @@ class JointObserver:
         self._N = N
         self._raw = [[0.0] * N for _ in JOINT_MEASUREMENTS]     # the innovations themselves
         self._rsum = [0.0] * 6
-        self._rsum1 = [0.0] * 6                  # Σ k ν_k over the window (k = 0 oldest … N−1)
-        self.lead = -1                           # the measurement the drift/bias test names (-1: none)
+        #: Σ k ν_k over the window (k = 0 oldest … N−1): what the drift test needs besides the
+        #: sums; kept by a running update only while the drift test runs (``_kept``), summed
+        #: afresh over the window when it starts (the bias test's gate opens)
+        self._rsum1 = [0.0] * 6
+        self._kept = False
+        self._quiet = False                      # _calm has nothing to undo
+        self._ks = tuple(float(k) for k in range(N))
+        self.lead = -1                           # the measurement the drift test names (-1: none)
         self._lead_key = -1                      # its group (both lateral lasers: 0) and for how long
         self._lead_n = 0
         self._nfull = 0                          # cycles of the window on all lasers
         self._i = self._n = 0
-        self.T = [0.0] * 6
-        self.nu = [0.0] * 6
-        self._inv = tuple(tuple(1.0 / math.sqrt(s) for s in S) for S in design.S)
+        self._N_inv = 1.0 / N
         self._ys_f, self._ys_r = _YawState(), _YawState()
         self.front = CarrierView(self, "front")
         self.rear = CarrierView(self, "rear")
+        self._plan = _joint_plan(design)
         t = design.table
         self._fw = self._bw = None
+        self._lo = self._hi = 0.0                # the current grid point's speeds (select: nothing to do)
         if t is not None:
-            self._fw = t.forward
-            self._bw = t.backward
-            self._invs = {id(e): tuple(tuple(1.0 / math.sqrt(s) for s in S) for S in e.S) for e in t.forward + t.backward}
+            self._fw = tuple(_joint_plan(e) for e in t.forward)
+            self._bw = tuple(_joint_plan(e) for e in t.backward)
             self._lref, self._ilr = math.log(t.v_ref), 1.0 / math.log(t.ratio)
             self._klo, self._khi = t.k_lo, t.k_hi
 
@@ -567,16 +635,24 @@ class JointObserver:
         return self.front if carrier == "front" else self.rear
 
     def select(self, v: float) -> None:
-        """The design of the grid speed nearest ``v`` (as :meth:`Observer.select`)."""
+        """The design of the grid speed nearest ``v`` (as :meth:`Observer.select`); nothing to
+        compute while v stays strictly inside the current grid point's interval."""
+        if self._lo < v < self._hi:
+            return
         fw = self._fw
         if fw is None or v == 0.0 or v != v:
             return
         k = round((math.log(v if v > 0.0 else -v) - self._lref) * self._ilr)
         k = self._klo if k < self._klo else self._khi if k > self._khi else k
-        e = (fw if v > 0.0 else self._bw)[k - self._klo]
+        p = (fw if v > 0.0 else self._bw)[k - self._klo]
+        # the speeds that round to k (a hair inside: at the boundary itself the rounding decides)
+        lo = 0.0 if k == self._klo else math.exp(self._lref + (k - 0.5) / self._ilr) * (1.0 + 1e-9)
+        hi = math.inf if k == self._khi else math.exp(self._lref + (k + 0.5) / self._ilr) * (1.0 - 1e-9)
+        self._lo, self._hi = (lo, hi) if v > 0.0 else (-hi, -lo)
+        e = p[0]
         if e is not self.d:
             self.d = e
-            self._inv = self._invs[id(e)]
+            self._plan = p
             self.front.d, self.rear.d = e.front, e.rear
 
     def reset(self) -> None:
@@ -585,42 +661,59 @@ class JointObserver:
             for k in range(self._N):
                 r[k] = 0.0
         for k in range(6):
-            self._rsum[k] = self._rsum1[k] = self.T[k] = 0.0
+            self._rsum[k] = self._rsum1[k] = 0.0
+        f, r = self.front, self.rear
+        f.T_lat = r.T_lat = f.T_psi = r.T_psi = f.T_dw = r.T_dw = 0.0
+        self._kept = self._quiet = False
         self.lead = self._lead_key = -1
         self._lead_n = 0
         self._nfull = 0
         self._i = self._n = 0
         self.outage = 0
         self.set = 0
+        self.front.window_full = self.rear.window_full = False
+
+    def _start(self, b_f: float, b_r: float, ok_f: bool, ok_r: bool, psi_f: float, psi_r: float,
+               u_f: float, u_r: float) -> None:
+        """The first cycle: the estimate starts on the measurements."""
+        self.started = True
+        d, x = self.d, self.x
+        (ff, fr), (rf, rr) = d.laser_rows
+        zf, zr = b_f - d.b0, b_r - d.b0
+        det = ff * rr - fr * rf
+        if ok_f and ok_r:
+            x[0], x[3] = (rr * zf - fr * zr) / det, (ff * zr - rf * zf) / det
+        else:
+            x[0] = x[3] = 0.0
+        x[1], x[4] = psi_f, psi_r
+        x[2] = x[5] = 0.0
+        self._ys_f.start(psi_f, u_f)
+        self._ys_r.start(psi_r, u_r)
+        self.set = (0 if ok_f else 2) + (0 if ok_r else 1)
+        f, r = self.front, self.rear
+        f.started = r.started = True
+        f.lat_used = 1.0 if ok_f else 0.0
+        r.lat_used = 1.0 if ok_r else 0.0
+        f.sigma_y, r.sigma_y = (t[0] for t in d.sigma_y[self.set])
+        if self.lead < 0:
+            f.lead = r.lead = None
 
     def step(self, b_f: float, b_r: float, ok_f: bool, ok_r: bool, psi_f: float, psi_r: float,
              dw_f: float, dw_r: float, u_f: float, u_r: float, F_f: float = 0.0, F_r: float = 0.0) -> None:
         """One cycle: the lateral lasers' readings (m; used only where ``ok_*``), each carrier's
         measured ψ and Δω, the currents held since the last cycle and the measured lateral
-        forces (N, 0: none)."""
-        d = self.d
-        (ff, fr), (rf, rr) = d.laser_rows
-        zf, zr = b_f - d.b0, b_r - d.b0
-        x = self.x
-        if not self.started:                    # first cycle: start on the measurements
-            self.started = True
-            det = ff * rr - fr * rf
-            if ok_f and ok_r:
-                x[0], x[3] = (rr * zf - fr * zr) / det, (ff * zr - rf * zf) / det
-            else:
-                x[0] = x[3] = 0.0
-            x[1], x[4] = psi_f, psi_r
-            x[2] = x[5] = 0.0
-            self._ys_f.start(psi_f, u_f)
-            self._ys_r.start(psi_r, u_r)
-            f, r = self.front, self.rear
-            f.started = r.started = True
-            self._publish(ok_f, ok_r)
+        forces (N, 0: none). Predict, correct, the health window and the views, in one pass on
+        locals (the design's numbers resolved once per design: ``_joint_plan``)."""
+        if not self.started:
+            self._start(b_f, b_r, ok_f, ok_r, psi_f, psi_r, u_f, u_r)
             return
-        A, Bu, BF, c = d.A, d.Bu, d.BF, d.c
+        d, model, Ks, W, invs, sigmas, ymf, ymr = self._plan
+        (ff, fr, rf, rr, b0, A0, A1, A2, A3, A4, A5, A7, A8, A13, A14, A18, A19, A20, A21, A22, A23, A28, A29,
+         A34, A35, B0, B1, B2, B4, B6, B7, B9, B11, F0, F1, F6, F7, c0, c1, c2, c3, c4, c5,
+         gf0, gf1, gf2, gr0, gr1, gr2) = model
+        x = self.x
         x0, x1, x2, x3, x4, x5 = x
         # the hysteresis and damping law of each carrier: known inputs from the estimate
-        ymf, ymr = d.front.yaw, d.rear.yaw
         ef, er, kf, kr = u_f, u_r, 1.0, 1.0
         if ymf is not None:
             hf, kf = self._ys_f.inputs(ymf, x1, u_f)
@@ -630,109 +723,168 @@ class JointObserver:
             er = u_r + hr
         # predict: the yaw rows depend on their own carrier's ψ, ψ̇ and u only (the design's
         # block structure, exact zeros elsewhere: JointDesign)
-        p0 = (A[0] * x0 + A[1] * x1 + A[2] * x2 + A[3] * x3 + A[4] * x4 + A[5] * x5
-              + Bu[0] * ef + Bu[1] * er + BF[0] * F_f + BF[1] * F_r + c[0])
-        p1 = A[7] * x1 + A[8] * x2 + Bu[2] * ef + c[1]
-        p2 = (A[13] * x1 + A[14] * x2 + Bu[4] * ef + c[2]) * kf
-        p3 = (A[18] * x0 + A[19] * x1 + A[20] * x2 + A[21] * x3 + A[22] * x4 + A[23] * x5
-              + Bu[6] * ef + Bu[7] * er + BF[6] * F_f + BF[7] * F_r + c[3])
-        p4 = A[28] * x4 + A[29] * x5 + Bu[9] * er + c[4]
-        p5 = (A[34] * x4 + A[35] * x5 + Bu[11] * er + c[5]) * kr
-        gf, gr = d.front.dw_row, d.rear.dw_row
+        p0 = (A0 * x0 + A1 * x1 + A2 * x2 + A3 * x3 + A4 * x4 + A5 * x5
+              + B0 * ef + B1 * er + F0 * F_f + F1 * F_r + c0)
+        p1 = A7 * x1 + A8 * x2 + B2 * ef + c1
+        p2 = (A13 * x1 + A14 * x2 + B4 * ef + c2) * kf
+        p3 = (A18 * x0 + A19 * x1 + A20 * x2 + A21 * x3 + A22 * x4 + A23 * x5
+              + B6 * ef + B7 * er + F6 * F_f + F7 * F_r + c3)
+        p4 = A28 * x4 + A29 * x5 + B9 * er + c4
+        p5 = (A34 * x4 + A35 * x5 + B11 * er + c5) * kr
         s = (0 if ok_f else 2) + (0 if ok_r else 1)
-        n0 = zf - (ff * p0 + fr * p3) if ok_f else 0.0
-        n1 = zr - (rf * p0 + rr * p3) if ok_r else 0.0
+        n0 = (b_f - b0) - (ff * p0 + fr * p3) if ok_f else 0.0
+        n1 = (b_r - b0) - (rf * p0 + rr * p3) if ok_r else 0.0
         n2 = psi_f - p1
         n3 = psi_r - p4
-        n4 = dw_f - (gf[0] * p0 + gf[1] * p2 + gf[2] * u_f)
-        n5 = dw_r - (gr[0] * p3 + gr[1] * p5 + gr[2] * u_r)
-        nu = self.nu
-        nu[0], nu[1], nu[2], nu[3], nu[4], nu[5] = n0, n1, n2, n3, n4, n5
-        K = d.K[s]
-        x[0] = p0 + K[0] * n0 + K[1] * n1 + K[2] * n2 + K[3] * n3 + K[4] * n4 + K[5] * n5
-        x[1] = p1 + K[6] * n0 + K[7] * n1 + K[8] * n2 + K[9] * n3 + K[10] * n4 + K[11] * n5
-        x[2] = p2 + K[12] * n0 + K[13] * n1 + K[14] * n2 + K[15] * n3 + K[16] * n4 + K[17] * n5
-        x[3] = p3 + K[18] * n0 + K[19] * n1 + K[20] * n2 + K[21] * n3 + K[22] * n4 + K[23] * n5
-        x[4] = p4 + K[24] * n0 + K[25] * n1 + K[26] * n2 + K[27] * n3 + K[28] * n4 + K[29] * n5
-        x[5] = p5 + K[30] * n0 + K[31] * n1 + K[32] * n2 + K[33] * n3 + K[34] * n4 + K[35] * n5
-        if ymf is not None:                     # ẑ follows ψ̂ past the dead band
-            self._ys_f.follow(ymf, x[1] - x1)
-        if ymr is not None:
-            self._ys_r.follow(ymr, x[4] - x4)
+        n4 = dw_f - (gf0 * p0 + gf1 * p2 + gf2 * u_f)
+        n5 = dw_r - (gr0 * p3 + gr1 * p5 + gr2 * u_r)
+        (k0, k1, k2, k3, k4, k5,
+         k6, k7, k8, k9, k10, k11,
+         k12, k13, k14, k15, k16, k17,
+         k18, k19, k20, k21, k22, k23,
+         k24, k25, k26, k27, k28, k29,
+         k30, k31, k32, k33, k34, k35) = Ks[s]
+        x[0] = p0 + k0 * n0 + k1 * n1 + k2 * n2 + k3 * n3 + k4 * n4 + k5 * n5
+        x[1] = p1 + k6 * n0 + k7 * n1 + k8 * n2 + k9 * n3 + k10 * n4 + k11 * n5
+        x[2] = p2 + k12 * n0 + k13 * n1 + k14 * n2 + k15 * n3 + k16 * n4 + k17 * n5
+        x[3] = p3 + k18 * n0 + k19 * n1 + k20 * n2 + k21 * n3 + k22 * n4 + k23 * n5
+        x[4] = p4 + k24 * n0 + k25 * n1 + k26 * n2 + k27 * n3 + k28 * n4 + k29 * n5
+        x[5] = p5 + k30 * n0 + k31 * n1 + k32 * n2 + k33 * n3 + k34 * n4 + k35 * n5
         self.set = s
-        self.outage = 0 if s == 0 else self.outage + 1
-        self._window(s)
-        self._publish(ok_f, ok_r)
-
-    def _window(self, s: int) -> None:
-        i, N, nu = self._i, self._N, self.nu
-        rs, r1 = self._rsum, self._rsum1
+        k = self.outage = 0 if s == 0 else self.outage + 1
+        # the health window: the sums over the last N innovations of each measurement
+        i, N = self._i, self._N
         q0, q1, q2, q3, q4, q5 = self._raw
-        # the time-weighted sums first (from the sums before this cycle): every sample's k drops by 1
-        m = N - 1
-        r1[0] += m * nu[0] - rs[0] + q0[i]
-        r1[1] += m * nu[1] - rs[1] + q1[i]
-        r1[2] += m * nu[2] - rs[2] + q2[i]
-        r1[3] += m * nu[3] - rs[3] + q3[i]
-        r1[4] += m * nu[4] - rs[4] + q4[i]
-        r1[5] += m * nu[5] - rs[5] + q5[i]
-        rs[0] += nu[0] - q0[i]
-        rs[1] += nu[1] - q1[i]
-        rs[2] += nu[2] - q2[i]
-        rs[3] += nu[3] - q3[i]
-        rs[4] += nu[4] - q4[i]
-        rs[5] += nu[5] - q5[i]
-        q0[i], q1[i], q2[i], q3[i], q4[i], q5[i] = nu
-        self._nfull = self._nfull + 1 if s == 0 else 0
+        o0, o1, o2, o3, o4, o5 = q0[i], q1[i], q2[i], q3[i], q4[i], q5[i]
+        rs = self._rsum
+        if self._kept:                          # the time-weighted sums: every sample's k drops by 1
+            r1, m = self._rsum1, N - 1
+            r1[0] += m * n0 - rs[0] + o0
+            r1[1] += m * n1 - rs[1] + o1
+            r1[2] += m * n2 - rs[2] + o2
+            r1[3] += m * n3 - rs[3] + o3
+            r1[4] += m * n4 - rs[4] + o4
+            r1[5] += m * n5 - rs[5] + o5
+        rs[0] = a0 = rs[0] + (n0 - o0)
+        rs[1] = a1 = rs[1] + (n1 - o1)
+        rs[2] = a2 = rs[2] + (n2 - o2)
+        rs[3] = a3 = rs[3] + (n3 - o3)
+        rs[4] = a4 = rs[4] + (n4 - o4)
+        rs[5] = a5 = rs[5] + (n5 - o5)
+        q0[i] = n0
+        q1[i] = n1
+        q2[i] = n2
+        q3[i] = n3
+        q4[i] = n4
+        q5[i] = n5
         self._i = i + 1 if i + 1 < N else 0
-        if self._n < N:
-            self._n += 1
-        if self._n == N:
-            invN = 1.0 / N
-            T = self.T
-            W = self.d.isolation
-            if self._nfull >= N and W:
+        nfull = self._nfull = self._nfull + 1 if s == 0 else 0
+        f, r = self.front, self.rear
+        n = self._n
+        if n < N:
+            n = self._n = n + 1
+            if n == N:
+                f.window_full = r.window_full = True
+        if n == N:
+            invN = self._N_inv
+            if nfull >= N and W:
                 # the whole window on all lasers: the bias test of each measurement (it tells a
                 # lateral laser from a yaw laser and from the encoders; b_f from b_r it cannot)
-                a0, a1, a2, a3, a4, a5 = rs
-                w0 = W[0] * a0 + W[1] * a1 + W[2] * a2 + W[3] * a3 + W[4] * a4 + W[5] * a5
-                w1 = W[6] * a0 + W[7] * a1 + W[8] * a2 + W[9] * a3 + W[10] * a4 + W[11] * a5
-                w2 = W[12] * a0 + W[13] * a1 + W[14] * a2 + W[15] * a3 + W[16] * a4 + W[17] * a5
-                w3 = W[18] * a0 + W[19] * a1 + W[20] * a2 + W[21] * a3 + W[22] * a4 + W[23] * a5
-                w4 = W[24] * a0 + W[25] * a1 + W[26] * a2 + W[27] * a3 + W[28] * a4 + W[29] * a5
-                w5 = W[30] * a0 + W[31] * a1 + W[32] * a2 + W[33] * a3 + W[34] * a4 + W[35] * a5
-                T[0], T[1], T[2] = w0 * w0 * invN, w1 * w1 * invN, w2 * w2 * invN
-                T[3], T[4], T[5] = w3 * w3 * invN, w4 * w4 * invN, w5 * w5 * invN
-                mx = max(T)
-                j = T.index(mx)
-                if mx > DRIFT_GATE and self.d.drift:
-                    self._drift_test(T)
-                    mx = max(T)
-                    j = T.index(mx)
-                    key = 0 if j < 2 else j        # counted only past the gate, where something is found
-                    if key == self._lead_key:
-                        self._lead_n += 1
-                    else:
-                        self._lead_key, self._lead_n = key, 1
-                else:
-                    self._lead_key, self._lead_n = -1, 0
-                self.lead = j
+                (v0, v1, v2, v3, v4, v5,
+                 v6, v7, v8, v9, v10, v11,
+                 v12, v13, v14, v15, v16, v17,
+                 v18, v19, v20, v21, v22, v23,
+                 v24, v25, v26, v27, v28, v29,
+                 v30, v31, v32, v33, v34, v35) = W
+                w0 = v0 * a0 + v1 * a1 + v2 * a2 + v3 * a3 + v4 * a4 + v5 * a5
+                w1 = v6 * a0 + v7 * a1 + v8 * a2 + v9 * a3 + v10 * a4 + v11 * a5
+                w2 = v12 * a0 + v13 * a1 + v14 * a2 + v15 * a3 + v16 * a4 + v17 * a5
+                w3 = v18 * a0 + v19 * a1 + v20 * a2 + v21 * a3 + v22 * a4 + v23 * a5
+                w4 = v24 * a0 + v25 * a1 + v26 * a2 + v27 * a3 + v28 * a4 + v29 * a5
+                w5 = v30 * a0 + v31 * a1 + v32 * a2 + v33 * a3 + v34 * a4 + v35 * a5
+                f.T_lat = t0 = w0 * w0 * invN
+                r.T_lat = t1 = w1 * w1 * invN
+                f.T_psi = t2 = w2 * w2 * invN
+                r.T_psi = t3 = w3 * w3 * invN
+                f.T_dw = t4 = w4 * w4 * invN
+                r.T_dw = t5 = w5 * w5 * invN
+                if max(t0, t1, t2, t3, t4, t5) > DRIFT_GATE and d.drift:
+                    self._drift(f, r)
+                elif not self._quiet:            # nothing found (and nothing to undo once quiet)
+                    self._calm(f, r)
             else:                                # a laser out: each measurement's own statistic
-                inv = self._inv[s]                   # (normalised by this set's variances)
-                for j in range(6):
-                    z = rs[j] * inv[j]
-                    T[j] = z * z * invN
-                self.lead = self._lead_key = -1
-                self._lead_n = 0
+                i0, i1, i2, i3, i4, i5 = invs[s]    # (normalised by this set's variances)
+                a0, a1, a2, a3, a4, a5 = a0 * i0, a1 * i1, a2 * i2, a3 * i3, a4 * i4, a5 * i5
+                f.T_lat, r.T_lat = a0 * a0 * invN, a1 * a1 * invN
+                f.T_psi, r.T_psi = a2 * a2 * invN, a3 * a3 * invN
+                f.T_dw, r.T_dw = a4 * a4 * invN, a5 * a5 * invN
+                self._calm(f, r)
+                self._quiet = False
+                f.lead = r.lead = None
+        f.lat_used = 1.0 if ok_f else 0.0
+        r.lat_used = 1.0 if ok_r else 0.0
+        tf, tr = sigmas[s]
+        if k:
+            f.sigma_y = tf[k] if k < len(tf) else tf[-1]
+            r.sigma_y = tr[k] if k < len(tr) else tr[-1]
+        else:
+            f.sigma_y, r.sigma_y = tf[0], tr[0]
 
-    def _drift_test(self, T: list) -> None:
-        """The drift test of every measurement (``JointDesign.drift``) into ``T``: a bias that
+    def _calm(self, f: CarrierView, r: CarrierView) -> None:
+        """The bias test names nothing: the drift test's state dropped, the views' lead "" (the
+        bias test decides, and names nothing)."""
+        self._kept = False
+        self.lead = self._lead_key = -1
+        self._lead_n = 0
+        f.lead = r.lead = ""
+        self._quiet = True
+
+    def _drift(self, f: CarrierView, r: CarrierView) -> None:
+        """The bias test passed its gate: the drift test's statistics published instead, and
+        the measurement they name (once the same one has led for ``LEAD_CONFIRM`` cycles)."""
+        if not self._kept:                       # the time-weighted sums, over the window as stored
+            i, ks, r1 = self._i, self._ks, self._rsum1
+            for j, q in enumerate(self._raw):
+                r1[j] = sum(map(operator.mul, q[i:] + q[:i], ks))
+            self._kept = True
+        self._quiet = False
+        T = self._drift_test()
+        f.T_lat, r.T_lat, f.T_psi, r.T_psi, f.T_dw, r.T_dw = T
+        j = T.index(max(T))
+        key = 0 if j < 2 else j                  # counted only past the gate, where something is found
+        if key == self._lead_key:
+            self._lead_n += 1
+        else:
+            self._lead_key, self._lead_n = key, 1
+        self.lead = j
+        if self._lead_n < LEAD_CONFIRM:
+            f.lead = r.lead = ""                  # not yet confirmed: no carrier's rule names it
+        else:
+            car, kind = JOINT_LEAD[j]
+            f.lead, r.lead = (kind, "") if car == "front" else ("", kind)
+
+    @property
+    def nu(self) -> list[float]:
+        """The latest innovation of each measurement (``JOINT_MEASUREMENTS`` order; 0 for a laser
+        not used): the window's newest samples."""
+        i = self._i - 1
+        return [q[i] for q in self._raw]
+
+    @property
+    def T(self) -> list[float]:
+        """The published statistic of each measurement (``JOINT_MEASUREMENTS`` order)."""
+        f, r = self.front, self.rear
+        return [f.T_lat, r.T_lat, f.T_psi, r.T_psi, f.T_dw, r.T_dw]
+
+    def _drift_test(self) -> list[float]:
+        """The drift test's statistic of every measurement (``JointDesign.drift``): a bias that
         grows over the window, as a drifting laser's does, is named by the measurement whose
         drift explains the innovations best (the bias test cannot tell a lateral laser's ramp
         from a yaw pair's bias: its lag term)."""
         D, s0, s1 = self.d.drift, self._rsum, self._rsum1
         a0, a1, a2, a3, a4, a5 = s0
         b0, b1, b2, b3, b4, b5 = s1
+        T = [0.0] * 6
         for j in range(6):
             o = 15 * j
             u0, u1, u2, u3, u4, u5, l0, l1, l2, l3, l4, l5, i11, i12, i22 = D[o:o + 15]
@@ -740,40 +892,7 @@ class JointObserver:
             z2 = (u0 * b0 + u1 * b1 + u2 * b2 + u3 * b3 + u4 * b4 + u5 * b5
                   + l0 * a0 + l1 * a1 + l2 * a2 + l3 * a3 + l4 * a4 + l5 * a5)
             T[j] = i11 * z1 * z1 + 2.0 * i12 * z1 * z2 + i22 * z2 * z2
-
-    def _publish(self, ok_f: bool, ok_r: bool) -> None:
-        """Write each carrier's view (its own laser's statistic as its lateral one; the window
-        means only once the window is full, where the supervisor reads them)."""
-        x, T, nu, d, k = self.x, self.T, self.nu, self.d, self.outage
-        full = self._n == self._N
-        sig = d.sigma_y[self.set]
-        f, r = self.front, self.rear
-        f.y, f.psi, f.rate, r.y, r.psi, r.rate = x
-        f.nu_lat = nu[0] if ok_f else math.nan
-        r.nu_lat = nu[1] if ok_r else math.nan
-        f.nu_psi, r.nu_psi, f.nu_dw, r.nu_dw = nu[2], nu[3], nu[4], nu[5]
-        f.T_lat, r.T_lat, f.T_psi, r.T_psi, f.T_dw, r.T_dw = T
-        j = self.lead
-        if j < 0:
-            f.lead = r.lead = None
-        elif self._lead_n < LEAD_CONFIRM:
-            f.lead = r.lead = ""                  # not yet confirmed: no carrier's rule names it
-        else:
-            car, kind = JOINT_LEAD[j]
-            f.lead, r.lead = (kind, "") if car == "front" else ("", kind)
-        f.lat_used = 1.0 if ok_f else 0.0
-        r.lat_used = 1.0 if ok_r else 0.0
-        f.outage = r.outage = k
-        tf, tr = sig
-        f.sigma_y = tf[k] if k < len(tf) else tf[-1]
-        r.sigma_y = tr[k] if k < len(tr) else tr[-1]
-        if full:
-            rs, invN = self._rsum, 1.0 / self._N
-            f.window_full = r.window_full = True
-            f.mean_lat, r.mean_lat = rs[0] * invN, rs[1] * invN     # the window means (m, rad/s)
-            f.mean_dw, r.mean_dw = rs[4] * invN, rs[5] * invN
-        else:
-            f.window_full = r.window_full = False
+        return T
 
 
 def make_observers(designs) -> dict:

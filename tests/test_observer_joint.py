@@ -120,6 +120,27 @@ def test_select_swaps_the_design_and_the_views_parts(vcfg):
     assert o.d is kept
 
 
+def test_select_keeps_the_nearest_grid_speed_along_a_speed_profile(vcfg):
+    """Select skips its computation while v stays inside the current grid point's interval:
+    along a speed profile (reversals through 0, the grid's ends, its boundaries ± rounding) it
+    picks the design a fresh observer picks for the same v."""
+    j = od.joint_speed_table(vcfg)
+    t = j.table
+    o = JointObserver(j)
+    rng = np.random.default_rng(5)
+    bounds = [t.v_ref * t.ratio ** (k + 0.5) for k in range(t.k_lo - 1, t.k_hi + 1)]
+    speeds = list(np.linspace(-2.0, 2.0, 801)) + [s * b * (1 + e) for b in bounds for s in (1, -1)
+                                                   for e in (-1e-12, 0.0, 1e-12)]
+    speeds += list(rng.uniform(-1.6, 1.6, 500)) + [0.0, math.nan, 1e-4, -1e-4, 5.0, -5.0]
+    fresh = JointObserver(j)
+    for v in speeds + speeds[::-1]:
+        o.select(float(v))
+        fresh.d, fresh._lo, fresh._hi = None, 0.0, 0.0     # nothing kept: the design for this v alone
+        fresh.select(float(v))
+        if fresh.d is not None:
+            assert o.d is fresh.d, v
+
+
 @pytest.mark.parametrize("j", range(6))
 def test_the_bias_test_names_the_biased_measurement(joint, vcfg, j):
     """A constant bias on one measurement of a still vehicle: once the window is on it, the
@@ -205,15 +226,22 @@ def test_the_drift_test_names_the_drifting_measurement(joint, vcfg, j):
 
 
 def test_the_time_weighted_window_sums_are_the_windows(joint, vcfg):
-    """The drift test's Σ k ν_k (k = 0 for the oldest sample), kept by a running update, equals
-    the sum over the window's innovations as stored."""
+    """The drift test's Σ k ν_k (k = 0 for the oldest sample): summed over the window when the
+    bias test's gate opens, then kept by a running update while the drift test runs — equal to
+    the sum over the window's innovations as stored; below the gate it is not kept at all."""
     g = vcfg.geometry
     o = JointObserver(joint)
     rng = np.random.default_rng(3)
-    for k in range(joint.window + 57):
+    k0, kept = joint.window + 20, []
+    for k in range(joint.window + 157):
         o.step(g.b0 + 1e-6 * rng.standard_normal(), g.b0 + 1e-6 * rng.standard_normal(), True, True,
-               1e-5 * rng.standard_normal(), 1e-5 * rng.standard_normal(), 0.003 * rng.standard_normal(),
+               1e-5 * rng.standard_normal() + (2e-6 * (k - k0) if k > k0 else 0.0),   # ψ_f drifts
+               1e-5 * rng.standard_normal(), 0.003 * rng.standard_normal(),
                0.003 * rng.standard_normal(), 0.0, 0.0)
+        if k == k0:
+            assert o._n == joint.window and not o._kept     # nothing found: the drift test has nothing to do
+        kept.append(o._kept)
+    assert all(kept[-20:])                        # the gate opened 20 cycles ago or more, the sums kept since
     N, i = joint.window, o._i                     # o._i: the oldest sample's slot
     for m in range(6):
         ring = o._raw[m]

@@ -80,8 +80,10 @@ def test_the_step_feeds_the_hysteresis_as_an_equivalent_current(cfg):
     gu = d.dw_row[2]
     assert on.nu_psi == pytest.approx(off.nu_psi, rel=1e-12)
     assert on.nu_dw == pytest.approx(off.nu_dw + gu * d.yaw.gain * 1e-3, rel=1e-9)
-    # ẑ follows ψ̂ by the map
-    assert on._ys.z == pytest.approx(zmap(1e-3, on.psi - 2e-3, bw.A, bw.beta, bw.gamma), rel=1e-12)
+    # ẑ follows ψ̂ by the map, at the next prediction (over ψ̂'s change in the step before it)
+    psi1 = on.psi
+    on.step(1e-4, 2.1e-3, 0.01, 0.3, 0.0, True)
+    assert on._ys.z == pytest.approx(zmap(1e-3, psi1 - 2e-3, bw.A, bw.beta, bw.gamma), rel=1e-12)
 
 
 def test_off_or_without_hysteresis_the_model_is_linear(cfg):
@@ -109,10 +111,12 @@ def test_the_measurement_jitter_does_not_move_the_bouc_wen_state(cfg):
     assert m.dead > 0.0
     ys = _YawState()
     ys.start(4e-3, 0.0)
-    for k in range(200):
-        ys.follow(m, (0.9 if k % 2 == 0 else -0.9) * m.dead)
+    psi = 4e-3
+    for k in range(200):                          # each prediction's ψ̂: ẑ follows its change first
+        psi += (0.9 if k % 2 == 0 else -0.9) * m.dead
+        ys.inputs(m, psi, 0.0)
     assert ys.z == 4e-3
-    ys.follow(m, -0.9 * m.dead)                   # the accumulated −0.9 dead stays below it (net −0.9: no move)
-    ys.follow(m, -0.2 * m.dead)                   # past it: the map over the accumulated −1.1 dead
+    ys.inputs(m, psi - 0.9 * m.dead, 0.0)         # the accumulated −0.9 dead stays below it (net −0.9: no move)
+    ys.inputs(m, psi - 1.1 * m.dead, 0.0)         # past it: the map over the accumulated −1.1 dead
     assert ys.z == pytest.approx(zmap(4e-3, -1.1 * m.dead, m.A, m.beta, m.gamma), rel=1e-9)
     assert ys.acc == 0.0

@@ -13,7 +13,9 @@ fixed yaw-and-Δω gains run from the full filter's steady state). With a speed 
 the lane picks the nearest grid point of v̂ each cycle); without one it is the single design at
 ``plant.v``. With both carriers controlled, one joint design for the running gear instead
 (:func:`joint_design`, :func:`joint_speed_table`). The result is plain floats (:class:`rig_runtime.observer.ObserverDesign`): the cycle's
-module imports neither this module nor numpy/scipy.
+module imports neither this module nor numpy/scipy. The designs of a speed grid are kept in this process's
+memory (:func:`cached_designs`); across processes ``app/runner.py`` keeps what a run
+needs on disk (``rig_runtime.memo.across_processes``).
 """
 
 from __future__ import annotations
@@ -21,10 +23,9 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import numpy as np
-from scipy.linalg import expm, solve_discrete_are
 
 from ..config import Observer as ObserverConfig
 from ..config import Geometry, Plant, RigConfig
@@ -108,6 +109,7 @@ def discretise(A: np.ndarray, Bc: np.ndarray, Qc: np.ndarray, h: float) -> tuple
     n, m = A.shape[0], Bc.shape[1]
     M = np.zeros((n + m, n + m))
     M[:n, :n], M[:n, n:] = A, Bc
+    from scipy.linalg import expm
     E = expm(M * h)
     V = expm(np.block([[-A, Qc], [np.zeros((n, n)), A.T]]) * h)
     Ad = E[:n, :n]
@@ -119,6 +121,7 @@ def steady_state(Ad: np.ndarray, C: np.ndarray, Qd: np.ndarray, R: np.ndarray) -
     """Steady-state Kalman gain K, innovation covariance S and predictor covariance P (SI)
     of the discrete Riccati equation (solved in mm/mrad units for conditioning)."""
     s2 = _SCALE ** 2
+    from scipy.linalg import solve_discrete_are
     P = solve_discrete_are(Ad.T, C.T, Qd * s2, R * s2)
     S = C @ P @ C.T + R * s2
     K = P @ C.T @ np.linalg.inv(S)
@@ -276,11 +279,13 @@ def _design(carrier: str, p: Plant, g: Geometry, o: ObserverConfig, h: float, ou
         ft_sensors=ft_sensors, sigma_y_outage=sig, v=v, yaw=yaw_model(p, D, h, o.yaw_model, math.sqrt(r_psi)))
 
 
-def over_speed_grid(cfg: RigConfig, design):
-    """``design(v)`` over the schedule's speed grid, returned as the design at v_d carrying the
-    table (``table``, a :class:`SpeedTable`): |v_k| = |v_d| ρᵏ (v_d = schedule.v_design or
-    plant.v, ρ = ``SPEED_RATIO``) for both signs, from ``SPEED_FLOOR``·v_min (inside the
-    standstill band) to the largest |v| of v_range."""
+def over_speed_grid(cfg: RigConfig, design: Callable, inputs: tuple):
+    """``design(*inputs, v)`` (a pure function of its arguments: ``_design``, ``_joint``) over the
+    schedule's speed grid, returned as the design at v_d carrying the table (``table``, a
+    :class:`SpeedTable`): |v_k| = |v_d| ρᵏ (v_d = schedule.v_design or plant.v, ρ =
+    ``SPEED_RATIO``) for both signs, from ``SPEED_FLOOR``·v_min (inside the standstill band) to
+    the largest |v| of v_range. The grid's designs are kept per process
+    (:func:`cached_designs`)."""
     sch = cfg.controller.schedule
     v_d = sch.v_design if sch.v_design is not None else cfg.plant.v
     ref = abs(v_d)
@@ -288,8 +293,8 @@ def over_speed_grid(cfg: RigConfig, design):
     k_lo = math.floor(math.log(SPEED_FLOOR * sch.v_min / ref) / lr)
     k_hi = math.ceil(math.log(max(abs(sch.v_range[0]), abs(sch.v_range[1])) / ref) / lr)
     speeds = [ref * SPEED_RATIO ** k for k in range(k_lo, k_hi + 1)]
-    fw = tuple(design(v) for v in speeds)
-    bw = tuple(design(-v) for v in speeds)
+    both = cached_designs(design, inputs, speeds + [-v for v in speeds])
+    fw, bw = both[:len(speeds)], both[len(speeds):]
     base = (fw if v_d > 0 else bw)[-k_lo]
     table = SpeedTable(v_ref=ref, ratio=SPEED_RATIO, k_lo=k_lo, k_hi=k_hi, forward=fw, backward=bw)
     return dataclasses.replace(base, table=table)
@@ -300,8 +305,7 @@ def speed_table(cfg: RigConfig, carrier: str, ocfg: ObserverConfig | None = None
     "vehicle"): |v_k| = |v_d| ρᵏ (v_d = schedule.v_design or plant.v, ρ = ``SPEED_RATIO``) for
     both signs, from ``SPEED_FLOOR``·v_min (inside the standstill band) to the largest |v| of
     v_range; returned as the design at v_d carrying the table (``ObserverDesign.table``)."""
-    inputs = design_inputs(cfg, carrier, ocfg)
-    return over_speed_grid(cfg, lambda v: _design(*inputs._replace(v=v)))
+    return over_speed_grid(cfg, _design, design_inputs(cfg, carrier, ocfg)[:-1])
 
 
 def _ft_sensors(cfg: RigConfig, wheels: tuple[str, str]) -> tuple[str, ...]:
@@ -323,16 +327,23 @@ def designs(cfg: RigConfig) -> dict:
     none): both carriers on the rollers and controlled — the running gear's joint filter
     (each carrier a ``JointCarrier`` of one design; with a speed schedule its table);
     otherwise per carrier, with a schedule the carrier's speed table, else the single design
-    at plant.v."""
+    at plant.v. Every design kept per process (:func:`cached_designs`)."""
     if cfg.observer is None:
         return {}
     if joint_applies(cfg):
         from ..observer import JointCarrier
-        j = joint_speed_table(cfg) if cfg.controller.schedule is not None else joint_design(cfg)
+        if cfg.controller.schedule is not None:
+            j = joint_speed_table(cfg)
+        else:
+            (j,) = cached_designs(_joint, _joint_inputs(cfg, None), [cfg.plant.carrier("rear").v])
         return {c: JointCarrier(c, j) for c in ("front", "rear")}
     if cfg.controller.schedule is not None:
         return {c: speed_table(cfg, c) for c in cfg.controlled}
-    return {c: design(cfg, c) for c in cfg.controlled}
+    out = {}
+    for c in cfg.controlled:
+        i = design_inputs(cfg, c)
+        (out[c],) = cached_designs(_design, i[:-1], [i.v])
+    return out
 
 
 def steady_std(d: ObserverDesign) -> dict[str, float]:
@@ -380,11 +391,15 @@ def _joint_C(g: Geometry, dw_f, dw_r) -> np.ndarray:
 def joint_design(cfg: RigConfig, ocfg: ObserverConfig | None = None, v: float | None = None):
     """The running gear's filter at speed ``v`` (None: plant.v; docs/observer.md, "One filter
     for the running gear"). Memoised like :func:`design`."""
+    return _joint(*_joint_inputs(cfg, ocfg), cfg.plant.carrier("rear").v if v is None else float(v))
+
+
+def _joint_inputs(cfg: RigConfig, ocfg: ObserverConfig | None) -> tuple:
+    """The arguments of :func:`_joint` but the speed, taken from the config."""
     o = ocfg if ocfg is not None else (cfg.observer or ObserverConfig())
-    pf, pr = cfg.plant.carrier("front"), cfg.plant.carrier("rear")
-    return _joint(pf, pr, cfg.geometry, o, cfg.controller.h, cfg.degraded.max_s, cfg.limits.innovation_window,
-                  _ft_sensors(cfg, CARRIER_WHEELS["front"]), _ft_sensors(cfg, CARRIER_WHEELS["rear"]),
-                  pr.v if v is None else float(v))
+    return (cfg.plant.carrier("front"), cfg.plant.carrier("rear"), cfg.geometry, o, cfg.controller.h,
+            cfg.degraded.max_s, cfg.limits.innovation_window,
+            _ft_sensors(cfg, CARRIER_WHEELS["front"]), _ft_sensors(cfg, CARRIER_WHEELS["rear"]))
 
 
 @functools.lru_cache(maxsize=DESIGN_CACHE_SIZE)
@@ -548,4 +563,29 @@ def _outage_sigma_loop(Ad, Qd, P_full, K_full, C, K_nl, C_nl, R_nl, n_max, i) ->
 def joint_speed_table(cfg: RigConfig, ocfg: ObserverConfig | None = None):
     """The joint design over the schedule's speed grid (as :func:`speed_table`), returned as
     the design at v_d carrying the table."""
-    return over_speed_grid(cfg, lambda v: joint_design(cfg, ocfg, v))
+    return over_speed_grid(cfg, _joint, _joint_inputs(cfg, ocfg))
+
+
+# ---------------------------------------------------------------------- the speed grids kept in a process
+#: speed grids kept per process (each ~4 MB for the vehicle), the oldest dropped
+GRIDS_KEPT = 8
+_grids: dict[str, tuple] = {}
+
+
+def cache_key(design: Callable, inputs: tuple, speeds: list[float]) -> str:
+    """The key of ``design(*inputs, v)`` over ``speeds``: every input's exact text (the inputs
+    are frozen dataclasses whose repr shows every field, floats in repr: exact)."""
+    return repr((design.__qualname__, inputs, [float(v) for v in speeds]))
+
+
+def cached_designs(design: Callable, inputs: tuple, speeds: list[float]) -> tuple:
+    """``design(*inputs, v)`` for every v of ``speeds``, kept in this process's memory by their
+    key. Across processes the designs a run needs are kept by ``rig_runtime.memo.across_processes``
+    (``app/runner.py``), the one disk cache of the project."""
+    key = cache_key(design, inputs, speeds)
+    out = _grids.get(key)
+    if out is None:
+        out = _grids[key] = tuple(design(*inputs, v) for v in speeds)
+        while len(_grids) > GRIDS_KEPT:
+            del _grids[next(iter(_grids))]
+    return out
