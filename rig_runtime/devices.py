@@ -244,10 +244,10 @@ class RigDevices:
             r = d.poll(now)
             v = values[role] = r.value_m
             s.value, s.t, s.health = v, r.t, r.health
-        enabled, bus_error_t, bus_cause, torque = rd.enabled, rd.bus_error_t, bus.cause, tuple(torque)
-        # each field from the local of its name, in the fields' order (by keyword it costs three times as much)
-        converters = Converters(ok, cause, enabled, bus_error_t, bus_cause, drives, not_enabled, bus_ok, torque)
-        return Reading(now, samples, values, self._wrench, converters)
+        converters = Converters(ok=ok, cause=cause, enabled=rd.enabled, bus_error_t=rd.bus_error_t,
+                                bus_cause=bus.cause, drives=drives, not_enabled=not_enabled, bus_ok=bus_ok,
+                                torque=tuple(torque))
+        return Reading(t=now, samples=samples, values=values, wrench=self._wrench, converters=converters)
 
     def write(self, currents: Mapping[str, float], now: float) -> None:
         """Each wheel's current (A) by wheel name."""

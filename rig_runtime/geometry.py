@@ -89,8 +89,8 @@ def measure(v: Mapping[str, float], geo: Geometry) -> Measurement:
     y_f, y_r = y_m + lat, y_m - lat
     psi_f, psi_r = psi_af + psi_m, psi_ar + psi_m
     dw_f, dw_r = fl - fr, rl - rr
-    # each field from the local of its name, in the fields' order (by keyword it costs three times as much)
-    return Measurement(y_m, psi_m, y_f, y_r, psi_af, psi_ar, psi_f, psi_r, dw_f, dw_r)
+    return Measurement(y_m=y_m, psi_m=psi_m, y_f=y_f, y_r=y_r, psi_af=psi_af, psi_ar=psi_ar,
+                       psi_f=psi_f, psi_r=psi_r, dw_f=dw_f, dw_r=dw_r)
 
 
 def ideal_readings(pose: Pose, geo: Geometry, s0: float = 0.0375) -> Readings:

@@ -296,7 +296,7 @@ class Supervisor:
             pose_list.append(p)
         self._transitions(t, conv, consecutive_misses)
         st = self.state
-        if st is State.ARMED or st is State.RUNNING or st is State.STOPPING:        # active
+        if self.active:
             system = self._system
             system.t, system.misses, system.conv = t, consecutive_misses, conv
             system.recorder_ok, system.recorder_cause = recorder_ok, recorder_cause

@@ -114,8 +114,7 @@ class Channel:
     ``stale_n`` is ``stale_s`` in periods, set by the supervisor (it knows h)."""
 
     __slots__ = ("name", "kind", "value", "t", "state", "cause", "lo", "hi", "stale_s", "stale_n", "silent",
-                 "step_max", "stuck_check", "same", "delta", "bad", "bad_run", "unanswered", "bad_at_value",
-                 "_health")
+                 "step_max", "stuck_check", "same", "delta", "bad", "bad_run", "unanswered", "bad_at_value")
 
     def __init__(self, name: str, kind: str, lo: float, hi: float, stale_s: float,
                  step_max: float = math.inf, stuck_check: bool = False):
@@ -134,7 +133,6 @@ class Channel:
         self.bad_run = 0        # consecutive cycles with newly discarded data
         self.unanswered = -1    # requests unanswered (-1: free-running, judged by silent cycles)
         self.bad_at_value = 0   # the discarded count when the latest valid value arrived
-        self._health = None     # the Health object last observed (a driver hands out the same while nothing changes)
 
     def periods(self, h: float) -> None:
         """Set ``stale_n`` from ``stale_s`` for the period ``h`` (at least one period)."""
@@ -163,10 +161,6 @@ class Channel:
         self.unanswered = s.unanswered
         if self.stuck_check:
             self.same = self.same + 1 if v == prev else 0
-        if hl is self._health:          # the same report: its state, cause and count as observed
-            self.bad_run = 0            # (no data newly discarded)
-            return
-        self._health = hl
         self.state = hl.state
         self.cause = hl.cause
         b = hl.bad_frames
