@@ -59,6 +59,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 from .damping import damping
+from .hysteresis import zmap
 
 MEASUREMENTS = ("lat", "psi", "dw")       # the filter's measurements, in gain-column order
 LOG_FIELDS = ("y_hat", "psi_hat", "psi_rate_hat", "nu_lat", "nu_psi", "nu_dw",
@@ -96,30 +97,6 @@ class YawModel:
     mid: float           # exp(−h/(2τ)): ρ at mid-period
     h: float
     dead: float = 0.0    # rad: ψ̂'s motion that moves ẑ (its jitter does not)
-
-
-def zmap(z: float, dpsi: float, A: float, beta: float, gamma: float) -> float:
-    """The Bouc-Wen state (9) (n = 1) after a monotone change ``dpsi`` of ψ: dz/dψ = A − κ z,
-    κ = β sign(dψ) + γ sign(z), exact, through at most one zero crossing of z (the plant's map,
-    sim_backend/plant.py, written again for the estimate: the core does not import the
-    simulator)."""
-    if dpsi == 0.0:
-        return z
-    s = 1.0 if dpsi > 0.0 else -1.0
-    for _ in range(2):
-        sig = 1.0 if z > 0.0 else (-1.0 if z < 0.0 else (s if A >= 0.0 else -s))
-        kap = beta * s + gamma * sig
-        slope = A - kap * z
-        kd = kap * dpsi
-        zn = z - slope * math.expm1(-kd) / kap if kd != 0.0 else z + slope * dpsi
-        if z == 0.0 or zn * z >= 0.0:
-            return zn
-        d = math.log1p(-kap * z / A) / kap if (kap != 0.0 and A != 0.0) else -z / slope
-        dpsi -= d
-        z = 0.0
-        if dpsi * s <= 0.0:
-            return 0.0
-    return z
 
 
 class _YawState:

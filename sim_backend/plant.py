@@ -50,13 +50,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from math import ceil, cos, exp, expm1, log, log1p, sin, sqrt
+from math import ceil, cos, exp, expm1, log, sin, sqrt
 from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
 from rig_runtime.config import Plant as PlantParams
 from rig_runtime.damping import damping
+from rig_runtime.hysteresis import zmap
 
 __all__ = ["PlantState", "Plant", "LiftedCarrier", "WHEEL_LOAD_N", "STATE_NAMES"]
 
@@ -278,34 +279,7 @@ class _Carrier:
             return z
         if self.n != 1:
             return self._zmap_general(z, dpsi)
-        A, beta, gamma = self.A, self.beta, self.gamma
-        s = 1.0 if dpsi > 0.0 else -1.0
-        for _ in range(2):                      # at most one zero crossing of z
-            if z > 0.0:
-                sig = 1.0
-            elif z < 0.0:
-                sig = -1.0
-            else:
-                sig = s if A >= 0.0 else -s
-            kap = beta * s + gamma * sig
-            slope = A - kap * z                 # dz/dpsi at the start
-            kd = kap * dpsi
-            if kd != 0.0:
-                zn = z - slope * expm1(-kd) / kap
-            else:
-                zn = z + slope * dpsi
-            if z == 0.0 or zn * z >= 0.0:
-                return zn
-            # crossed zero: distance in psi to z = 0, continue from there with the other sign
-            if kap != 0.0 and A != 0.0:
-                d = log1p(-kap * z / A) / kap
-            else:
-                d = -z / slope
-            dpsi -= d
-            z = 0.0
-            if dpsi * s <= 0.0:
-                return 0.0
-        return z
+        return zmap(z, dpsi, self.A, self.beta, self.gamma)
 
     def _zmap_general(self, z: float, dpsi: float) -> float:
         """Bouc-Wen for n != 1: RK4 in psi with sub-steps small against the local stiffness."""
