@@ -13,8 +13,8 @@ fixed yaw-and-Δω gains run from the full filter's steady state). With a speed 
 the lane picks the nearest grid point of v̂ each cycle); without one it is the single design at
 ``plant.v``. With both carriers controlled, one joint design for the running gear instead
 (:func:`joint_design`, :func:`joint_speed_table`). The result is plain floats (:class:`rig_runtime.observer.ObserverDesign`): the cycle's
-module imports neither this module nor numpy/scipy. The designs of a speed grid are kept in this process's
-memory (:func:`cached_designs`); across processes ``app/runner.py`` keeps what a run
+module imports neither this module nor numpy/scipy. Each design is kept in this process's memory by its
+inputs (``functools.lru_cache``); across processes ``app/runner.py`` keeps what a run
 needs on disk (``rig_runtime.memo.across_processes``).
 """
 
@@ -284,8 +284,7 @@ def over_speed_grid(cfg: RigConfig, design: Callable, inputs: tuple):
     schedule's speed grid, returned as the design at v_d carrying the table (``table``, a
     :class:`SpeedTable`): |v_k| = |v_d| ρᵏ (v_d = schedule.v_design or plant.v, ρ =
     ``SPEED_RATIO``) for both signs, from ``SPEED_FLOOR``·v_min (inside the standstill band) to
-    the largest |v| of v_range. The grid's designs are kept per process
-    (:func:`cached_designs`)."""
+    the largest |v| of v_range."""
     sch = cfg.controller.schedule
     v_d = sch.v_design if sch.v_design is not None else cfg.plant.v
     ref = abs(v_d)
@@ -293,8 +292,8 @@ def over_speed_grid(cfg: RigConfig, design: Callable, inputs: tuple):
     k_lo = math.floor(math.log(SPEED_FLOOR * sch.v_min / ref) / lr)
     k_hi = math.ceil(math.log(max(abs(sch.v_range[0]), abs(sch.v_range[1])) / ref) / lr)
     speeds = [ref * SPEED_RATIO ** k for k in range(k_lo, k_hi + 1)]
-    both = cached_designs(design, inputs, speeds + [-v for v in speeds])
-    fw, bw = both[:len(speeds)], both[len(speeds):]
+    fw = tuple(design(*inputs, v) for v in speeds)
+    bw = tuple(design(*inputs, -v) for v in speeds)
     base = (fw if v_d > 0 else bw)[-k_lo]
     table = SpeedTable(v_ref=ref, ratio=SPEED_RATIO, k_lo=k_lo, k_hi=k_hi, forward=fw, backward=bw)
     return dataclasses.replace(base, table=table)
@@ -327,7 +326,7 @@ def designs(cfg: RigConfig) -> dict:
     none): both carriers on the rollers and controlled — the running gear's joint filter
     (each carrier a ``JointCarrier`` of one design; with a speed schedule its table);
     otherwise per carrier, with a schedule the carrier's speed table, else the single design
-    at plant.v. Every design kept per process (:func:`cached_designs`)."""
+    at plant.v."""
     if cfg.observer is None:
         return {}
     if joint_applies(cfg):
@@ -335,15 +334,11 @@ def designs(cfg: RigConfig) -> dict:
         if cfg.controller.schedule is not None:
             j = joint_speed_table(cfg)
         else:
-            (j,) = cached_designs(_joint, _joint_inputs(cfg, None), [cfg.plant.carrier("rear").v])
+            j = joint_design(cfg)
         return {c: JointCarrier(c, j) for c in ("front", "rear")}
     if cfg.controller.schedule is not None:
         return {c: speed_table(cfg, c) for c in cfg.controlled}
-    out = {}
-    for c in cfg.controlled:
-        i = design_inputs(cfg, c)
-        (out[c],) = cached_designs(_design, i[:-1], [i.v])
-    return out
+    return {c: design(cfg, c) for c in cfg.controlled}
 
 
 def steady_std(d: ObserverDesign) -> dict[str, float]:
@@ -564,28 +559,3 @@ def joint_speed_table(cfg: RigConfig, ocfg: ObserverConfig | None = None):
     """The joint design over the schedule's speed grid (as :func:`speed_table`), returned as
     the design at v_d carrying the table."""
     return over_speed_grid(cfg, _joint, _joint_inputs(cfg, ocfg))
-
-
-# ---------------------------------------------------------------------- the speed grids kept in a process
-#: speed grids kept per process (each ~4 MB for the vehicle), the oldest dropped
-GRIDS_KEPT = 8
-_grids: dict[str, tuple] = {}
-
-
-def cache_key(design: Callable, inputs: tuple, speeds: list[float]) -> str:
-    """The key of ``design(*inputs, v)`` over ``speeds``: every input's exact text (the inputs
-    are frozen dataclasses whose repr shows every field, floats in repr: exact)."""
-    return repr((design.__qualname__, inputs, [float(v) for v in speeds]))
-
-
-def cached_designs(design: Callable, inputs: tuple, speeds: list[float]) -> tuple:
-    """``design(*inputs, v)`` for every v of ``speeds``, kept in this process's memory by their
-    key. Across processes the designs a run needs are kept by ``rig_runtime.memo.across_processes``
-    (``app/runner.py``), the one disk cache of the project."""
-    key = cache_key(design, inputs, speeds)
-    out = _grids.get(key)
-    if out is None:
-        out = _grids[key] = tuple(design(*inputs, v) for v in speeds)
-        while len(_grids) > GRIDS_KEPT:
-            del _grids[next(iter(_grids))]
-    return out
